@@ -1,0 +1,434 @@
+"""Incompressible Navier-Stokes with Taylor-Hood P2/P1 elements and backward Euler (paper (1), (26)).
+
+Weak form (paper (2)): rho (v^{m+1} - v^m)/dt + rho c(v) + eta (grad v, grad w) - (p, div w) = <F, w>,
+(q, div v^{m+1}) = 0, with v = inflow on the inlets, the SAW data on the lower wall, 0 on the other
+walls, and the natural do-nothing condition eta dv/dn - p n = 0 on the outlets.
+
+Convection treatments (``Numerics.convection``), c(v) = (v . grad) v evaluated as follows:
+
+- ``imex``:     c(v^m) on the right-hand side; the matrix never changes and is factored once, so a step
+                is one numba load kernel plus one back-solve. First order in dt, like backward Euler.
+- ``oseen``:    (v^m . grad) v^{m+1}; one solve per step, but the matrix is assembled and factored anew.
+- ``implicit``: c(v^{m+1}), the paper's (26), solved to ``nonlinear_tolerance``: fixed-point iterations
+                on the constant factorisation (each costs one back-solve), switching to Newton's method
+                when they do not contract (large dt * |grad v|).
+- ``stokes``:   no convection.
+
+Unknowns are laid out [v_x (N), v_y (N), p (P)] with N scalar P2 nodes and P P1 nodes. The pressure
+is scaled inside the saddle-point matrix so both blocks have comparable entries; states hold SI values.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time as clock
+from dataclasses import dataclass, field
+
+import numpy as np
+import scipy.sparse as sp
+from skfem import Basis, BilinearForm, ElementTriP1, ElementTriP2, FacetBasis, Functional, LinearForm, asm
+from skfem.helpers import dot, grad
+from skfem.quadrature import get_quadrature
+
+from . import kernels
+from .boundary import inflow_velocity, saw_jet_factor, saw_window_profile
+from .linalg import factorize, resolved_solver_name
+from .mesh import ChannelMesh, channel_mesh
+from .scenario import Scenario
+
+log = logging.getLogger(__name__)
+
+
+class NumericalBlowUp(RuntimeError):
+    """The solution stopped being a solution: non-finite values or a diverging nonlinear solve."""
+
+
+@dataclass(frozen=True)
+class Flow:
+    """The fluid state at one time: velocity (2, N) at P2 nodes, pressure (P,) at P1 nodes (SI)."""
+
+    time: float
+    velocity: np.ndarray
+    pressure: np.ndarray
+    streaming_level: float = 0.0
+    iterations: int = 0
+
+
+@BilinearForm
+def _mass(u, v, w):
+    return u * v
+
+
+@BilinearForm
+def _laplace(u, v, w):
+    return dot(grad(u), grad(v))
+
+
+@BilinearForm
+def _d_dx(u, q, w):
+    return grad(u)[0] * q
+
+
+@BilinearForm
+def _d_dy(u, q, w):
+    return grad(u)[1] * q
+
+
+@BilinearForm
+def _advection(u, v, w):
+    return (w.ux * grad(u)[0] + w.uy * grad(u)[1]) * v
+
+
+@BilinearForm
+def _weighted_mass(u, v, w):
+    return w.weight * u * v
+
+
+class TaylorHood:
+    """The P2/P1 spaces on a channel mesh, their constant matrices and the quadrature for the kernels."""
+
+    def __init__(self, cmesh: ChannelMesh):
+        self.cmesh = cmesh
+        mesh = cmesh.mesh
+        self.velocity_basis = Basis(mesh, ElementTriP2(), intorder=5)
+        self.pressure_basis = Basis(mesh, ElementTriP1(), quadrature=self.velocity_basis.quadrature)
+        self.N = self.velocity_basis.N
+        self.P = self.pressure_basis.N
+        self.nodes = self.velocity_basis.doflocs
+        self.mass = asm(_mass, self.velocity_basis).tocsr()
+        self.laplace = asm(_laplace, self.velocity_basis).tocsr()
+        self.divergence = (asm(_d_dx, self.velocity_basis, self.pressure_basis).tocsr(),
+                           asm(_d_dy, self.velocity_basis, self.pressure_basis).tocsr())
+        self._kernel_tables()
+
+    @property
+    def dofs(self) -> int:
+        return 2 * self.N + self.P
+
+    def _kernel_tables(self):
+        element = ElementTriP2()
+        points, weights = get_quadrature(element.refdom, 5)
+        self.q_weights = np.ascontiguousarray(weights)
+        values = [element.lbasis(points, i) for i in range(6)]
+        self.q_phi = np.ascontiguousarray(np.array([v[0] for v in values]).T)              # (nq, 6)
+        self.q_dphi = np.ascontiguousarray(np.array([v[1] for v in values]).transpose(2, 0, 1))  # (nq, 6, 2)
+        mapping = self.cmesh.mesh.mapping()
+        centre = np.array([[1 / 3], [1 / 3]])
+        self.inverse_jacobians = np.ascontiguousarray(mapping.invDF(centre)[:, :, :, 0].transpose(2, 0, 1))
+        self.determinants = np.ascontiguousarray(mapping.detDF(centre)[:, 0])
+        self.element_dofs = np.ascontiguousarray(self.velocity_basis.element_dofs.astype(np.int64))
+        self._identity_positions = np.arange(2 * self.N, dtype=np.int64).reshape(2, self.N)
+        self._scratch = None
+
+    def momentum_load(self, velocity, mass_coefficient, convection_coefficient, positions, out):
+        """Add (m v - k (v . grad) v, phi_i) to ``out[positions[c, i]]`` (numba kernel, see ``kernels``)."""
+        if self._scratch is None:
+            self._scratch = np.empty((self.element_dofs.shape[1], 2, 6))
+        kernels.momentum_load(self.element_dofs, self.inverse_jacobians, self.determinants, self.q_phi, self.q_dphi,
+                              self.q_weights, velocity, mass_coefficient, convection_coefficient, positions, out,
+                              self._scratch)
+        return out
+
+    def convection_load(self, velocity: np.ndarray) -> np.ndarray:
+        """The vector (2, N) of integrals ((v . grad) v) . phi_i."""
+        out = np.zeros(2 * self.N)
+        self.momentum_load(velocity, 0.0, -1.0, self._identity_positions, out)
+        return out.reshape(2, self.N)
+
+    def convection_matrices(self, velocity: np.ndarray, newton: bool):
+        """Blocks [[Cxx, Cxy], [Cyx, Cyy]] of the linearised convection about ``velocity``.
+
+        Picard/Oseen: C = (v . grad) on the diagonal. Newton adds (. grad) v: C_ab += (d_b v_a) phi_j phi_i.
+        """
+        fields = {"ux": self.velocity_basis.interpolate(velocity[0]), "uy": self.velocity_basis.interpolate(velocity[1])}
+        advection = asm(_advection, self.velocity_basis, **fields)
+        blocks = [[advection, None], [None, advection]]
+        if newton:
+            for a, component in enumerate(("ux", "uy")):
+                for b in range(2):
+                    weight = fields[component].grad[b]
+                    coupling = asm(_weighted_mass, self.velocity_basis, weight=weight)
+                    blocks[a][b] = coupling if blocks[a][b] is None else blocks[a][b] + coupling
+        return blocks
+
+    def boundary_flux(self, velocity: np.ndarray, name: str) -> float:
+        """Outward volume flux (m^2/s) of ``velocity`` through the named boundary."""
+        facets = self.cmesh.boundary(name)
+        if len(facets) == 0:
+            return 0.0
+        basis = FacetBasis(self.cmesh.mesh, ElementTriP2(), facets=facets, intorder=4)
+
+        @Functional
+        def flux(w):
+            return w.ux * w.n[0] + w.uy * w.n[1]
+
+        return float(flux.assemble(basis, ux=basis.interpolate(velocity[0]), uy=basis.interpolate(velocity[1])))
+
+
+@dataclass
+class StepTimings:
+    """Wall time spent in each part of the fluid steps so far (seconds)."""
+
+    load: float = 0.0
+    solve: float = 0.0
+    assemble: float = 0.0
+    factor: float = 0.0
+    steps: int = 0
+    extra: dict = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class _System:
+    """A factored reduced matrix with the lifts of the inflow and of the unit SAW jet."""
+
+    factor: object
+    lift_inflow: np.ndarray
+    lift_jet: np.ndarray
+
+
+class NavierStokes:
+    """The channel flow of a scenario: ``initial_flow``, ``step`` and ``steady``.
+
+    ``actuation`` in [0, 1] is the IDT drive (0 off, 1 on) applying to the new time level; ``load`` is an
+    optional (2, N) vector of forces <F, phi_i> (the membrane hook of paper (25)).
+    """
+
+    def __init__(self, scenario: Scenario, space: TaylorHood | None = None):
+        started = clock.perf_counter()
+        self.scenario = scenario
+        self.space = space or TaylorHood(channel_mesh(scenario.channel, scenario.numerics.mesh_h))
+        self.timings = StepTimings()
+        self.timings.assemble = clock.perf_counter() - started
+        self._dirichlet_split()
+        self._boundary_vectors()
+        self._constant_system()
+
+    # ------------------------------------------------------------------ set-up
+    def _dirichlet_split(self):
+        space, cmesh = self.space, self.space.cmesh
+        outlet_facets = np.concatenate([cmesh.boundary(o.name) for o in self.scenario.channel.outlets])
+        dirichlet_facets = np.setdiff1d(cmesh.mesh.boundary_facets(), outlet_facets)
+        nodes = np.unique(space.velocity_basis.get_dofs(facets=dirichlet_facets).all())
+        self.dirichlet_nodes = nodes
+        self.dirichlet = np.concatenate([nodes, nodes + space.N])
+        self.free = np.setdiff1d(np.arange(space.dofs), self.dirichlet)
+        self.free_velocity = self.free[self.free < 2 * space.N]
+        positions = np.full(2 * space.N, -1, dtype=np.int64)
+        positions[self.free_velocity] = np.arange(len(self.free_velocity))
+        self.positions = positions.reshape(2, space.N)
+
+    def _boundary_vectors(self):
+        space, channel, saw = self.space, self.scenario.channel, self.scenario.saw
+        x, y = space.nodes
+        on_left = np.isclose(x, 0.0, atol=1e-9 * channel.length)
+        on_bottom = np.isclose(y, 0.0, atol=1e-9 * channel.height)
+        self.inflow = np.zeros((2, space.N))
+        self.inflow[:, on_left] = inflow_velocity(channel, y[on_left])
+        self.jet = np.zeros((2, space.N))
+        self.jet[1, on_bottom] = saw.jet_speed * saw_window_profile(channel, x[on_bottom])
+        self.streaming_unit_load = np.zeros((2, space.N))
+        if saw.model == "streaming":
+            @LinearForm
+            def body_force(v, w):
+                x1, x2 = w.x
+                return saw.streaming_force * saw_window_profile(channel, x1) * np.exp(-x2 / saw.attenuation_length) * v
+            self.streaming_unit_load[1] = asm(body_force, space.velocity_basis)
+
+    def _constant_system(self):
+        space, fluid, numerics = self.space, self.scenario.fluid, self.scenario.numerics
+        self.stiffness = fluid.viscosity * space.laplace
+        self.mass_coefficient = fluid.density / numerics.dt
+        bx, by = space.divergence
+        a = self.mass_coefficient * space.mass + self.stiffness
+        self.pressure_scale = abs(a).max() / max(abs(bx).max(), abs(by).max())
+        self._divergence = sp.hstack([bx, by]).tocsr() * self.pressure_scale
+        self.solver_name = resolved_solver_name(numerics.linear_solver)
+        self._constant = None
+        if numerics.convection in ("imex", "stokes", "implicit"):
+            self._constant = self._system(a, a, symmetric=True)
+
+    def _system(self, block_xx, block_yy, off_xy=None, off_yx=None, symmetric=False):
+        """Factor the free-free block of [[A, -s B^T], [-s B, 0]], A = [[A_xx, A_xy], [A_yx, A_yy]]."""
+        momentum = sp.bmat([[block_xx, off_xy], [off_yx, block_yy]], format="csr")
+        divergence = self._divergence
+        rows = sp.bmat([[momentum, -divergence.T], [-divergence, None]], format="csr")[self.free]
+        lift = rows[:, self.dirichlet].tocsr()
+        started = clock.perf_counter()
+        factor = factorize(rows[:, self.free].tocsr(), self.scenario.numerics.linear_solver, symmetric=symmetric)
+        self.timings.factor += clock.perf_counter() - started
+        return _System(factor, lift @ self.inflow.ravel()[self.dirichlet], lift @ self.jet.ravel()[self.dirichlet])
+
+    # ------------------------------------------------------------------ boundary data
+    def jet_weight(self, time: float, actuation: float) -> float:
+        """The factor of the SAW jet in the Dirichlet data: boundary velocity = inflow + weight * jet."""
+        saw = self.scenario.saw
+        if saw.model == "streaming" or actuation == 0.0:
+            return 0.0
+        return actuation * saw_jet_factor(saw, time)
+
+    def boundary_values(self, time: float, actuation: float) -> np.ndarray:
+        """Velocity (2, N) on the boundary at ``time`` (only Dirichlet nodes matter)."""
+        return self.inflow + self.jet_weight(time, actuation) * self.jet
+
+    def streaming_level(self, previous_level: float, actuation: float, dt: float) -> float:
+        """The streaming drive after ``dt``: a first-order lag towards ``actuation``."""
+        saw = self.scenario.saw
+        if saw.model != "streaming":
+            return 0.0
+        if saw.spin_up_time == 0.0:
+            return actuation
+        return actuation + (previous_level - actuation) * math.exp(-dt / saw.spin_up_time)
+
+    # ------------------------------------------------------------------ solves
+    def _free_rhs(self, momentum=None, continuity=None):
+        """A reduced right-hand side gathered from a momentum load (2, N) and a continuity load (P,)."""
+        rhs = np.zeros(len(self.free))
+        n_velocity = len(self.free_velocity)
+        if momentum is not None:
+            rhs[:n_velocity] = momentum.ravel()[self.free_velocity]
+        if continuity is not None:
+            rhs[n_velocity:] = continuity
+        return rhs
+
+    def _solve(self, system, rhs, inflow_weight=1.0, jet_weight=0.0):
+        """Solve ``system`` for the reduced ``rhs`` with boundary velocity inflow_weight * inflow + jet_weight * jet."""
+        if inflow_weight:
+            rhs -= inflow_weight * system.lift_inflow
+        if jet_weight:
+            rhs -= jet_weight * system.lift_jet
+        started = clock.perf_counter()
+        free_solution = system.factor.solve(rhs)
+        self.timings.solve += clock.perf_counter() - started
+        velocity = inflow_weight * self.inflow + jet_weight * self.jet if (inflow_weight or jet_weight) \
+            else np.zeros((2, self.space.N))
+        n_velocity = len(self.free_velocity)
+        velocity.ravel()[self.free_velocity] = free_solution[:n_velocity]
+        return velocity, free_solution[n_velocity:] * self.pressure_scale
+
+    def _check(self, velocity, time, what):
+        if not np.all(np.isfinite(velocity)):
+            raise NumericalBlowUp(f"non-finite fluid velocity at t = {time:.6g} s after the {what} solve: "
+                                  "the time step is too large for this flow; reduce numerics.dt")
+
+    def step(self, state: Flow, actuation: float = 0.0, load: np.ndarray | None = None) -> Flow:
+        """Advance one backward-Euler step of size ``numerics.dt`` from ``state``."""
+        numerics, density = self.scenario.numerics, self.scenario.fluid.density
+        new_time = state.time + numerics.dt
+        treatment = numerics.convection
+        started = clock.perf_counter()
+        level = self.streaming_level(state.streaming_level, actuation, numerics.dt)
+        if level:
+            load = level * self.streaming_unit_load if load is None else load + level * self.streaming_unit_load
+        rhs = self._free_rhs(load)
+        explicit = density if treatment == "imex" else 0.0
+        self.space.momentum_load(state.velocity, self.mass_coefficient, explicit, self.positions, rhs)
+        self.timings.load += clock.perf_counter() - started
+        jet = self.jet_weight(new_time, actuation)
+        iterations = 1
+        if treatment in ("imex", "stokes"):
+            velocity, pressure = self._solve(self._constant, rhs, 1.0, jet)
+        elif treatment == "oseen":
+            system = self._linearised(state.velocity, newton=False, with_mass=True)
+            velocity, pressure = self._solve(system, rhs, 1.0, jet)
+        else:
+            velocity, pressure, iterations = self._implicit(state.velocity, rhs, jet, new_time)
+        self._check(velocity, new_time, treatment)
+        self.timings.steps += 1
+        return Flow(new_time, velocity, pressure, level, iterations)
+
+    def _linearised(self, velocity, newton, with_mass):
+        """The factored system linearised about ``velocity`` (Oseen, or Newton's Jacobian)."""
+        started = clock.perf_counter()
+        density = self.scenario.fluid.density
+        blocks = self.space.convection_matrices(velocity, newton)
+        base = self.stiffness + self.mass_coefficient * self.space.mass if with_mass else self.stiffness
+        scaled = [[None if block is None else density * block for block in row] for row in blocks]
+        self.timings.assemble += clock.perf_counter() - started
+        return self._system(base + scaled[0][0], base + scaled[1][1], scaled[0][1], scaled[1][0])
+
+    def _implicit(self, previous, rhs, jet, time):
+        """Solve (26) with c(v^{m+1}) to ``nonlinear_tolerance``: fixed point, then Newton if needed.
+
+        ``rhs`` holds rho/dt M v^m + loads (reduced); each fixed-point iterate costs one back-solve.
+        """
+        numerics, density = self.scenario.numerics, self.scenario.fluid.density
+        scale = np.linalg.norm(rhs) + 1e-300
+        convection = self._free_rhs(self.space.convection_load(previous))
+        residuals = []
+        for iteration in range(1, numerics.max_nonlinear_iterations + 1):
+            velocity, pressure = self._solve(self._constant, rhs - density * convection, 1.0, jet)
+            new_convection = self._free_rhs(self.space.convection_load(velocity))
+            # the residual of (26) at the new iterate is rho (c(v_new) - c(v_old))
+            residuals.append(density * np.linalg.norm(new_convection - convection) / scale)
+            convection = new_convection
+            if residuals[-1] <= numerics.nonlinear_tolerance:
+                return velocity, pressure, iteration
+            if iteration >= 3 and residuals[-1] > 0.5 * residuals[-2]:
+                log.info("fixed-point iterations contract too slowly at t = %.6g s; switching to Newton", time)
+                break
+        momentum = self.mass_coefficient * (self.space.mass @ previous.T).T
+        velocity, pressure, newton_iterations = self._newton(velocity, pressure, momentum, jet, time, with_mass=True)
+        return velocity, pressure, len(residuals) + newton_iterations
+
+    def _newton(self, velocity, pressure, momentum, jet, time, with_mass, load=None):
+        """Newton's method for (m M + eta L) v + rho c(v) - B^T p = momentum + load, B v = 0, v = data on Gamma_D."""
+        numerics = self.scenario.numerics
+        velocity = velocity.copy()
+        boundary = self.inflow + jet * self.jet
+        velocity.ravel()[self.dirichlet] = boundary.ravel()[self.dirichlet]
+        target = momentum if load is None else momentum + load
+        for iteration in range(1, numerics.max_nonlinear_iterations + 1):
+            residual = self._residual(velocity, pressure, target, with_mass)
+            continuity = self.pressure_scale * self._divergence_of(velocity)
+            system = self._linearised(velocity, newton=True, with_mass=with_mass)
+            correction, pressure_correction = self._solve(system, self._free_rhs(-residual, continuity), 0.0, 0.0)
+            velocity = velocity + correction
+            pressure = pressure + pressure_correction
+            self._check(velocity, time, "Newton")
+            if np.linalg.norm(correction) <= numerics.nonlinear_tolerance * (np.linalg.norm(velocity) + 1e-300):
+                return velocity, pressure, iteration
+        raise NumericalBlowUp(f"the nonlinear solve did not converge in {numerics.max_nonlinear_iterations} Newton "
+                              f"iterations at t = {time:.6g} s: reduce numerics.dt or the inflow speeds")
+
+    def _divergence_of(self, velocity):
+        bx, by = self.space.divergence
+        return bx @ velocity[0] + by @ velocity[1]
+
+    def _residual(self, velocity, pressure, target, with_mass):
+        """Momentum residual (2, N): (m M + eta L) v + rho c(v) - B^T p - target."""
+        space = self.space
+        operator = self.stiffness @ velocity.T
+        if with_mass:
+            operator = operator + self.mass_coefficient * (space.mass @ velocity.T)
+        bx, by = space.divergence
+        residual = operator.T + self.scenario.fluid.density * space.convection_load(velocity) - target
+        residual[0] -= bx.T @ pressure
+        residual[1] -= by.T @ pressure
+        return residual
+
+    def steady(self, actuation: float = 0.0, load: np.ndarray | None = None) -> Flow:
+        """The steady flow for a constant IDT drive: a Stokes solve, then Newton's method."""
+        started = clock.perf_counter()
+        level = actuation if self.scenario.saw.model == "streaming" else 0.0
+        forcing = level * self.streaming_unit_load if load is None else load + level * self.streaming_unit_load
+        jet = self.jet_weight(0.0, actuation)
+        stokes = self._system(self.stiffness, self.stiffness, symmetric=True)
+        velocity, pressure = self._solve(stokes, self._free_rhs(forcing), 1.0, jet)
+        velocity, pressure, iterations = self._newton(velocity, pressure, forcing, jet, 0.0, with_mass=False)
+        self.timings.extra["steady"] = self.timings.extra.get("steady", 0.0) + clock.perf_counter() - started
+        return Flow(0.0, velocity, pressure, level, iterations)
+
+    def rest(self) -> Flow:
+        return Flow(0.0, np.zeros((2, self.space.N)), np.zeros(self.space.P))
+
+    def initial_flow(self, actuation: float = 0.0) -> Flow:
+        """The start state the scenario asks for: the steady flow (default) or fluid at rest."""
+        if self.scenario.numerics.initial_flow == "rest":
+            return self.rest()
+        return self.steady(actuation)
+
+    def divergence_norm(self, velocity: np.ndarray) -> float:
+        """max_q |(q_i, div v)| over P1 basis functions: zero to round-off for a solution."""
+        bx, by = self.space.divergence
+        return float(np.abs(bx @ velocity[0] + by @ velocity[1]).max())

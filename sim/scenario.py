@@ -1,0 +1,283 @@
+"""The scenario: frozen, validated descriptions of the device, the fluid, the SAW model and the numerics.
+
+All quantities are SI (metres, seconds, kilograms, pascal seconds). The defaults are the paper's
+(section 4, with the readings recorded in PHYSICS.md). Every class checks its own fields in
+``__post_init__`` and raises ``ScenarioError`` naming the field; ``Scenario`` checks what spans parts
+(an inlet outside the wall, overlapping outlets, a mesh that does not resolve an inlet).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field, fields, is_dataclass, replace
+
+UM = 1e-6
+
+CONVECTIONS = ("imex", "oseen", "implicit", "stokes")
+SAW_MODELS = ("paper", "envelope", "streaming")
+PROFILE_READINGS = ("paper", "peak")
+INITIAL_FLOWS = ("steady", "rest")
+LINEAR_SOLVERS = ("auto", "pardiso", "superlu")
+
+
+class ScenarioError(ValueError):
+    """An invalid scenario value; ``str(error)`` is one line naming the field and the fix."""
+
+    def __init__(self, field_name: str, message: str):
+        self.field = field_name
+        super().__init__(f"{field_name}: {message}")
+
+    def within(self, prefix: str) -> "ScenarioError":
+        """The same error with ``prefix.`` prepended to the field path."""
+        return ScenarioError(f"{prefix}.{self.field}", str(self).split(": ", 1)[1])
+
+
+def _positive(owner, *names):
+    for name in names:
+        value = getattr(owner, name)
+        if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
+            raise ScenarioError(name, f"must be a positive number (got {value!r})")
+
+
+def _choice(owner, name, choices):
+    value = getattr(owner, name)
+    if value not in choices:
+        raise ScenarioError(name, f"must be one of {', '.join(choices)} (got {value!r})")
+
+
+def _interval(owner, name):
+    low, high = getattr(owner, name)
+    if not (math.isfinite(low) and math.isfinite(high) and low < high):
+        raise ScenarioError(name, f"must be an interval (low, high) with low < high (got {(low, high)!r})")
+
+
+@dataclass(frozen=True)
+class Inlet:
+    """An inflow boundary {0} x (low, high) with the paper's profile v_hat m(y) (y - low)(high - y).
+
+    ``tilt`` is the angle of the inflow velocity to the x axis (positive: upward). ``cutoff`` is the
+    width epsilon over which the smooth cut-off m rises from 0 at the wall to 1.
+    """
+
+    name: str
+    span: tuple[float, float]
+    v_hat: float
+    tilt: float = 0.0
+    cutoff: float = 3 * UM
+
+    def __post_init__(self):
+        object.__setattr__(self, "span", tuple(float(v) for v in self.span))
+        _interval(self, "span")
+        if not (math.isfinite(self.v_hat) and self.v_hat >= 0):
+            raise ScenarioError("v_hat", f"must be a non-negative speed in m/s (got {self.v_hat!r})")
+        if not abs(self.tilt) < math.pi / 2:
+            raise ScenarioError("tilt", f"must lie in (-pi/2, pi/2) so the flow enters (got {self.tilt!r})")
+        if not (0 <= self.cutoff <= (self.span[1] - self.span[0]) / 2):
+            raise ScenarioError("cutoff", "must lie in [0, half the inlet width]")
+
+
+@dataclass(frozen=True)
+class Outlet:
+    """A do-nothing outflow boundary {length} x (low, high)."""
+
+    name: str
+    span: tuple[float, float]
+
+    def __post_init__(self):
+        object.__setattr__(self, "span", tuple(float(v) for v in self.span))
+        _interval(self, "span")
+
+
+@dataclass(frozen=True)
+class SawWindow:
+    """The boundary (low, high) x {0} through which the SAW acts; ``cutoff`` as for inlets."""
+
+    span: tuple[float, float] = (135 * UM, 165 * UM)
+    cutoff: float = 3 * UM
+
+    def __post_init__(self):
+        object.__setattr__(self, "span", tuple(float(v) for v in self.span))
+        _interval(self, "span")
+        if not (0 <= self.cutoff <= (self.span[1] - self.span[0]) / 2):
+            raise ScenarioError("cutoff", "must lie in [0, half the window width]")
+
+
+def _paper_inlets():
+    tilt = math.pi / 6
+    return (
+        Inlet("inlet1", (30 * UM, 80 * UM), 5.0e-2, +tilt),
+        Inlet("inlet2", (100 * UM, 130 * UM), 1.0e-2, 0.0),
+        Inlet("inlet3", (150 * UM, 200 * UM), 10.0e-2, -tilt),
+    )
+
+
+def _paper_outlets():
+    return (Outlet("lower", (20 * UM, 100 * UM)), Outlet("upper", (120 * UM, 200 * UM)))
+
+
+@dataclass(frozen=True)
+class Channel:
+    """The rectangle (0, length) x (0, height) with inlets on x = 0 and outlets on x = length.
+
+    ``profile_reading`` says how to read the paper's profile formula: ``paper`` measures lengths in
+    units of 10 um (PHYSICS.md), ``peak`` takes v_hat as the peak speed of the parabola.
+    ``injection_inlet`` names the inlet cells enter through.
+    """
+
+    length: float = 300 * UM
+    height: float = 220 * UM
+    inlets: tuple[Inlet, ...] = field(default_factory=_paper_inlets)
+    outlets: tuple[Outlet, ...] = field(default_factory=_paper_outlets)
+    saw_window: SawWindow = field(default_factory=SawWindow)
+    profile_reading: str = "paper"
+    injection_inlet: str = "inlet2"
+
+    def __post_init__(self):
+        _positive(self, "length", "height")
+        _choice(self, "profile_reading", PROFILE_READINGS)
+        object.__setattr__(self, "inlets", tuple(self.inlets))
+        object.__setattr__(self, "outlets", tuple(self.outlets))
+        if not self.inlets:
+            raise ScenarioError("inlets", "at least one inlet is needed")
+        if len(self.outlets) < 1:
+            raise ScenarioError("outlets", "at least one outlet is needed")
+        self._check_spans("inlets", self.inlets, self.height)
+        self._check_spans("outlets", self.outlets, self.height)
+        low, high = self.saw_window.span
+        if low <= 0 or high >= self.length:
+            raise ScenarioError("saw_window.span", f"must lie inside the lower wall (0, {self.length:g}) m")
+        if self.injection_inlet not in [inlet.name for inlet in self.inlets]:
+            raise ScenarioError("injection_inlet", f"names no inlet (got {self.injection_inlet!r})")
+
+    @staticmethod
+    def _check_spans(kind, boundaries, height):
+        names = [b.name for b in boundaries]
+        if len(set(names)) != len(names):
+            raise ScenarioError(kind, f"names must be unique (got {names})")
+        for index, boundary in enumerate(boundaries):
+            low, high = boundary.span
+            if low <= 0 or high >= height:
+                raise ScenarioError(f"{kind}[{index}].span",
+                                    f"{boundary.name!r} ({low:g}, {high:g}) m lies outside the wall (0, {height:g}) m")
+        ordered = sorted(boundaries, key=lambda b: b.span[0])
+        for first, second in zip(ordered, ordered[1:]):
+            if second.span[0] < first.span[1]:
+                raise ScenarioError(kind, f"{first.name!r} and {second.name!r} overlap")
+
+    def inlet(self, name: str) -> Inlet:
+        return next(inlet for inlet in self.inlets if inlet.name == name)
+
+    def breakpoints_y(self) -> list[float]:
+        """Ordinates the mesh must contain so inlets and outlets begin and end at vertices."""
+        points = {0.0, self.height}
+        for boundary in self.inlets + self.outlets:
+            points.update(boundary.span)
+        return sorted(points)
+
+
+@dataclass(frozen=True)
+class Fluid:
+    """A Newtonian fluid, the same inside and outside the cells (paper section 4)."""
+
+    density: float = 1.0e3
+    viscosity: float = 6.0e-3
+
+    def __post_init__(self):
+        _positive(self, "density", "viscosity")
+
+
+@dataclass(frozen=True)
+class Saw:
+    """The surface acoustic wave actuation (PHYSICS.md decision 1).
+
+    ``paper``: v_2 = 2 pi a f m(x) cos(2 pi f t) on the window, sampled at the step times;
+    ``envelope``: the same jet with cos replaced by 1 while the IDT is on;
+    ``streaming``: a time-averaged body force ``streaming_force`` * m(x) * exp(-y / attenuation_length)
+    (N/m^3, directed into the channel) that follows the IDT through a first-order lag ``spin_up_time``.
+    """
+
+    model: str = "paper"
+    amplitude: float = 1.0e-9
+    frequency: float = 100.0e6
+    streaming_force: float = 4.0e6
+    attenuation_length: float = 60 * UM
+    spin_up_time: float = 0.2e-3
+
+    def __post_init__(self):
+        _choice(self, "model", SAW_MODELS)
+        _positive(self, "amplitude", "frequency", "attenuation_length")
+        if not (math.isfinite(self.streaming_force) and self.streaming_force >= 0):
+            raise ScenarioError("streaming_force", f"must be a non-negative force density (got {self.streaming_force!r})")
+        if not (math.isfinite(self.spin_up_time) and self.spin_up_time >= 0):
+            raise ScenarioError("spin_up_time", f"must be >= 0 s (got {self.spin_up_time!r})")
+
+    @property
+    def jet_speed(self) -> float:
+        """Peak normal speed 2 pi a f of the Dirichlet models (0.628 m/s with the paper's values)."""
+        return 2 * math.pi * self.amplitude * self.frequency
+
+
+@dataclass(frozen=True)
+class Numerics:
+    """Discretisation: mesh size, time step, convection treatment, linear solver, start state.
+
+    ``mesh_h`` is the target edge length of the right-isosceles triangulation; the paper's 10/3 um
+    gives 90 x 66 squares and 54,243 Taylor-Hood DOFs.
+    """
+
+    mesh_h: float = 10 / 3 * UM
+    dt: float = 2.5e-6
+    convection: str = "imex"
+    linear_solver: str = "auto"
+    initial_flow: str = "steady"
+    nonlinear_tolerance: float = 1e-10
+    max_nonlinear_iterations: int = 30
+
+    def __post_init__(self):
+        _positive(self, "mesh_h", "dt", "nonlinear_tolerance")
+        _choice(self, "convection", CONVECTIONS)
+        _choice(self, "linear_solver", LINEAR_SOLVERS)
+        _choice(self, "initial_flow", INITIAL_FLOWS)
+        if not (isinstance(self.max_nonlinear_iterations, int) and self.max_nonlinear_iterations >= 1):
+            raise ScenarioError("max_nonlinear_iterations", "must be an integer >= 1")
+
+
+# the cells across the narrowest inlet or outlet below which the profile is not resolved
+MIN_CELLS_ACROSS = 2
+
+
+@dataclass(frozen=True)
+class Scenario:
+    """Everything the plant needs to know, in SI units."""
+
+    channel: Channel = field(default_factory=Channel)
+    fluid: Fluid = field(default_factory=Fluid)
+    saw: Saw = field(default_factory=Saw)
+    numerics: Numerics = field(default_factory=Numerics)
+
+    def __post_init__(self):
+        narrowest = min(self.channel.inlets + self.channel.outlets, key=lambda b: b.span[1] - b.span[0])
+        width = narrowest.span[1] - narrowest.span[0]
+        if self.numerics.mesh_h > width / MIN_CELLS_ACROSS * (1 + 1e-9):
+            raise ScenarioError(
+                "numerics.mesh_h",
+                f"{self.numerics.mesh_h / UM:.3g} um does not resolve {narrowest.name!r} ({width / UM:.3g} um wide): "
+                f"use mesh_h <= {width / MIN_CELLS_ACROSS / UM:.3g} um")
+        window = self.channel.saw_window.span
+        if self.numerics.mesh_h > (window[1] - window[0]) / MIN_CELLS_ACROSS * (1 + 1e-9):
+            raise ScenarioError("numerics.mesh_h", "does not resolve the SAW window: use a finer mesh")
+
+    def with_numerics(self, **changes) -> "Scenario":
+        return replace(self, numerics=replace(self.numerics, **changes))
+
+    def with_saw(self, **changes) -> "Scenario":
+        return replace(self, saw=replace(self.saw, **changes))
+
+
+def as_dict(obj):
+    """A plain-data view (dicts, lists, numbers, strings) of a scenario or any of its parts."""
+    if is_dataclass(obj):
+        return {f.name: as_dict(getattr(obj, f.name)) for f in fields(obj)}
+    if isinstance(obj, (tuple, list)):
+        return [as_dict(item) for item in obj]
+    return obj

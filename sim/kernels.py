@@ -84,3 +84,61 @@ def momentum_load(element_dofs, inverse_jacobians, determinants, phi, dphi, weig
     _element_momentum(element_dofs, inverse_jacobians, determinants, phi, dphi, weights, velocity[0], velocity[1],
                       mass_coefficient, convection_coefficient, scratch)
     _scatter(element_dofs, scratch, positions, out)
+
+
+@njit(cache=True)
+def locate(points, grid_x, grid_y, square_elements, origins, inverse_jacobians, elements, reference):
+    """Find the triangle holding each point of a tensor-grid triangulation and its reference coordinates.
+
+    square_elements (nx, ny, 2): the triangles of square (i, j), [0] above its rising diagonal, [1] below.
+    Points outside the rectangle get element -1. ``elements`` (n,) and ``reference`` (n, 2) are outputs.
+    """
+    nx = grid_x.shape[0] - 1
+    ny = grid_y.shape[0] - 1
+    for k in range(points.shape[0]):
+        x = points[k, 0]
+        y = points[k, 1]
+        if not (grid_x[0] <= x <= grid_x[nx] and grid_y[0] <= y <= grid_y[ny]):
+            elements[k] = -1
+            reference[k, 0] = np.nan
+            reference[k, 1] = np.nan
+            continue
+        i = min(max(np.searchsorted(grid_x, x) - 1, 0), nx - 1)
+        j = min(max(np.searchsorted(grid_y, y) - 1, 0), ny - 1)
+        s = (x - grid_x[i]) / (grid_x[i + 1] - grid_x[i])
+        r = (y - grid_y[j]) / (grid_y[j + 1] - grid_y[j])
+        e = square_elements[i, j, 0] if r > s else square_elements[i, j, 1]
+        elements[k] = e
+        dx = x - origins[e, 0]
+        dy = y - origins[e, 1]
+        reference[k, 0] = inverse_jacobians[e, 0, 0] * dx + inverse_jacobians[e, 0, 1] * dy
+        reference[k, 1] = inverse_jacobians[e, 1, 0] * dx + inverse_jacobians[e, 1, 1] * dy
+
+
+@njit(cache=True)
+def p2_basis(r, s, out):
+    """The six P2 basis functions on the reference triangle, scikit-fem's local order."""
+    out[0] = 1.0 - 3.0 * r - 3.0 * s + 2.0 * r * r + 4.0 * r * s + 2.0 * s * s
+    out[1] = 2.0 * r * r - r
+    out[2] = 2.0 * s * s - s
+    out[3] = 4.0 * r - 4.0 * r * r - 4.0 * r * s
+    out[4] = 4.0 * r * s
+    out[5] = 4.0 * s - 4.0 * r * s - 4.0 * s * s
+
+
+@njit(cache=True)
+def interpolate_p2(elements, reference, element_dofs, values, out):
+    """out[k, c] = sum_i values[c, dof_i] phi_i(point k): P2 fields (nc, N) at located points (NaN outside)."""
+    phi = np.empty(6)
+    for k in range(elements.shape[0]):
+        e = elements[k]
+        if e < 0:
+            for c in range(values.shape[0]):
+                out[k, c] = np.nan
+            continue
+        p2_basis(reference[k, 0], reference[k, 1], phi)
+        for c in range(values.shape[0]):
+            total = 0.0
+            for i in range(6):
+                total += values[c, element_dofs[i, e]] * phi[i]
+            out[k, c] = total

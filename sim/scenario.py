@@ -35,7 +35,7 @@ class ScenarioError(ValueError):
 def _positive(owner, *names):
     for name in names:
         value = getattr(owner, name)
-        if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
+        if isinstance(value, bool) or not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
             raise ScenarioError(name, f"must be a positive number (got {value!r})")
 
 
@@ -72,7 +72,7 @@ class Inlet:
             raise ScenarioError("v_hat", f"must be a non-negative speed in m/s (got {self.v_hat!r})")
         if not abs(self.tilt) < math.pi / 2:
             raise ScenarioError("tilt", f"must lie in (-pi/2, pi/2) so the flow enters (got {self.tilt!r})")
-        if not (0 <= self.cutoff <= (self.span[1] - self.span[0]) / 2):
+        if not (0 <= self.cutoff <= (self.span[1] - self.span[0]) / 2 * (1 + 1e-9)):
             raise ScenarioError("cutoff", "must lie in [0, half the inlet width]")
 
 
@@ -98,7 +98,7 @@ class SawWindow:
     def __post_init__(self):
         object.__setattr__(self, "span", tuple(float(v) for v in self.span))
         _interval(self, "span")
-        if not (0 <= self.cutoff <= (self.span[1] - self.span[0]) / 2):
+        if not (0 <= self.cutoff <= (self.span[1] - self.span[0]) / 2 * (1 + 1e-9)):
             raise ScenarioError("cutoff", "must lie in [0, half the window width]")
 
 
@@ -156,7 +156,7 @@ class Channel:
             raise ScenarioError(kind, f"names must be unique (got {names})")
         for index, boundary in enumerate(boundaries):
             low, high = boundary.span
-            if low <= 0 or high >= height:
+            if low < 0 or high > height:
                 raise ScenarioError(f"{kind}[{index}].span",
                                     f"{boundary.name!r} ({low:g}, {high:g}) m lies outside the wall (0, {height:g}) m")
         ordered = sorted(boundaries, key=lambda b: b.span[0])
@@ -199,7 +199,7 @@ class Saw:
     model: str = "paper"
     amplitude: float = 1.0e-9
     frequency: float = 100.0e6
-    streaming_force: float = 4.0e6
+    streaming_force: float = 5.7e7
     attenuation_length: float = 60 * UM
     spin_up_time: float = 0.2e-3
 

@@ -1,0 +1,151 @@
+"""The `vcyto` command line. Bad input ends with one line on stderr and exit status 2; a numerical
+failure with one line and status 1; never a traceback (set VCYTO_DEBUG=1 to see one)."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+from pathlib import Path
+
+from sim.fluid import NumericalBlowUp
+from sim.linalg import SolverError
+from sim.scenario import CONVECTIONS, SAW_MODELS, ScenarioError
+
+from .config import load_scenario
+
+EXIT_INPUT = 2
+EXIT_NUMERICAL = 1
+
+
+class UsageError(ValueError):
+    """Bad command-line input that is not a scenario field."""
+
+
+def _progress(quiet: bool):
+    def report(message: str):
+        if not quiet:
+            print(f"  .. {message}", file=sys.stderr, flush=True)
+    return report
+
+
+def _scenario_options(parser: argparse.ArgumentParser):
+    group = parser.add_argument_group("scenario (SI units; values may carry units such as 3.33um or 25us)")
+    group.add_argument("--scenario", metavar="FILE", help="TOML scenario file (default: the paper's device)")
+    group.add_argument("--set", dest="overrides", action="append", default=[], metavar="FIELD=VALUE",
+                       help="override one field, e.g. --set fluid.viscosity=1e-3 (repeatable)")
+    group.add_argument("--mesh-h", metavar="LENGTH", help="mesh size (default 3.33um, the paper's 54,243 DOFs)")
+    group.add_argument("--dt", metavar="TIME", help="time step (default 2.5us)")
+    group.add_argument("--convection", choices=CONVECTIONS, help="convection treatment (default imex)")
+    group.add_argument("--saw-model", choices=SAW_MODELS, help="SAW model (default paper)")
+    group.add_argument("--solver", choices=("auto", "pardiso", "superlu"), help="linear solver (default auto)")
+
+
+def _scenario(args):
+    overrides = list(args.overrides)
+    for option, field in (("mesh_h", "numerics.mesh_h"), ("dt", "numerics.dt"), ("convection", "numerics.convection"),
+                          ("saw_model", "saw.model"), ("solver", "numerics.linear_solver")):
+        value = getattr(args, option, None)
+        if value is not None:
+            overrides.append(f"{field}={value}")
+    return load_scenario(args.scenario, overrides)
+
+
+def _output_path(path: str | None) -> Path | None:
+    """Check before any work that an output file can be written."""
+    if path is None:
+        return None
+    target = Path(path)
+    directory = target.parent if str(target.parent) else Path(".")
+    if not directory.is_dir():
+        raise UsageError(f"cannot write {path}: directory {directory} does not exist")
+    if not os.access(directory, os.W_OK):
+        raise UsageError(f"cannot write {path}: directory {directory} is not writable")
+    return target
+
+
+def _emit(args, result: dict, lines: list[str]):
+    if args.json:
+        print(json.dumps(result, indent=2))
+    else:
+        print("\n".join(lines))
+
+
+def command_flow(args):
+    from . import flowtool
+    scenario = _scenario(args)
+    png = _output_path(args.png)
+    progress = _progress(args.quiet or args.json)
+    if args.calibrate_streaming:
+        result = flowtool.calibrate(scenario, progress)
+        _emit(args, result, [f"streaming force {result['streaming_force']:.4g} N/m^3 puts the injection streamline "
+                             f"at y = {result['exit_y_um']:.1f} um ({result['iterations']} bisection steps, "
+                             f"{result['wall_time_s']:.0f} s); set it with --set saw.streaming_force=..."])
+        return
+    paths, flows, solver = flowtool.solve_paths(scenario, progress)
+    result = flowtool.summary(scenario, paths, solver)
+    if png:
+        flowtool.save_png(str(png), scenario, solver, flows, paths)
+        result["png"] = str(png)
+    lines = flowtool.report_lines(result) + ([f"  saved {png}"] if png else [])
+    _emit(args, result, lines)
+
+
+def command_bench(args):
+    from . import bench
+    scenario = _scenario(args)
+    if args.repeats < 2:
+        raise UsageError(f"--repeats must be at least 2 (got {args.repeats})")
+    result = bench.bench_fluid(scenario, args.repeats, _progress(args.quiet or args.json))
+    _emit(args, result, bench.report_lines(result))
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="vcyto", description="A virtual cytometer: a simulated SAW cell sorter.")
+    commands = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+
+    flow = commands.add_parser("flow", help="steady flow with the IDT off and on; where the injection streamline leaves")
+    _scenario_options(flow)
+    flow.add_argument("--png", metavar="FILE", help="save the speed field with the streamlines as a PNG")
+    flow.add_argument("--calibrate-streaming", action="store_true",
+                      help="find the streaming force that deflects the streamline as far as the paper's jet")
+    flow.add_argument("--json", action="store_true", help="print a machine-readable summary")
+    flow.add_argument("--quiet", action="store_true", help="no progress messages")
+    flow.set_defaults(handler=command_flow)
+
+    bench = commands.add_parser("bench", help="benchmarks")
+    targets = bench.add_subparsers(dest="target", required=True, metavar="TARGET")
+    fluid = targets.add_parser("fluid", help="set-up and per-step cost of the fluid solver, per convection treatment")
+    _scenario_options(fluid)
+    fluid.add_argument("--repeats", type=int, default=40, help="timed repetitions per median (default 40)")
+    fluid.add_argument("--json", action="store_true", help="print a machine-readable result")
+    fluid.add_argument("--quiet", action="store_true", help="no progress messages")
+    fluid.set_defaults(handler=command_bench)
+    return parser
+
+
+def main(argv=None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    try:
+        args.handler(args)
+    except (ScenarioError, UsageError) as error:
+        return _fail(error, EXIT_INPUT)
+    except (NumericalBlowUp, SolverError) as error:
+        return _fail(error, EXIT_NUMERICAL)
+    except KeyboardInterrupt:
+        print("vcyto: interrupted", file=sys.stderr)
+        return 130
+    return 0
+
+
+def _fail(error: Exception, status: int) -> int:
+    if os.environ.get("VCYTO_DEBUG"):
+        raise error
+    print(f"vcyto: error: {error}", file=sys.stderr)
+    return status
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,390 @@
+"""Scenario files and command-line overrides turned into a validated ``Scenario``.
+
+A scenario file is TOML whose tables mirror the dataclasses of ``sim.scenario``: [channel],
+[[channel.inlets]], [[channel.outlets]], [channel.saw_window], [fluid], [saw], [numerics]. Omitted keys
+keep their defaults; a [[channel.inlets]] or [[channel.outlets]] array replaces the default list.
+An override is ``dotted.path=value`` (``numerics.dt=25us``, ``channel.inlets.1.v_hat=0.02``,
+``channel.inlets.0.span=[30um, 80um]``); tuple entries are chosen by 0-based index.
+
+Numbers are SI unless written as a string with a unit suffix from ``UNITS`` ("3.33 um", "2.5 us",
+"30 deg"). Every problem is a ``ScenarioError`` whose one-line message names the full dotted field,
+e.g. ``channel.inlets[0].span: ...``.
+
+The sections are built generically from ``dataclasses.fields`` and their type hints, so a field added
+to a scenario dataclass is read, overridden and written without changes here.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import decimal
+import math
+import numbers
+import os
+import re
+import sys
+import types
+import typing
+from collections.abc import Sequence
+
+if sys.version_info >= (3, 11):
+    import tomllib
+else:  # pragma: no cover - exercised on Python 3.10 only
+    import tomli as tomllib
+
+from sim.scenario import Scenario, ScenarioError, as_dict
+
+# unit suffix -> factor to SI (angles to radians); whitespace inside a suffix is not significant
+UNITS = {
+    "m": 1.0, "mm": 1e-3, "um": 1e-6, "nm": 1e-9,
+    "s": 1.0, "ms": 1e-3, "us": 1e-6, "ns": 1e-9,
+    "Hz": 1.0, "kHz": 1e3, "MHz": 1e6,
+    "rad": 1.0, "deg": math.pi / 180,
+    "Pa s": 1.0, "mPa s": 1e-3,
+}
+
+_QUANTITY = re.compile(r"\s*([-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?)\s*(.*?)\s*")
+_DECIMAL = decimal.Context(prec=34, traps=[])  # overflow gives inf (rejected by validation), not an exception
+_INDEX = re.compile(r"\d+", re.ASCII)
+_OVERRIDE_FORM = "an override must have the form dotted.path=value, e.g. numerics.dt=25us"
+
+
+# --- public interface -------------------------------------------------------------------------
+
+
+def load_scenario(path: str | os.PathLike | None = None, overrides: Sequence[str] = ()) -> Scenario:
+    """The scenario the TOML file at ``path`` describes (the defaults without one), with ``overrides`` applied.
+
+    Raises ``ScenarioError`` naming the full dotted field for every problem in the file or overrides.
+    """
+    if isinstance(overrides, str):
+        raise TypeError("overrides must be a sequence of 'dotted.path=value' strings, not one string")
+    tree = as_dict(Scenario())
+    if path is not None:
+        _merge(tree, _read_document(path))
+    for override in overrides:
+        _apply_override(tree, override)
+    return _build(Scenario, tree, "")
+
+
+def scenario_to_toml(scenario: Scenario) -> str:
+    """A complete TOML document, in plain SI numbers, that ``load_scenario`` reads back to ``scenario``."""
+    lines = ["# vcyto scenario; SI units (m, s, kg/m^3, Pa s, Hz, rad)"]
+    _write_table(scenario, "", lines)
+    return "\n".join(lines) + "\n"
+
+
+def parse_quantity(text: str) -> float:
+    """The SI value of ``text``, a number with an optional unit suffix from ``UNITS`` ("25 us" -> 2.5e-05).
+
+    Raises ``ValueError`` with a one-line explanation when ``text`` is not such a number.
+    """
+    match = _QUANTITY.fullmatch(text)
+    if match is None:
+        raise ValueError(f"cannot read {text!r} as a number; write a number with an optional unit ({_unit_names()})")
+    number, unit = match.groups()
+    unit = " ".join(unit.split())
+    if unit and unit not in UNITS:
+        raise ValueError(f"unknown unit {unit!r} in {text!r}; use one of {_unit_names()}, or none for SI")
+    # decimal product, rounded once: "10 um" is 1e-05 exactly, not 10 * 1e-06 = 9.999999999999999e-06
+    return float(_DECIMAL.multiply(decimal.Decimal(number), decimal.Decimal(repr(UNITS.get(unit, 1.0)))))
+
+
+# --- reading the file ---------------------------------------------------------------------------
+
+
+def _read_document(path: str | os.PathLike) -> dict:
+    """The parsed contents of the TOML scenario file at ``path``."""
+    name = os.fspath(path)
+    try:
+        with open(path, "rb") as file:
+            return tomllib.load(file)
+    except FileNotFoundError:
+        raise ScenarioError("path", f"scenario file '{name}' does not exist; check the path") from None
+    except OSError as error:
+        raise ScenarioError("path", f"cannot read scenario file '{name}': {error.strerror}") from None
+    except tomllib.TOMLDecodeError as error:
+        raise ScenarioError("path", f"scenario file '{name}' is not valid TOML: {_one_line(error)}") from None
+    except UnicodeDecodeError as error:
+        raise ScenarioError("path", f"scenario file '{name}' is not UTF-8 text: {_one_line(error)}") from None
+
+
+def _merge(base: dict, update: dict) -> None:
+    """Merge ``update`` into ``base`` in place: tables merge key by key, anything else (arrays too) replaces."""
+    for key, value in update.items():
+        if isinstance(value, dict) and isinstance(base.get(key), dict):
+            _merge(base[key], value)
+        else:
+            base[key] = value
+
+
+# --- overrides ----------------------------------------------------------------------------------
+
+
+def _apply_override(tree: dict, override: str) -> None:
+    """Set, in the plain-data scenario ``tree``, the field that ``override`` ("dotted.path=value") names."""
+    segments, value = _split_override(override)
+    node, hint, where = tree, Scenario, ""
+    for position, segment in enumerate(segments):
+        key, hint, where = _resolve(node, hint, segment, where)
+        if position == len(segments) - 1:
+            node[key] = value
+        elif isinstance(node, dict) and key not in node:
+            raise ScenarioError(where, f"is not given, so it cannot be changed in part; set {where} as a whole")
+        else:
+            node = node[key]
+
+
+def _split_override(override: str) -> tuple[list[str], object]:
+    """The path segments and the parsed value of ``override``; ``name[3]`` is read as ``name.3``."""
+    path, separator, text = override.partition("=")
+    path = re.sub(r"\[(\d+)\]", r".\1", path.strip())
+    segments = [segment.strip() for segment in path.split(".")]
+    if not separator or not all(segments):
+        raise ScenarioError(override.strip() or "override", _OVERRIDE_FORM)
+    return segments, _parse_value(text)
+
+
+def _resolve(node, hint, segment: str, where: str) -> tuple[object, object, str]:
+    """The key ``segment`` selects in ``node`` (of type ``hint``, at path ``where``), its type and its path."""
+    if _is_dataclass_type(hint):
+        if not isinstance(node, dict):
+            raise ScenarioError(where, f"must be a table (got {_shown(node)})")
+        if segment not in _init_fields(hint):
+            raise ScenarioError(_join(where, segment), _unknown_field(hint))
+        return segment, typing.get_type_hints(hint)[segment], _join(where, segment)
+    if typing.get_origin(hint) in (tuple, list):
+        return _resolve_index(node, hint, segment, where)
+    raise ScenarioError(where, f"is a single value and has no part {segment!r}; remove '.{segment}'")
+
+
+def _resolve_index(node, hint, segment: str, where: str) -> tuple[int, object, str]:
+    """The 0-based index ``segment`` selects in the array ``node`` at ``where``, with the entry's type and path."""
+    if not isinstance(node, list):
+        raise ScenarioError(where, f"must be an array (got {_shown(node)})")
+    if not _INDEX.fullmatch(segment):
+        raise ScenarioError(where, f"is an array; select an entry by its 0-based index, e.g. {where}.0 (got {segment!r})")
+    index = int(segment)
+    if index >= len(node):
+        valid = f" (indices 0 to {len(node) - 1})" if node else ""
+        raise ScenarioError(f"{where}[{index}]", f"index out of range; {where} has {len(node)} entries{valid}")
+    item_hints = _item_hints(hint, len(node))
+    item_hint = item_hints[index] if index < len(item_hints) else typing.Any
+    return index, item_hint, f"{where}[{index}]"
+
+
+def _parse_value(text: str):
+    """The value an override's text stands for: a TOML literal, else a list of such items, else the bare text.
+
+    Bare text stays a string, so unit-suffixed numbers ("25us") are read when the field's type is known.
+    """
+    text = text.strip()
+    value = _toml_literal(text)
+    if value is not None:
+        return value
+    if text.startswith("[") and text.endswith("]"):
+        items = text[1:-1].split(",")
+        if len(items) > 1 and not items[-1].strip():
+            items = items[:-1]  # a trailing comma, as TOML allows
+        return [_parse_value(item) for item in items] if text[1:-1].strip() else []
+    return text
+
+
+def _toml_literal(text: str):
+    """``text`` read as a TOML value (number, bool, string, array, inline table), or None if it is not one."""
+    if "\n" in text or "\r" in text:
+        return None
+    try:
+        value = tomllib.loads(f"value = {text}")["value"]
+    except tomllib.TOMLDecodeError:
+        return None
+    return value if isinstance(value, (bool, int, float, str, list, dict)) else None
+
+
+# --- building the dataclasses -------------------------------------------------------------------
+
+
+def _build(cls: type, data, where: str):
+    """An instance of the dataclass ``cls`` from the table ``data`` at path ``where``; omitted fields keep defaults."""
+    known = _init_fields(cls)
+    if not isinstance(data, dict):
+        raise ScenarioError(where or "scenario", f"must be a table of {', '.join(sorted(known))} (got {_shown(data)})")
+    for key in data:
+        if key not in known:
+            raise ScenarioError(_join(where, key), _unknown_field(cls))
+    required = [name for name, spec in known.items() if _is_required(spec)]
+    for name in required:
+        if name not in data:
+            raise ScenarioError(_join(where, name), f"missing; each {cls.__name__} needs {', '.join(required)}")
+    hints = typing.get_type_hints(cls)
+    values = {name: _coerce(data[name], hints[name], _join(where, name)) for name in known if name in data}
+    try:
+        return cls(**values)
+    except ScenarioError as error:
+        raise (error.within(where) if where else error) from None
+
+
+def _coerce(value, hint, where: str):
+    """``value`` (plain TOML data) converted to the type ``hint``; ``where`` is its dotted path for errors."""
+    if _is_dataclass_type(hint):
+        return _build(hint, value, where)
+    origin = typing.get_origin(hint)
+    if origin in (tuple, list):
+        return _coerce_sequence(value, hint, where)
+    if origin is typing.Union or origin is types.UnionType:
+        return _coerce_union(value, hint, where)
+    if hint is float:
+        return _coerce_float(value, where)
+    if hint is bool:
+        return _checked(value, bool, where, "true or false")
+    if hint is int:
+        return _checked(value, int, where, "an integer", reject_bool=True)
+    if hint is str:
+        return _checked(value, str, where, 'a string (quote it, e.g. "name")')
+    return value
+
+
+def _coerce_sequence(value, hint, where: str):
+    """The array ``value`` as the tuple or list type ``hint``, each entry converted to its item type."""
+    if not isinstance(value, (list, tuple)):
+        raise ScenarioError(where, f"must be an array, e.g. [1, 2] (got {_shown(value)})")
+    item_hints = _item_hints(hint, len(value))
+    if len(item_hints) != len(value):
+        raise ScenarioError(where, f"must have {len(item_hints)} entries (got {len(value)})")
+    items = [_coerce(item, item_hint, f"{where}[{index}]")
+             for index, (item, item_hint) in enumerate(zip(value, item_hints))]
+    return tuple(items) if typing.get_origin(hint) is tuple else items
+
+
+def _coerce_union(value, hint, where: str):
+    """``value`` as the first member of the union ``hint`` (NoneType aside) that accepts it."""
+    members = [member for member in typing.get_args(hint) if member is not type(None)]
+    for member in members[:-1]:
+        try:
+            return _coerce(value, member, where)
+        except ScenarioError:
+            continue
+    return _coerce(value, members[-1], where)
+
+
+def _coerce_float(value, where: str) -> float:
+    """``value`` as a float in SI units: a number, or a string with an optional unit suffix."""
+    if isinstance(value, str):
+        try:
+            return parse_quantity(value)
+        except ValueError as error:
+            raise ScenarioError(where, str(error)) from None
+    if isinstance(value, bool) or not isinstance(value, numbers.Real):
+        raise ScenarioError(where, f"must be a number, optionally with a unit such as '2.5 us' (got {_shown(value)})")
+    return float(value)
+
+
+def _checked(value, kind: type, where: str, description: str, reject_bool: bool = False):
+    """``value`` unchanged if it is a ``kind`` (and not a bool when ``reject_bool``); otherwise a ScenarioError."""
+    if not isinstance(value, kind) or (reject_bool and isinstance(value, bool)):
+        raise ScenarioError(where, f"must be {description} (got {_shown(value)})")
+    return value
+
+
+def _item_hints(hint, length: int) -> tuple:
+    """The entry types of the tuple or list type ``hint`` for a sequence of ``length`` entries."""
+    args = typing.get_args(hint) or (typing.Any, ...)
+    if typing.get_origin(hint) is list or (len(args) == 2 and args[1] is Ellipsis):
+        return (args[0],) * length
+    return args
+
+
+# --- writing TOML -------------------------------------------------------------------------------
+
+
+def _write_table(obj, path: str, lines: list[str]) -> None:
+    """Append to ``lines`` the key/value pairs of the dataclass ``obj``, then its sub-tables and arrays of tables."""
+    sections = []
+    for name in _init_fields(type(obj)):
+        value = getattr(obj, name)
+        if dataclasses.is_dataclass(value) or _is_table_array(value):
+            sections.append((_join(path, name), value))
+        elif value is not None:
+            lines.append(f"{name} = {_toml_value(value)}")
+    for section_path, value in sections:
+        for entry in (value if _is_table_array(value) else [value]):
+            lines += ["", f"[[{section_path}]]" if _is_table_array(value) else f"[{section_path}]"]
+            _write_table(entry, section_path, lines)
+
+
+def _toml_value(value) -> str:
+    """``value`` (bool, number, string or a sequence of them) as a TOML value."""
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, numbers.Integral):
+        return str(int(value))
+    if isinstance(value, numbers.Real):
+        return repr(float(value))  # shortest text that reads back to the same float; inf and nan are TOML too
+    if isinstance(value, str):
+        return _toml_string(value)
+    if isinstance(value, (tuple, list)):
+        return "[" + ", ".join(_toml_value(item) for item in value) + "]"
+    raise TypeError(f"cannot write {value!r} as a TOML value")
+
+
+def _toml_string(text: str) -> str:
+    """``text`` as a TOML basic string, with quotes, backslashes and control characters escaped."""
+    def escaped(char: str) -> str:
+        if char in '"\\':
+            return "\\" + char
+        if ord(char) < 0x20 or ord(char) == 0x7F:
+            return f"\\u{ord(char):04x}"
+        return char
+    return '"' + "".join(map(escaped, text)) + '"'
+
+
+def _is_table_array(value) -> bool:
+    """Whether ``value`` is a non-empty sequence of dataclass instances, written as [[...]] tables."""
+    return isinstance(value, (tuple, list)) and bool(value) and all(dataclasses.is_dataclass(item) for item in value)
+
+
+# --- small helpers ------------------------------------------------------------------------------
+
+
+def _init_fields(cls: type) -> dict[str, dataclasses.Field]:
+    """The fields of the dataclass ``cls`` that its constructor takes, by name, in declaration order."""
+    return {spec.name: spec for spec in dataclasses.fields(cls) if spec.init}
+
+
+def _is_required(spec: dataclasses.Field) -> bool:
+    """Whether the dataclass field ``spec`` has no default."""
+    return spec.default is dataclasses.MISSING and spec.default_factory is dataclasses.MISSING
+
+
+def _is_dataclass_type(hint) -> bool:
+    """Whether the type hint ``hint`` is a dataclass (not a generic alias or an instance)."""
+    return isinstance(hint, type) and dataclasses.is_dataclass(hint)
+
+
+def _unknown_field(cls: type) -> str:
+    """The message for a key that is not a field of ``cls``."""
+    return f"unknown field; known fields: {', '.join(sorted(_init_fields(cls)))}"
+
+
+def _join(where: str, name: str) -> str:
+    """The dotted path of ``name`` inside ``where`` (just ``name`` at the top)."""
+    return f"{where}.{name}" if where else name
+
+
+def _shown(value) -> str:
+    """A short description of ``value`` for error messages."""
+    if isinstance(value, dict):
+        return "a table"
+    if isinstance(value, (list, tuple)):
+        return "an array"
+    return repr(value)
+
+
+def _one_line(error: Exception) -> str:
+    """The text of ``error`` with all whitespace runs (newlines too) collapsed to single spaces."""
+    return " ".join(str(error).split())
+
+
+def _unit_names() -> str:
+    """The unit suffixes ``parse_quantity`` knows, comma separated."""
+    return ", ".join(UNITS)

@@ -1,0 +1,90 @@
+"""`vcyto flow`: the steady flow with the IDT off and on, and where the injection streamline leaves."""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+
+from sim.calibration import FlowPaths, calibrate_streaming_force, injection_streamline
+from sim.fluid import NavierStokes
+from sim.scenario import UM, Scenario
+
+
+def solve_paths(scenario: Scenario, progress=lambda message: None):
+    """Steady flows for IDT off and on with their injection streamlines: (paths, flows, solver)."""
+    started = time.perf_counter()
+    progress(f"assembling and factoring ({scenario.numerics.mesh_h / UM:.3g} um mesh)")
+    solver = NavierStokes(scenario)
+    progress("steady flow, IDT off")
+    flow_off, path_off = injection_streamline(scenario, 0.0, solver)
+    progress("steady flow, IDT on")
+    flow_on, path_on = injection_streamline(scenario, 1.0, solver)
+    return FlowPaths(path_off, path_on, time.perf_counter() - started), (flow_off, flow_on), solver
+
+
+def summary(scenario: Scenario, paths: FlowPaths, solver: NavierStokes) -> dict:
+    def describe(path):
+        return {"outlet": path.outlet, "exit_y_um": path.exit_y / UM, "transit_time_ms": path.transit_time * 1e3}
+
+    return {
+        "saw_model": scenario.saw.model,
+        "mesh_h_um": scenario.numerics.mesh_h / UM,
+        "dofs": solver.space.dofs,
+        "idt_off": describe(paths.off),
+        "idt_on": describe(paths.on),
+        "wall_time_s": paths.wall_time,
+    }
+
+
+def report_lines(result: dict) -> list[str]:
+    lines = [f"steady flow, SAW model {result['saw_model']}, h = {result['mesh_h_um']:.3g} um, {result['dofs']:,} DOFs"]
+    for key, label in (("idt_off", "IDT off"), ("idt_on", "IDT on ")):
+        path = result[key]
+        lines.append(f"  {label}: injection streamline leaves by {path['outlet']:>5} at y = {path['exit_y_um']:6.1f} um "
+                     f"after {path['transit_time_ms']:.3f} ms")
+    lines.append(f"  wall time {result['wall_time_s']:.1f} s")
+    return lines
+
+
+def save_png(path: str, scenario: Scenario, solver: NavierStokes, flows, paths: FlowPaths):
+    """Speed field with the streamline, IDT off (left) and on (right)."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from matplotlib.tri import Triangulation
+
+    mesh = solver.space.cmesh.mesh
+    triangulation = Triangulation(mesh.p[0] / UM, mesh.p[1] / UM, mesh.t.T)
+    vertices = mesh.p.shape[1]
+    figure, axes = plt.subplots(1, 2, figsize=(11, 4.4), constrained_layout=True)
+    for axis, flow, line, title in zip(axes, flows, (paths.off, paths.on), ("IDT off", "IDT on")):
+        speed = np.hypot(*flow.velocity[:, :vertices])
+        image = axis.tripcolor(triangulation, speed, shading="gouraud", cmap="viridis")
+        axis.plot(line.path[:, 0] / UM, line.path[:, 1] / UM, color="w", lw=1.5)
+        _draw_device(axis, scenario)
+        axis.set_title(f"{title}: leaves by {line.outlet} at y = {line.exit_y / UM:.0f} um")
+        axis.set_aspect("equal")
+        axis.set_xlabel("x (um)")
+        axis.set_ylabel("y (um)")
+    figure.colorbar(image, ax=axes, label="speed (m/s)", shrink=0.8)
+    figure.savefig(path, dpi=120)
+    plt.close(figure)
+
+
+def _draw_device(axis, scenario: Scenario):
+    channel = scenario.channel
+    for inlet in channel.inlets:
+        axis.plot([0, 0], np.array(inlet.span) / UM, color="tab:cyan", lw=4)
+    for outlet in channel.outlets:
+        axis.plot([channel.length / UM] * 2, np.array(outlet.span) / UM, color="tab:orange", lw=4)
+    axis.plot(np.array(channel.saw_window.span) / UM, [0, 0], color="tab:red", lw=4)
+
+
+def calibrate(scenario: Scenario, progress=lambda message: None) -> dict:
+    """Calibrate the streaming force against the envelope jet (see ``sim.calibration``)."""
+    progress("calibrating the streaming force against the envelope jet (a dozen steady solves)")
+    started = time.perf_counter()
+    force, exit_y, iterations = calibrate_streaming_force(scenario)
+    return {"streaming_force": force, "exit_y_um": exit_y / UM, "iterations": iterations,
+            "wall_time_s": time.perf_counter() - started}

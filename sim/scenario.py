@@ -63,7 +63,7 @@ class Inlet:
     span: tuple[float, float]
     v_hat: float
     tilt: float = 0.0
-    cutoff: float = 3 * UM
+    cutoff: float = 3e-6
 
     def __post_init__(self):
         object.__setattr__(self, "span", tuple(float(v) for v in self.span))
@@ -92,8 +92,8 @@ class Outlet:
 class SawWindow:
     """The boundary (low, high) x {0} through which the SAW acts; ``cutoff`` as for inlets."""
 
-    span: tuple[float, float] = (135 * UM, 165 * UM)
-    cutoff: float = 3 * UM
+    span: tuple[float, float] = (135e-6, 165e-6)
+    cutoff: float = 3e-6
 
     def __post_init__(self):
         object.__setattr__(self, "span", tuple(float(v) for v in self.span))
@@ -105,14 +105,14 @@ class SawWindow:
 def _paper_inlets():
     tilt = math.pi / 6
     return (
-        Inlet("inlet1", (30 * UM, 80 * UM), 5.0e-2, +tilt),
-        Inlet("inlet2", (100 * UM, 130 * UM), 1.0e-2, 0.0),
-        Inlet("inlet3", (150 * UM, 200 * UM), 10.0e-2, -tilt),
+        Inlet("inlet1", (30e-6, 80e-6), 5.0e-2, +tilt),
+        Inlet("inlet2", (100e-6, 130e-6), 1.0e-2, 0.0),
+        Inlet("inlet3", (150e-6, 200e-6), 10.0e-2, -tilt),
     )
 
 
 def _paper_outlets():
-    return (Outlet("lower", (20 * UM, 100 * UM)), Outlet("upper", (120 * UM, 200 * UM)))
+    return (Outlet("lower", (20e-6, 100e-6)), Outlet("upper", (120e-6, 200e-6)))
 
 
 @dataclass(frozen=True)
@@ -124,8 +124,8 @@ class Channel:
     ``injection_inlet`` names the inlet cells enter through.
     """
 
-    length: float = 300 * UM
-    height: float = 220 * UM
+    length: float = 300e-6
+    height: float = 220e-6
     inlets: tuple[Inlet, ...] = field(default_factory=_paper_inlets)
     outlets: tuple[Outlet, ...] = field(default_factory=_paper_outlets)
     saw_window: SawWindow = field(default_factory=SawWindow)
@@ -200,7 +200,7 @@ class Saw:
     amplitude: float = 1.0e-9
     frequency: float = 100.0e6
     streaming_force: float = 5.7e7
-    attenuation_length: float = 60 * UM
+    attenuation_length: float = 60e-6
     spin_up_time: float = 0.2e-3
 
     def __post_init__(self):
@@ -225,7 +225,7 @@ class Numerics:
     gives 90 x 66 squares and 54,243 Taylor-Hood DOFs.
     """
 
-    mesh_h: float = 10 / 3 * UM
+    mesh_h: float = 10e-6 / 3
     dt: float = 2.5e-6
     convection: str = "imex"
     linear_solver: str = "auto"

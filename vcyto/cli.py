@@ -17,6 +17,7 @@ from .config import load_scenario
 
 EXIT_INPUT = 2
 EXIT_NUMERICAL = 1
+EXIT_INTERNAL = 3
 
 
 class UsageError(ValueError):
@@ -65,9 +66,16 @@ def _output_path(path: str | None) -> Path | None:
     return target
 
 
+def _plain(value):
+    """JSON fallback for numpy scalars and arrays."""
+    if hasattr(value, "tolist"):
+        return value.tolist()
+    raise TypeError(f"cannot write {type(value).__name__} as JSON")
+
+
 def _emit(args, result: dict, lines: list[str]):
     if args.json:
-        print(json.dumps(result, indent=2))
+        print(json.dumps(result, indent=2, default=_plain))
     else:
         print("\n".join(lines))
 
@@ -95,10 +103,22 @@ def command_flow(args):
 def command_bench(args):
     from . import bench
     scenario = _scenario(args)
+    progress = _progress(args.quiet or args.json)
+    if args.target == "treatments":
+        if args.steps < 1:
+            raise UsageError(f"--steps must be at least 1 (got {args.steps})")
+        result = bench.bench_treatments(scenario, args.steps, progress)
+        _emit(args, result, bench.treatment_lines(result))
+        return
     if args.repeats < 2:
         raise UsageError(f"--repeats must be at least 2 (got {args.repeats})")
-    result = bench.bench_fluid(scenario, args.repeats, _progress(args.quiet or args.json))
+    result = bench.bench_fluid(scenario, args.repeats, progress)
     _emit(args, result, bench.report_lines(result))
+
+
+def command_scenario(args):
+    from .config import scenario_to_toml
+    print(scenario_to_toml(_scenario(args)), end="")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -114,6 +134,10 @@ def build_parser() -> argparse.ArgumentParser:
     flow.add_argument("--quiet", action="store_true", help="no progress messages")
     flow.set_defaults(handler=command_flow)
 
+    scenario = commands.add_parser("scenario", help="print the effective scenario (defaults + file + overrides) as TOML")
+    _scenario_options(scenario)
+    scenario.set_defaults(handler=command_scenario)
+
     bench = commands.add_parser("bench", help="benchmarks")
     targets = bench.add_subparsers(dest="target", required=True, metavar="TARGET")
     fluid = targets.add_parser("fluid", help="set-up and per-step cost of the fluid solver, per convection treatment")
@@ -122,6 +146,12 @@ def build_parser() -> argparse.ArgumentParser:
     fluid.add_argument("--json", action="store_true", help="print a machine-readable result")
     fluid.add_argument("--quiet", action="store_true", help="no progress messages")
     fluid.set_defaults(handler=command_bench)
+    treatments = targets.add_parser("treatments", help="how far imex, oseen and stokes steps differ from implicit ones")
+    _scenario_options(treatments)
+    treatments.add_argument("--steps", type=int, default=20, help="steps after switching the IDT on (default 20)")
+    treatments.add_argument("--json", action="store_true", help="print a machine-readable result")
+    treatments.add_argument("--quiet", action="store_true", help="no progress messages")
+    treatments.set_defaults(handler=command_bench)
     return parser
 
 
@@ -137,6 +167,12 @@ def main(argv=None) -> int:
     except KeyboardInterrupt:
         print("vcyto: interrupted", file=sys.stderr)
         return 130
+    except Exception as error:  # a bug, not bad input: say so in one line, keep the traceback on request
+        if os.environ.get("VCYTO_DEBUG"):
+            raise
+        print(f"vcyto: internal error: {type(error).__name__}: {error} (set VCYTO_DEBUG=1 for the traceback; "
+              "please report it)", file=sys.stderr)
+        return EXIT_INTERNAL
     return 0
 
 

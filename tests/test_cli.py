@@ -1,0 +1,68 @@
+"""The command line as a user meets it: exit codes, one-line errors, no tracebacks, JSON output."""
+
+import json
+import subprocess
+import sys
+
+import pytest
+
+
+def vcyto(*args, cwd=None):
+    return subprocess.run([sys.executable, "-m", "vcyto.cli", *args], capture_output=True, text=True, cwd=cwd,
+                          timeout=600)
+
+
+@pytest.mark.parametrize("args, field", [
+    (["--set", "fluid.viscosity=-1"], "fluid.viscosity"),
+    (["--dt", "0"], "numerics.dt"),
+    (["--set", "channel.inlets.0.span=[-10um, 20um]"], "channel.inlets[0].span"),
+    (["--set", "channel.outlets.1.span=[90um, 200um]"], "channel.outlets"),
+    (["--mesh-h", "20um"], "numerics.mesh_h"),
+    (["--set", "fluid.viscocity=1"], "fluid.viscocity"),
+    (["--set", "numerics.dt=fast"], "numerics.dt"),
+    (["--scenario", "no-such-file.toml"], "no-such-file.toml"),
+])
+def test_bad_scenario_input_is_one_line_exit_2_no_traceback(args, field):
+    result = vcyto("flow", *args)
+    assert result.returncode == 2
+    assert "Traceback" not in result.stderr
+    lines = result.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("vcyto: error: ") and field in lines[0]
+
+
+def test_malformed_toml_names_the_file_and_line(tmp_path):
+    scenario = tmp_path / "broken.toml"
+    scenario.write_text("[fluid]\nviscosity = = 3\n")
+    result = vcyto("flow", "--scenario", str(scenario))
+    assert result.returncode == 2 and "Traceback" not in result.stderr
+    assert "broken.toml" in result.stderr and "line 2" in result.stderr
+
+
+def test_unwritable_png_is_refused_before_any_work(tmp_path):
+    result = vcyto("flow", "--png", str(tmp_path / "missing-dir" / "flow.png"))
+    assert result.returncode == 2
+    assert "does not exist" in result.stderr and "Traceback" not in result.stderr
+
+
+def test_flow_json_on_a_coarse_mesh(tmp_path):
+    png = tmp_path / "flow.png"
+    result = vcyto("flow", "--mesh-h", "5um", "--json", "--png", str(png))
+    assert result.returncode == 0, result.stderr
+    summary = json.loads(result.stdout)
+    assert summary["idt_off"]["outlet"] == "lower"
+    assert summary["idt_on"]["outlet"] == "upper"
+    assert png.stat().st_size > 10_000
+
+
+def test_bench_fluid_reports_every_treatment_and_the_ratio():
+    result = vcyto("bench", "fluid", "--mesh-h", "10um", "--repeats", "3", "--json")
+    assert result.returncode == 0, result.stderr
+    report = json.loads(result.stdout)
+    assert set(report["steps_ms"]) == {"imex", "stokes", "oseen", "implicit"}
+    assert all(value > 0 for value in report["steps_ms"].values())
+    assert report["imex_over_backsolve"] > 0 and report["backsolve_ms"] > 0
+
+
+def test_bench_rejects_too_few_repeats():
+    result = vcyto("bench", "fluid", "--repeats", "1")
+    assert result.returncode == 2 and "--repeats" in result.stderr

@@ -19,3 +19,14 @@ def test_injection_streamline_is_sorted_by_the_idt(paper_scenario, model):
         assert on.exit_y == pytest.approx(141 * UM, abs=1.5 * UM)
     else:       # calibrated to the jet's exit ordinate (sim.calibration), within the bisection tolerance
         assert on.exit_y == pytest.approx(141 * UM, abs=3 * UM)
+
+
+def test_peak_reading_of_the_profile_also_sorts(paper_scenario):
+    """PHYSICS.md: reading v_hat as the peak speed gives y ~ 73 um (off) and ~ 175 um (on), ~13 ms and ~9 ms."""
+    from dataclasses import replace
+    scenario = replace(paper_scenario, channel=replace(paper_scenario.channel, profile_reading="peak"))
+    _, off = injection_streamline(scenario, 0.0)
+    _, on = injection_streamline(scenario, 1.0)
+    assert (off.outlet, on.outlet) == ("lower", "upper")
+    assert off.exit_y == pytest.approx(73 * UM, abs=1.5 * UM) and on.exit_y == pytest.approx(175 * UM, abs=1.5 * UM)
+    assert off.transit_time == pytest.approx(13e-3, rel=0.05) and on.transit_time == pytest.approx(9e-3, rel=0.05)

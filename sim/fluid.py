@@ -121,6 +121,7 @@ class TaylorHood:
         self.element_dofs = np.ascontiguousarray(self.velocity_basis.element_dofs.astype(np.int64))
         self._identity_positions = np.arange(2 * self.N, dtype=np.int64).reshape(2, self.N)
         self._scratch = None
+        self._pattern = None
 
     def momentum_load(self, velocity, mass_coefficient, convection_coefficient, positions, out):
         """Add (m v - k (v . grad) v, phi_i) to ``out[positions[c, i]]`` (numba kernel, see ``kernels``)."""
@@ -138,20 +139,46 @@ class TaylorHood:
         return out.reshape(2, self.N)
 
     def convection_matrices(self, velocity: np.ndarray, newton: bool):
-        """Blocks [[Cxx, Cxy], [Cyx, Cyy]] of the linearised convection about ``velocity``.
+        """Blocks [[Cxx, Cxy], [Cyx, Cyy]] of the linearised convection about ``velocity``, all on ``pattern``.
 
         Picard/Oseen: C = (v . grad) on the diagonal. Newton adds (. grad) v: C_ab += (d_b v_a) phi_j phi_i.
+        Every block keeps the full P2 sparsity pattern (explicit zeros included), so a factorisation of the
+        linearised system can be refactored in place from one iteration to the next.
         """
         fields = {"ux": self.velocity_basis.interpolate(velocity[0]), "uy": self.velocity_basis.interpolate(velocity[1])}
-        advection = asm(_advection, self.velocity_basis, **fields)
-        blocks = [[advection, None], [None, advection]]
+        advection = self.on_pattern(asm(_advection, self.velocity_basis, **fields))
+        blocks = [[advection, self.on_pattern(None)], [self.on_pattern(None), advection.copy()]]
         if newton:
             for a, component in enumerate(("ux", "uy")):
                 for b in range(2):
                     weight = fields[component].grad[b]
-                    coupling = asm(_weighted_mass, self.velocity_basis, weight=weight)
-                    blocks[a][b] = coupling if blocks[a][b] is None else blocks[a][b] + coupling
+                    blocks[a][b].data += self.on_pattern(asm(_weighted_mass, self.velocity_basis, weight=weight)).data
         return blocks
+
+    @property
+    def pattern(self) -> sp.csr_matrix:
+        """The scalar P2 sparsity pattern: every pair of nodes sharing an element."""
+        if self._pattern is None:
+            dofs = self.element_dofs
+            rows = np.repeat(dofs, 6, axis=0).ravel()
+            cols = np.tile(dofs, (6, 1)).ravel()
+            pattern = sp.csr_matrix((np.ones(len(rows)), (rows, cols)), shape=(self.N, self.N))
+            pattern.sum_duplicates()
+            pattern.sort_indices()
+            self._pattern = pattern
+            self._pattern_keys = np.repeat(np.arange(self.N, dtype=np.int64), np.diff(pattern.indptr)) * self.N \
+                + pattern.indices
+        return self._pattern
+
+    def on_pattern(self, matrix) -> sp.csr_matrix:
+        """``matrix`` (or zeros) re-expressed on ``pattern``, explicit zeros kept."""
+        pattern = self.pattern
+        data = np.zeros(pattern.nnz)
+        if matrix is not None:
+            coo = matrix.tocoo()
+            positions = np.searchsorted(self._pattern_keys, coo.row.astype(np.int64) * self.N + coo.col)
+            data = np.bincount(positions, weights=coo.data, minlength=pattern.nnz)
+        return sp.csr_matrix((data, pattern.indices, pattern.indptr), shape=pattern.shape)
 
     def boundary_flux(self, velocity: np.ndarray, name: str) -> float:
         """Outward volume flux (m^2/s) of ``velocity`` through the named boundary."""
@@ -266,18 +293,27 @@ class NavierStokes:
         self.pressure_scale = abs(a).max() / max(abs(bx).max(), abs(by).max())
         self._divergence = sp.hstack([bx, by]).tocsr() * self.pressure_scale
         self.solver_name = resolved_solver_name(numerics.linear_solver)
+        self._reusable = {}
         self._constant = None
         if numerics.convection in ("imex", "stokes", "implicit"):
             self._constant = self._system(a, a, symmetric=True)
 
-    def _system(self, block_xx, block_yy, off_xy=None, off_yx=None, symmetric=False):
-        """Factor the free-free block of [[A, -s B^T], [-s B, 0]], A = [[A_xx, A_xy], [A_yx, A_yy]]."""
+    def _system(self, block_xx, block_yy, off_xy=None, off_yx=None, symmetric=False, reuse=None):
+        """Factor the free-free block of [[A, -s B^T], [-s B, 0]], A = [[A_xx, A_xy], [A_yx, A_yy]].
+
+        ``reuse`` names a slot ('oseen', 'newton') whose last factorisation is refactored in place when
+        the sparsity pattern is unchanged (the ordering is reused).
+        """
         momentum = sp.bmat([[block_xx, off_xy], [off_yx, block_yy]], format="csr")
         divergence = self._divergence
         rows = sp.bmat([[momentum, -divergence.T], [-divergence, None]], format="csr")[self.free]
         lift = rows[:, self.dirichlet].tocsr()
         started = clock.perf_counter()
-        factor = factorize(rows[:, self.free].tocsr(), self.scenario.numerics.linear_solver, symmetric=symmetric)
+        previous = self._reusable.get(reuse)
+        factor = factorize(rows[:, self.free].tocsr(), self.scenario.numerics.linear_solver, symmetric=symmetric,
+                           previous=previous)
+        if reuse:
+            self._reusable[reuse] = factor
         self.timings.factor += clock.perf_counter() - started
         return _System(factor, lift @ self.inflow.ravel()[self.dirichlet], lift @ self.jet.ravel()[self.dirichlet])
 
@@ -363,11 +399,17 @@ class NavierStokes:
         """The factored system linearised about ``velocity`` (Oseen, or Newton's Jacobian)."""
         started = clock.perf_counter()
         density = self.scenario.fluid.density
-        blocks = self.space.convection_matrices(velocity, newton)
-        base = self.stiffness + self.mass_coefficient * self.space.mass if with_mass else self.stiffness
-        scaled = [[None if block is None else density * block for block in row] for row in blocks]
+        space = self.space
+        blocks = space.convection_matrices(velocity, newton)
+        base = space.on_pattern(self.stiffness + self.mass_coefficient * space.mass if with_mass else self.stiffness)
+        for row in blocks:
+            for block in row:
+                block.data *= density
+        blocks[0][0].data += base.data
+        blocks[1][1].data += base.data
         self.timings.assemble += clock.perf_counter() - started
-        return self._system(base + scaled[0][0], base + scaled[1][1], scaled[0][1], scaled[1][0])
+        return self._system(blocks[0][0], blocks[1][1], blocks[0][1], blocks[1][0],
+                            reuse=("newton" if newton else "oseen") + ("-mass" if with_mass else ""))
 
     def _implicit(self, previous, rhs, jet, time):
         """Solve (26) with c(v^{m+1}) to ``nonlinear_tolerance``: fixed point, then Newton if needed.
@@ -400,6 +442,7 @@ class NavierStokes:
         boundary = self.inflow + jet * self.jet
         velocity.ravel()[self.dirichlet] = boundary.ravel()[self.dirichlet]
         target = momentum if load is None else momentum + load
+        sizes = []
         for iteration in range(1, numerics.max_nonlinear_iterations + 1):
             residual = self._residual(velocity, pressure, target, with_mass)
             continuity = self.pressure_scale * self._divergence_of(velocity)
@@ -408,8 +451,18 @@ class NavierStokes:
             velocity = velocity + correction
             pressure = pressure + pressure_correction
             self._check(velocity, time, "Newton")
-            if np.linalg.norm(correction) <= numerics.nonlinear_tolerance * (np.linalg.norm(velocity) + 1e-300):
+            sizes.append(np.linalg.norm(correction) / (np.linalg.norm(velocity) + 1e-300))
+            # quadratic convergence predicts the next correction as s_k^3 / s_{k-1}^2: stop when that is small
+            predicted = sizes[-1] ** 3 / sizes[-2] ** 2 if len(sizes) > 1 and sizes[-1] < sizes[-2] else np.inf
+            if sizes[-1] <= numerics.nonlinear_tolerance:
                 return velocity, pressure, iteration
+            if predicted <= numerics.nonlinear_tolerance:
+                # one more correction with the same factorisation (no refactor): it removes the linear
+                # solver's rounding error as iterative refinement would
+                residual = self._residual(velocity, pressure, target, with_mass)
+                continuity = self.pressure_scale * self._divergence_of(velocity)
+                correction, pressure_correction = self._solve(system, self._free_rhs(-residual, continuity), 0.0, 0.0)
+                return velocity + correction, pressure + pressure_correction, iteration
         raise NumericalBlowUp(f"the nonlinear solve did not converge in {numerics.max_nonlinear_iterations} Newton "
                               f"iterations at t = {time:.6g} s: reduce numerics.dt or the inflow speeds")
 
@@ -430,13 +483,17 @@ class NavierStokes:
         return residual
 
     def steady(self, actuation: float = 0.0, load: np.ndarray | None = None) -> Flow:
-        """The steady flow for a constant IDT drive: a Stokes solve, then Newton's method."""
+        """The steady flow for a constant IDT drive: Newton's method from the boundary data (interior at rest).
+
+        The first Newton step from rest is an Oseen-like solve about the boundary data, which already
+        lands near the Stokes flow; a separate Stokes factorisation would cost more than it saves.
+        """
         started = clock.perf_counter()
         level = actuation if self.scenario.saw.model == "streaming" else 0.0
         forcing = level * self.streaming_unit_load if load is None else load + level * self.streaming_unit_load
         jet = self.jet_weight(0.0, actuation)
-        stokes = self._system(self.stiffness, self.stiffness, symmetric=True)
-        velocity, pressure = self._solve(stokes, self._free_rhs(forcing), 1.0, jet)
+        velocity = np.zeros((2, self.space.N))
+        pressure = np.zeros(self.space.P)
         velocity, pressure, iterations = self._newton(velocity, pressure, forcing, jet, 0.0, with_mass=False)
         self.timings.extra["steady"] = self.timings.extra.get("steady", 0.0) + clock.perf_counter() - started
         return Flow(0.0, velocity, pressure, level, iterations)

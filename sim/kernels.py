@@ -142,3 +142,41 @@ def interpolate_p2(elements, reference, element_dofs, values, out):
             for i in range(6):
                 total += values[c, element_dofs[i, e]] * phi[i]
             out[k, c] = total
+
+
+@njit(cache=True)
+def spread_p2(elements, reference, element_dofs, forces, out):
+    """out[c, dof_i] += forces[k, c] phi_i(point k): point forces (n, nc) onto P2 load vectors (nc, N).
+
+    The exact adjoint of ``interpolate_p2``; points with element -1 (outside the mesh) are skipped.
+    """
+    phi = np.empty(6)
+    for k in range(elements.shape[0]):
+        e = elements[k]
+        if e < 0:
+            continue
+        p2_basis(reference[k, 0], reference[k, 1], phi)
+        for c in range(forces.shape[1]):
+            for i in range(6):
+                out[c, element_dofs[i, e]] += forces[k, c] * phi[i]
+
+
+@njit(cache=True)
+def first_self_intersection(points):
+    """Index pair (i, j) of the first two non-adjacent edges of the closed polygon that cross, else (-1, -1)."""
+    n = points.shape[0]
+    for i in range(n):
+        ax, ay = points[i, 0], points[i, 1]
+        bx, by = points[(i + 1) % n, 0], points[(i + 1) % n, 1]
+        for j in range(i + 2, n):
+            if i == 0 and j == n - 1:
+                continue
+            cx, cy = points[j, 0], points[j, 1]
+            dx, dy = points[(j + 1) % n, 0], points[(j + 1) % n, 1]
+            d1 = (bx - ax) * (cy - ay) - (by - ay) * (cx - ax)
+            d2 = (bx - ax) * (dy - ay) - (by - ay) * (dx - ax)
+            d3 = (dx - cx) * (ay - cy) - (dy - cy) * (ax - cx)
+            d4 = (dx - cx) * (by - cy) - (dy - cy) * (bx - cx)
+            if d1 * d2 < 0 and d3 * d4 < 0:
+                return i, j
+    return -1, -1

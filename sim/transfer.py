@@ -50,7 +50,19 @@ class PointLocator:
 
     def interpolate(self, values: np.ndarray, points: np.ndarray) -> np.ndarray:
         """P2 field ``values`` (nc, N) at ``points`` (n, 2) as an (n, nc) array; NaN outside the channel."""
-        elements, reference = self.locate(points)
+        return self.interpolate_located(values, *self.locate(points))
+
+    def interpolate_located(self, values, elements, reference) -> np.ndarray:
+        """As ``interpolate`` for points already located (reuse the location of one step)."""
         out = np.empty((len(elements), values.shape[0]))
         kernels.interpolate_p2(elements, reference, self.element_dofs, np.ascontiguousarray(values), out)
         return out
+
+    def spread_located(self, forces, elements, reference, out) -> np.ndarray:
+        """Add point forces (n, nc) at located points to the P2 load ``out`` (nc, N): sum_k f_k phi_i(x_k)."""
+        kernels.spread_p2(elements, reference, self.element_dofs, np.ascontiguousarray(forces, dtype=float), out)
+        return out
+
+    def spread(self, forces: np.ndarray, points: np.ndarray, out: np.ndarray) -> np.ndarray:
+        """Add point forces (n, nc) at ``points`` (n, 2) to ``out`` (nc, N); points outside are dropped."""
+        return self.spread_located(forces, *self.locate(points), out)

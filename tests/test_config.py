@@ -246,7 +246,7 @@ def test_round_trip_of_a_modified_scenario(write_toml):
 
 def test_written_toml_holds_plain_si_numbers():
     document = tomllib.loads(scenario_to_toml(Scenario()))
-    assert set(document) == {"channel", "fluid", "saw", "numerics"}
+    assert set(document) == {"channel", "fluid", "saw", "numerics", "cell_types"}
     assert document["fluid"]["viscosity"] == Scenario().fluid.viscosity
     assert document["numerics"]["max_nonlinear_iterations"] == Scenario().numerics.max_nonlinear_iterations
     assert all(isinstance(value, float) for value in document["channel"]["inlets"][0]["span"])
@@ -306,7 +306,7 @@ def test_file_errors_name_the_full_field(write_toml, text, field, words):
     ("saw=3", "saw", "must be a table"),
     ("numerics.dt", "numerics.dt", "dotted.path=value"),
     ("numerics..dt=1", "numerics..dt=1", "dotted.path=value"),
-    ("nothing=1", "nothing", "known fields: channel, fluid, numerics, saw"),
+    ("nothing=1", "nothing", "known fields: cell_types, channel, fluid, numerics, saw"),
 ])
 def test_override_errors_name_the_full_field(override, field, words):
     error = scenario_error(overrides=[override])

@@ -116,6 +116,26 @@ def command_bench(args):
     _emit(args, result, bench.report_lines(result))
 
 
+def command_paper(args):
+    from . import paper
+    from .progress import Progress
+    scenario = paper.paper_scenario(args.number, _scenario(args), dt_given=args.dt is not None)
+    png = _output_path(args.png if args.png else f"recordings/paper{args.number}.png") if not args.no_png else None
+    if args.max_time <= 0:
+        raise UsageError(f"--max-time must be positive (got {args.max_time} ms)")
+    progress = Progress(quiet=args.quiet or args.json)
+    try:
+        result = paper.run_paper(args.number, scenario, args.max_time * 1e-3, progress)
+    finally:
+        progress.close()
+    lines = paper.report_lines(result)
+    if png:
+        paper.save_png(str(png), result, scenario)
+        result["png"] = str(png)
+        lines.append(f"  saved {png}")
+    _emit(args, paper.public(result), lines)
+
+
 def command_scenario(args):
     from .config import scenario_to_toml
     print(scenario_to_toml(_scenario(args)), end="")
@@ -133,6 +153,17 @@ def build_parser() -> argparse.ArgumentParser:
     flow.add_argument("--json", action="store_true", help="print a machine-readable summary")
     flow.add_argument("--quiet", action="store_true", help="no progress messages")
     flow.set_defaults(handler=command_flow)
+
+    paper = commands.add_parser("paper", help="run the paper's scenario 1 (RBC, IDT off) or 2 (melanoma, IDT on)")
+    paper.add_argument("number", type=int, choices=(1, 2), help="1: RBC, IDT off, dt 2.5 us; 2: melanoma, IDT on, dt 25 us")
+    _scenario_options(paper)
+    paper.add_argument("--png", metavar="FILE", help="where to save the path over the flow (default recordings/paperN.png)")
+    paper.add_argument("--no-png", action="store_true", help="do not save a PNG")
+    paper.add_argument("--max-time", type=float, default=20.0, metavar="MS",
+                       help="give up (outlet 'lost') after this much simulated time in ms (default 20)")
+    paper.add_argument("--json", action="store_true", help="print a machine-readable summary")
+    paper.add_argument("--quiet", action="store_true", help="no progress messages")
+    paper.set_defaults(handler=command_paper)
 
     scenario = commands.add_parser("scenario", help="print the effective scenario (defaults + file + overrides) as TOML")
     _scenario_options(scenario)

@@ -1,0 +1,143 @@
+"""The semi-implicit FE-IB step (paper section 3.1): membrane forces (25) -> fluid (26) -> membranes (27).
+
+One step from (v^m, X^m):
+  1. f_r = -dE_h/dX_r at X^m for every cell (``Membrane.forces``) and spread: <F_h, w> = sum_r f_r . w(X_r);
+  2. backward-Euler Navier-Stokes for v^{m+1} with that load (``NavierStokes.step``);
+  3. X_r^{m+1} = X_r^m + dt v^{m+1}(X_r^m), the velocity interpolated at the points located in step 1.
+Then each cell's fate is settled (the outlet its centroid crosses x = length through) and the health
+checks run (``sim.health``). Membrane points that have passed x = length through an outlet are outside the
+mesh: they move with the outlet's velocity at x = length (the outflow continued straight) and exert no
+force on the fluid.
+"""
+
+from __future__ import annotations
+
+import time as clock
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+
+from .fluid import Flow, NavierStokes
+from .health import HealthLimits, check_cells
+from .membrane import Membrane
+from .scenario import CellType, Scenario
+from .streamline import outlet_at
+from .transfer import PointLocator
+
+IN_CHANNEL = "in_channel"
+
+
+@dataclass(frozen=True)
+class Cell:
+    """A cell in the device: its membrane and, once settled, its fate ('lower'/'upper'/... , 'wall', 'lost')."""
+
+    id: int
+    membrane: Membrane
+    fate: str = IN_CHANNEL
+    exit_time: float = float("nan")
+    exit_y: float = float("nan")
+    born: float = 0.0
+
+    @property
+    def in_channel(self) -> bool:
+        return self.fate == IN_CHANNEL
+
+
+@dataclass(frozen=True)
+class State:
+    """The plant's state: the flow and every cell (in the channel or settled)."""
+
+    flow: Flow
+    cells: tuple[Cell, ...] = ()
+    step: int = 0
+
+    @property
+    def time(self) -> float:
+        return self.flow.time
+
+
+@dataclass
+class Timings:
+    """Wall time per part of the FE-IB steps (seconds)."""
+
+    membrane: float = 0.0
+    fluid: float = 0.0
+    health: float = 0.0
+    steps: int = 0
+    extra: dict = field(default_factory=dict)
+
+
+class ImmersedBoundary:
+    """The coupled FE-IB plant of a scenario: ``start``, ``add_cell`` and ``step``."""
+
+    def __init__(self, scenario: Scenario, fluid: NavierStokes | None = None):
+        self.scenario = scenario
+        self.fluid = fluid or NavierStokes(scenario)
+        space = self.fluid.space
+        self.locator = PointLocator(space.cmesh, space.velocity_basis.element_dofs)
+        self.limits = HealthLimits.of(scenario)
+        self.timings = Timings()
+
+    # ------------------------------------------------------------------ cells
+    def injection_point(self, cell_type: CellType, gap: float = 1e-6) -> tuple[float, float]:
+        """Where a cell starts (PHYSICS.md decision 4): just inside the channel, centred on the injection inlet."""
+        inlet = self.scenario.channel.inlet(self.scenario.channel.injection_inlet)
+        return cell_type.semi_axes[0] + gap, 0.5 * (inlet.span[0] + inlet.span[1])
+
+    def new_cell(self, cell_type: CellType, cell_id: int, time: float, centre=None) -> Cell:
+        spacing = self.scenario.numerics.membrane_spacing * self.scenario.numerics.mesh_h
+        centre = self.injection_point(cell_type) if centre is None else centre
+        return Cell(cell_id, Membrane.of(cell_type, centre, spacing), born=time)
+
+    def start(self, actuation: float = 0.0, cells=()) -> State:
+        """The initial flow of the scenario (steady at ``actuation`` by default) with ``cells``."""
+        return State(self.fluid.initial_flow(actuation), tuple(cells))
+
+    # ------------------------------------------------------------------ the step
+    def step(self, state: State, actuation: float = 0.0) -> State:
+        dt = self.scenario.numerics.dt
+        started = clock.perf_counter()
+        active = [cell for cell in state.cells if cell.in_channel]
+        load = np.zeros((2, self.fluid.space.N))
+        located = []
+        for cell in active:
+            points = cell.membrane.points
+            elements, reference = self.locator.locate(self._inside(points))
+            inside = points[:, 0] < self.scenario.channel.length
+            forces = cell.membrane.forces() * inside[:, None]
+            self.locator.spread_located(forces, elements, reference, load)
+            located.append((elements, reference))
+        fluid_started = clock.perf_counter()
+        flow = self.fluid.step(state.flow, actuation, load if active else None)
+        membrane_started = clock.perf_counter()
+        moved = {}
+        for cell, (elements, reference) in zip(active, located):
+            velocity = self.locator.interpolate_located(flow.velocity, elements, reference)
+            moved[cell.id] = self._settle(cell, cell.membrane.points + dt * velocity, flow.time)
+        cells = tuple(moved.get(cell.id, cell) for cell in state.cells)
+        health_started = clock.perf_counter()
+        check_cells([moved[cell.id] for cell in active], self.limits, state.step + 1, flow.time)
+        finished = clock.perf_counter()
+        self.timings.membrane += (fluid_started - started) + (health_started - membrane_started)
+        self.timings.fluid += membrane_started - fluid_started
+        self.timings.health += finished - health_started
+        self.timings.steps += 1
+        return State(flow, cells, state.step + 1)
+
+    def _inside(self, points):
+        """Points past x = length (through an outlet) are evaluated at x = length, just inside the mesh."""
+        length = self.scenario.channel.length
+        return np.column_stack([np.minimum(points[:, 0], length * (1 - 1e-12)), points[:, 1]])
+
+    def _settle(self, cell: Cell, points: np.ndarray, time: float) -> Cell:
+        """The cell with its new points; its fate once its centroid crosses x = length."""
+        membrane = cell.membrane.with_points(points)
+        length = self.scenario.channel.length
+        before, after = cell.membrane.centroid(), membrane.centroid()
+        if after[0] < length:
+            return replace(cell, membrane=membrane)
+        weight = (length - before[0]) / (after[0] - before[0])
+        exit_y = before[1] + weight * (after[1] - before[1])
+        exit_time = time - self.scenario.numerics.dt * (1 - weight)
+        return replace(cell, membrane=membrane, fate=outlet_at(self.scenario.channel, exit_y),
+                       exit_time=exit_time, exit_y=exit_y)

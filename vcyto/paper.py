@@ -1,0 +1,161 @@
+"""`vcyto paper 1|2`: the paper's two scenarios (section 4) from entry to exit, with the paper's method.
+
+Scenario I: an RBC enters through inlet 2, IDT off, dt = 2.5 us. Scenario II: a melanoma cell, IDT on with
+the `paper` SAW model, dt = 25 us. Both on the paper's mesh (54,243 DOFs) from the steady flow of their
+actuation state, the `imex` convection treatment unless the scenario says otherwise.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from sim.feib import ImmersedBoundary
+from sim.scenario import UM, Scenario
+
+from . import STARTED
+
+
+@dataclass(frozen=True)
+class PaperScenario:
+    number: int
+    cell: str
+    dt: float
+    actuation: float
+    paper_outlet: str
+    paper_wall_time: str
+
+
+PAPER = {
+    1: PaperScenario(1, "RBC", 2.5e-6, 0.0, "lower", "3 h 51 min"),
+    2: PaperScenario(2, "melanoma", 25e-6, 1.0, "upper", "12 min"),
+}
+
+
+def paper_scenario(number: int, base: Scenario, dt_given: bool) -> Scenario:
+    """The base scenario with the paper's time step for scenario ``number`` (unless the user set one)."""
+    return base if dt_given else base.with_numerics(dt=PAPER[number].dt)
+
+
+def run_paper(number: int, scenario: Scenario, max_time: float = 20e-3, progress=None, snapshots: int = 6) -> dict:
+    """Run scenario ``number`` until the cell's centroid leaves (or ``max_time``); a JSON-ready summary."""
+    spec = PAPER[number]
+    note = progress.note if progress else (lambda message: None)
+    update = progress.update if progress else (lambda message: None)
+    started = time.perf_counter()
+    note(f"assembling and factoring ({scenario.numerics.mesh_h / UM:.3g} um mesh)")
+    plant = ImmersedBoundary(scenario)
+    setup = time.perf_counter() - started
+    note("steady start flow " + ("(IDT on)" if spec.actuation else "(IDT off)"))
+    state = plant.start(spec.actuation)
+    cell = plant.new_cell(scenario.cell_type(spec.cell), 0, state.time)
+    state = type(state)(state.flow, (cell,), 0)
+    steady = time.perf_counter() - started - setup
+    path, outlines, areas = [cell.membrane.centroid()], [(0.0, cell.membrane.points)], [1.0]
+    stepping = time.perf_counter()
+    while state.cells[0].in_channel and state.time < max_time:
+        state = plant.step(state, spec.actuation)
+        membrane = state.cells[0].membrane
+        path.append(membrane.centroid())
+        areas.append(membrane.area() / membrane.initial_area)
+        update(f"step {state.step}, t = {state.time * 1e3:.3f} ms, centroid x = {path[-1][0] / UM:.1f} um")
+    step_wall = time.perf_counter() - stepping
+    final = state.cells[0]
+    fate = final.fate if not final.in_channel else "lost"
+    timings = plant.timings
+    fluid = plant.fluid.timings
+    return {
+        "scenario": number,
+        "method": "paper (literal FE-IB: the paper's energy, no area conservation)",
+        "cells": [{"type": spec.cell, "outlet": fate, "exit_time_ms": final.exit_time * 1e3,
+                   "exit_y_um": final.exit_y / UM, "area_ratio_final": areas[-1], "area_ratio_min": min(areas),
+                   "membrane_points": final.membrane.count}],
+        "paper_outlet": spec.paper_outlet,
+        "paper_wall_time": spec.paper_wall_time,
+        "dt_us": scenario.numerics.dt * 1e6,
+        "mesh_h_um": scenario.numerics.mesh_h / UM,
+        "dofs": plant.fluid.space.dofs,
+        "convection": scenario.numerics.convection,
+        "saw_model": scenario.saw.model,
+        "steps": state.step,
+        "wall_time_s": {
+            "process": time.perf_counter() - STARTED,
+            "setup": setup,
+            "steady_start": steady,
+            "stepping": step_wall,
+            "per_step_ms": 1e3 * step_wall / max(state.step, 1),
+            "fluid_load": fluid.load,
+            "fluid_solve": fluid.solve,
+            "membrane": timings.membrane,
+            "health_checks": timings.health,
+        },
+        "_path": np.array(path),
+        "_outlines": _pick(outlines + [(state.time, final.membrane.points)], snapshots),
+        "_flow": state.flow,
+        "_plant": plant,
+    }
+
+
+def _pick(items, count):
+    if len(items) <= count:
+        return items
+    indices = np.linspace(0, len(items) - 1, count).round().astype(int)
+    return [items[i] for i in indices]
+
+
+def report_lines(result: dict) -> list[str]:
+    cell = result["cells"][0]
+    wall = result["wall_time_s"]
+    return [
+        f"paper scenario {result['scenario']}: {cell['type']}, {result['method']}",
+        f"  mesh h = {result['mesh_h_um']:.3g} um ({result['dofs']:,} DOFs), dt = {result['dt_us']:g} us, "
+        f"convection {result['convection']}, SAW model {result['saw_model']}",
+        f"  outlet: {cell['outlet']} (paper: {result['paper_outlet']}), exit at t = {cell['exit_time_ms']:.3f} ms, "
+        f"y = {cell['exit_y_um']:.1f} um, after {result['steps']} steps",
+        f"  enclosed area at exit: {100 * cell['area_ratio_final']:.1f} % of the initial area "
+        f"(minimum {100 * cell['area_ratio_min']:.1f} %)",
+        f"  wall time {wall['process']:.1f} s for the whole process (paper: {result['paper_wall_time']}): "
+        f"set-up {wall['setup']:.2f} s, steady start {wall['steady_start']:.2f} s, {result['steps']} steps "
+        f"{wall['stepping']:.2f} s ({wall['per_step_ms']:.2f} ms/step)",
+        f"  per part: fluid load {wall['fluid_load']:.2f} s, fluid solve {wall['fluid_solve']:.2f} s, "
+        f"membrane {wall['membrane']:.2f} s, health checks {wall['health_checks']:.2f} s",
+    ]
+
+
+def save_png(path: str, result: dict, scenario: Scenario):
+    """The final speed field with the centroid path and membrane outlines along it."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from matplotlib.tri import Triangulation
+
+    plant = result["_plant"]
+    mesh = plant.fluid.space.cmesh.mesh
+    vertices = mesh.p.shape[1]
+    speed = np.hypot(*result["_flow"].velocity[:, :vertices])
+    figure, axis = plt.subplots(figsize=(7.5, 5.6), constrained_layout=True)
+    image = axis.tripcolor(Triangulation(mesh.p[0] / UM, mesh.p[1] / UM, mesh.t.T), speed, shading="gouraud",
+                           cmap="viridis")
+    centroids = result["_path"]
+    axis.plot(centroids[:, 0] / UM, centroids[:, 1] / UM, color="w", lw=1.2, label="centroid path")
+    for _, points in result["_outlines"]:
+        closed = np.vstack([points, points[:1]])
+        axis.plot(closed[:, 0] / UM, closed[:, 1] / UM, color="tab:red", lw=1.0)
+    cell = result["cells"][0]
+    axis.set_title(f"paper scenario {result['scenario']}: {cell['type']} leaves by the {cell['outlet']} outlet "
+                   f"at t = {cell['exit_time_ms']:.2f} ms")
+    axis.set_aspect("equal")
+    axis.set_xlim(0, scenario.channel.length / UM)
+    axis.set_ylim(0, scenario.channel.height / UM)
+    axis.set_xlabel("x (um)")
+    axis.set_ylabel("y (um)")
+    figure.colorbar(image, ax=axis, label="speed (m/s)", shrink=0.8)
+    figure.savefig(path, dpi=120)
+    plt.close(figure)
+
+
+def public(result: dict) -> dict:
+    """The summary without the in-memory objects (for JSON)."""
+    return {key: value for key, value in result.items() if not key.startswith("_")}

@@ -177,7 +177,7 @@ class TaylorHood:
         if matrix is not None:
             coo = matrix.tocoo()
             positions = np.searchsorted(self._pattern_keys, coo.row.astype(np.int64) * self.N + coo.col)
-            data = np.bincount(positions, weights=coo.data, minlength=pattern.nnz)
+            data = np.bincount(positions, weights=coo.data, minlength=pattern.nnz).astype(np.float64, copy=False)
         return sp.csr_matrix((data, pattern.indices, pattern.indptr), shape=pattern.shape)
 
     def boundary_flux(self, velocity: np.ndarray, name: str) -> float:
@@ -310,8 +310,9 @@ class NavierStokes:
         lift = rows[:, self.dirichlet].tocsr()
         started = clock.perf_counter()
         previous = self._reusable.get(reuse)
-        factor = factorize(rows[:, self.free].tocsr(), self.scenario.numerics.linear_solver, symmetric=symmetric,
-                           previous=previous)
+        numerics = self.scenario.numerics
+        factor = factorize(rows[:, self.free].tocsr(), numerics.linear_solver, symmetric=symmetric,
+                           previous=previous, reproducible=numerics.reproducible)
         if reuse:
             self._reusable[reuse] = factor
         self.timings.factor += clock.perf_counter() - started

@@ -49,6 +49,13 @@ def _mkl_runtime():
     return None
 
 
+def _aligned_empty(size: int, alignment: int = 64) -> np.ndarray:
+    """An uninitialised float64 array whose data starts on an ``alignment``-byte boundary."""
+    raw = np.empty(size + alignment // 8, dtype=np.float64)
+    offset = (-raw.ctypes.data % alignment) // 8
+    return raw[offset: offset + size]
+
+
 def pardiso_available() -> bool:
     return _mkl_runtime() is not None
 
@@ -62,7 +69,7 @@ class Pardiso:
 
     _INT = ctypes.c_int32
 
-    def __init__(self, matrix: sp.spmatrix, symmetric: bool = False):
+    def __init__(self, matrix: sp.spmatrix, symmetric: bool = False, reproducible: bool = True):
         library = _mkl_runtime()
         if library is None:
             raise SolverError("MKL PARDISO is not available: install the 'mkl' package or use solver='superlu'")
@@ -77,6 +84,7 @@ class Pardiso:
         self._indptr = np.ascontiguousarray(stored.indptr, dtype=np.int32)
         self._indices = np.ascontiguousarray(stored.indices, dtype=np.int32)
         self._handle = np.zeros(64, dtype=np.int64)
+        self._rhs_buffer = self._solution_buffer = None
         self.iparm = np.zeros(64, dtype=np.int32)
         self.iparm[0] = 1      # we supply iparm
         self.iparm[1] = 2      # METIS nested dissection ordering
@@ -85,13 +93,15 @@ class Pardiso:
         self.iparm[10] = 1     # scaling
         self.iparm[12] = 1     # weighted matching
         self.iparm[17] = -1    # report the number of non-zeros in the factor
-        self.iparm[24] = 2     # parallel forward/backward substitution (6 ms instead of 9 ms here)
+        # forward/backward substitution: 1 = sequential, bit-for-bit reproducible (12 ms here);
+        # 2 = parallel, 2x faster but its reductions make the last bits vary from run to run
+        self.iparm[24] = 1 if reproducible else 2
         self.iparm[34] = 1     # zero-based indexing
         self._call(12, np.zeros(self.shape[0]))
         self.factor_nonzeros = int(self.iparm[17])
 
-    def _call(self, phase: int, rhs: np.ndarray) -> np.ndarray:
-        solution = np.zeros_like(rhs)
+    def _call(self, phase: int, rhs: np.ndarray, solution: np.ndarray | None = None) -> np.ndarray:
+        solution = np.zeros_like(rhs) if solution is None else solution
         error = self._INT(0)
         nrhs = 1 if rhs.ndim == 1 else rhs.shape[1]
         pointer_int = ctypes.POINTER(self._INT)
@@ -111,8 +121,17 @@ class Pardiso:
         return solution
 
     def solve(self, rhs: np.ndarray) -> np.ndarray:
-        rhs = np.asfortranarray(rhs, dtype=np.float64)
-        return self._call(33, rhs)
+        """Back-solve. The right-hand side goes through one persistent buffer: MKL's results can depend on
+        the memory alignment of its inputs, and a fixed buffer makes equal inputs give equal bits."""
+        rhs = np.asarray(rhs, dtype=np.float64)
+        if rhs.ndim != 1:
+            return self._call(33, np.asfortranarray(rhs))
+        if self._rhs_buffer is None or len(self._rhs_buffer) != len(rhs):
+            self._rhs_buffer = _aligned_empty(len(rhs))
+            self._solution_buffer = _aligned_empty(len(rhs))
+        self._rhs_buffer[:] = rhs
+        self._call(33, self._rhs_buffer, self._solution_buffer)
+        return self._solution_buffer.copy()
 
     def same_pattern(self, matrix: sp.spmatrix) -> bool:
         stored = sp.triu(matrix, format="csr") if self.symmetric else matrix
@@ -142,7 +161,8 @@ class Pardiso:
 class SuperLU:
     """scipy's SuperLU factorisation; symmetric-mode minimum degree on A^T + A by default."""
 
-    def __init__(self, matrix: sp.spmatrix, symmetric: bool = False, ordering: str = "MMD_AT_PLUS_A"):
+    def __init__(self, matrix: sp.spmatrix, symmetric: bool = False, ordering: str = "MMD_AT_PLUS_A",
+                 reproducible: bool = True):
         # symmetric mode with a relaxed diagonal threshold keeps the fill-reducing ordering on the
         # saddle-point matrix (the default threshold pivots it away: 2x the fill, 2x the back-solve)
         options = {"SymmetricMode": True, "DiagPivotThresh": 0.1} if ordering == "MMD_AT_PLUS_A" else {}
@@ -161,7 +181,8 @@ class SuperLU:
         self._lu = None
 
 
-def factorize(matrix: sp.spmatrix, solver: str = "auto", symmetric: bool = False, previous=None):
+def factorize(matrix: sp.spmatrix, solver: str = "auto", symmetric: bool = False, previous=None,
+              reproducible: bool = True):
     """Factor ``matrix`` with the named back-end ('auto' prefers PARDISO); returns an object with ``solve``.
 
     With ``previous`` (an earlier PARDISO factorisation of a matrix with the same sparsity pattern, e.g. the
@@ -172,7 +193,7 @@ def factorize(matrix: sp.spmatrix, solver: str = "auto", symmetric: bool = False
     if isinstance(previous, Pardiso) and previous.symmetric == symmetric and previous.same_pattern(matrix):
         return previous.refactor(matrix)
     if solver == "pardiso" or (solver == "auto" and pardiso_available()):
-        return Pardiso(matrix, symmetric=symmetric)
+        return Pardiso(matrix, symmetric=symmetric, reproducible=reproducible)
     return SuperLU(matrix, symmetric=symmetric)
 
 

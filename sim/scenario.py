@@ -224,7 +224,9 @@ class Numerics:
     ``mesh_h`` is the target edge length of the right-isosceles triangulation; the paper's 10/3 um
     gives 90 x 66 squares and 54,243 Taylor-Hood DOFs. ``membrane_spacing`` is the initial distance of
     membrane points in units of ``mesh_h``; ``max_area_change`` the relative change of a cell's enclosed
-    area at which the health checks stop a run.
+    area at which the health checks stop a run. ``reproducible`` keeps runs bit-for-bit identical (the
+    back-solve's substitutions run sequentially); False lets them run in parallel: faster, but the last
+    bits of the results then vary from run to run.
     """
 
     mesh_h: float = 10e-6 / 3
@@ -236,12 +238,15 @@ class Numerics:
     max_nonlinear_iterations: int = 30
     membrane_spacing: float = 0.5
     max_area_change: float = 0.75
+    reproducible: bool = True
 
     def __post_init__(self):
         _positive(self, "mesh_h", "dt", "nonlinear_tolerance", "membrane_spacing", "max_area_change")
         _choice(self, "convection", CONVECTIONS)
         _choice(self, "linear_solver", LINEAR_SOLVERS)
         _choice(self, "initial_flow", INITIAL_FLOWS)
+        if not isinstance(self.reproducible, bool):
+            raise ScenarioError("reproducible", f"must be true or false (got {self.reproducible!r})")
         if not (isinstance(self.max_nonlinear_iterations, int) and self.max_nonlinear_iterations >= 1):
             raise ScenarioError("max_nonlinear_iterations", "must be an integer >= 1")
 

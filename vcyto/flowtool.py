@@ -9,6 +9,9 @@ import numpy as np
 from sim.calibration import FlowPaths, calibrate_streaming_force, injection_streamline
 from sim.fluid import NavierStokes
 from sim.scenario import UM, Scenario
+from sim.transfer import PointLocator
+
+from . import figures
 
 
 def solve_paths(scenario: Scenario, progress=lambda message: None):
@@ -49,36 +52,17 @@ def report_lines(result: dict) -> list[str]:
 
 def save_png(path: str, scenario: Scenario, solver: NavierStokes, flows, paths: FlowPaths):
     """Speed field with the streamline, IDT off (left) and on (right)."""
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-    from matplotlib.tri import Triangulation
-
-    mesh = solver.space.cmesh.mesh
-    triangulation = Triangulation(mesh.p[0] / UM, mesh.p[1] / UM, mesh.t.T)
-    vertices = mesh.p.shape[1]
+    plt = figures.pyplot()
+    locator = PointLocator(solver.space.cmesh, solver.space.velocity_basis.element_dofs)
     figure, axes = plt.subplots(1, 2, figsize=(11, 4.4), constrained_layout=True)
     for axis, flow, line, title in zip(axes, flows, (paths.off, paths.on), ("IDT off", "IDT on")):
-        speed = np.hypot(*flow.velocity[:, :vertices])
-        image = axis.tripcolor(triangulation, speed, shading="gouraud", cmap="viridis")
+        image = figures.show_speed(axis, locator, flow.velocity, scenario)
         axis.plot(line.path[:, 0] / UM, line.path[:, 1] / UM, color="w", lw=1.5)
-        _draw_device(axis, scenario)
+        figures.draw_device(axis, scenario)
         axis.set_title(f"{title}: leaves by {line.outlet} at y = {line.exit_y / UM:.0f} um")
-        axis.set_aspect("equal")
-        axis.set_xlabel("x (um)")
-        axis.set_ylabel("y (um)")
     figure.colorbar(image, ax=axes, label="speed (m/s)", shrink=0.8)
     figure.savefig(path, dpi=120)
     plt.close(figure)
-
-
-def _draw_device(axis, scenario: Scenario):
-    channel = scenario.channel
-    for inlet in channel.inlets:
-        axis.plot([0, 0], np.array(inlet.span) / UM, color="tab:cyan", lw=4)
-    for outlet in channel.outlets:
-        axis.plot([channel.length / UM] * 2, np.array(outlet.span) / UM, color="tab:orange", lw=4)
-    axis.plot(np.array(channel.saw_window.span) / UM, [0, 0], color="tab:red", lw=4)
 
 
 def calibrate(scenario: Scenario, progress=lambda message: None) -> dict:

@@ -15,7 +15,7 @@ import numpy as np
 from sim.feib import ImmersedBoundary
 from sim.scenario import UM, Scenario
 
-from . import STARTED
+from . import STARTED, figures
 
 
 @dataclass(frozen=True)
@@ -126,31 +126,19 @@ def report_lines(result: dict) -> list[str]:
 
 def save_png(path: str, result: dict, scenario: Scenario):
     """The final speed field with the centroid path and membrane outlines along it."""
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-    from matplotlib.tri import Triangulation
-
+    plt = figures.pyplot()
     plant = result["_plant"]
-    mesh = plant.fluid.space.cmesh.mesh
-    vertices = mesh.p.shape[1]
-    speed = np.hypot(*result["_flow"].velocity[:, :vertices])
     figure, axis = plt.subplots(figsize=(7.5, 5.6), constrained_layout=True)
-    image = axis.tripcolor(Triangulation(mesh.p[0] / UM, mesh.p[1] / UM, mesh.t.T), speed, shading="gouraud",
-                           cmap="viridis")
+    image = figures.show_speed(axis, plant.locator, result["_flow"].velocity, scenario)
     centroids = result["_path"]
-    axis.plot(centroids[:, 0] / UM, centroids[:, 1] / UM, color="w", lw=1.2, label="centroid path")
+    axis.plot(centroids[:, 0] / UM, centroids[:, 1] / UM, color="w", lw=1.2)
     for _, points in result["_outlines"]:
         closed = np.vstack([points, points[:1]])
         axis.plot(closed[:, 0] / UM, closed[:, 1] / UM, color="tab:red", lw=1.0)
+    figures.draw_device(axis, scenario)
     cell = result["cells"][0]
     axis.set_title(f"paper scenario {result['scenario']}: {cell['type']} leaves by the {cell['outlet']} outlet "
                    f"at t = {cell['exit_time_ms']:.2f} ms")
-    axis.set_aspect("equal")
-    axis.set_xlim(0, scenario.channel.length / UM)
-    axis.set_ylim(0, scenario.channel.height / UM)
-    axis.set_xlabel("x (um)")
-    axis.set_ylabel("y (um)")
     figure.colorbar(image, ax=axis, label="speed (m/s)", shrink=0.8)
     figure.savefig(path, dpi=120)
     plt.close(figure)

@@ -180,3 +180,62 @@ def first_self_intersection(points):
             if d1 * d2 < 0 and d3 * d4 < 0:
                 return i, j
     return -1, -1
+
+
+@njit(cache=True)
+def linearised_convection(element_dofs, inverse_jacobians, determinants, phi, dphi, weights, ux, uy, newton,
+                          positions, xx, xy, yx, yy):
+    """Matrices of the convection linearised about u, on a fixed CSR pattern (data arrays overwritten).
+
+    Oseen: C_ij = integral (u . grad phi_j) phi_i on the diagonal blocks; Newton adds
+    D_ab,ij = integral (d_b u_a) phi_j phi_i to block (a, b). ``positions[e, i, j]`` is the index in the
+    pattern's data of the pair (element_dofs[i, e], element_dofs[j, e]).
+    """
+    xx[:] = 0.0
+    xy[:] = 0.0
+    yx[:] = 0.0
+    yy[:] = 0.0
+    gx = np.empty(6)
+    gy = np.empty(6)
+    for e in range(element_dofs.shape[1]):
+        a00 = inverse_jacobians[e, 0, 0]
+        a01 = inverse_jacobians[e, 0, 1]
+        a10 = inverse_jacobians[e, 1, 0]
+        a11 = inverse_jacobians[e, 1, 1]
+        area = abs(determinants[e])
+        for q in range(weights.shape[0]):
+            u = 0.0
+            v = 0.0
+            ux_r = 0.0
+            ux_s = 0.0
+            uy_r = 0.0
+            uy_s = 0.0
+            for i in range(6):
+                dof = element_dofs[i, e]
+                u += ux[dof] * phi[q, i]
+                v += uy[dof] * phi[q, i]
+                ux_r += ux[dof] * dphi[q, i, 0]
+                ux_s += ux[dof] * dphi[q, i, 1]
+                uy_r += uy[dof] * dphi[q, i, 0]
+                uy_s += uy[dof] * dphi[q, i, 1]
+                gx[i] = a00 * dphi[q, i, 0] + a10 * dphi[q, i, 1]
+                gy[i] = a01 * dphi[q, i, 0] + a11 * dphi[q, i, 1]
+            weight = weights[q] * area
+            ux_x = a00 * ux_r + a10 * ux_s
+            ux_y = a01 * ux_r + a11 * ux_s
+            uy_x = a00 * uy_r + a10 * uy_s
+            uy_y = a01 * uy_r + a11 * uy_s
+            for i in range(6):
+                wi = weight * phi[q, i]
+                for j in range(6):
+                    position = positions[e, i, j]
+                    advection = wi * (u * gx[j] + v * gy[j])
+                    if newton:
+                        mass = wi * phi[q, j]
+                        xx[position] += advection + mass * ux_x
+                        xy[position] += mass * ux_y
+                        yx[position] += mass * uy_x
+                        yy[position] += advection + mass * uy_y
+                    else:
+                        xx[position] += advection
+                        yy[position] += advection

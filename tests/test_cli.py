@@ -66,3 +66,23 @@ def test_bench_fluid_reports_every_treatment_and_the_ratio():
 def test_bench_rejects_too_few_repeats():
     result = vcyto("bench", "fluid", "--repeats", "1")
     assert result.returncode == 2 and "--repeats" in result.stderr
+
+
+def test_paper_2_json_reports_the_upper_outlet_and_a_time_breakdown(tmp_path):
+    result = vcyto("paper", "2", "--json", "--png", str(tmp_path / "paper2.png"))
+    assert result.returncode == 0, result.stderr
+    summary = json.loads(result.stdout)
+    assert [cell["outlet"] for cell in summary["cells"]] == ["upper"]
+    assert summary["steps"] > 50 and summary["dofs"] == 54_243
+    assert set(summary["wall_time_s"]) >= {"process", "setup", "steady_start", "stepping", "membrane", "fluid_solve"}
+    assert (tmp_path / "paper2.png").stat().st_size > 10_000
+
+
+@pytest.mark.parametrize("args, words", [
+    (["--mesh-sizes", "0um"], "--mesh-sizes"),
+    (["--mesh-sizes", "20um"], "numerics.mesh_h"),
+    (["--cells", "platelet"], "unknown cell type 'platelet'"),
+])
+def test_stability_rejects_bad_input(args, words):
+    result = vcyto("stability", *args)
+    assert result.returncode == 2 and words in result.stderr and "Traceback" not in result.stderr

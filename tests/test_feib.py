@@ -139,3 +139,11 @@ def test_paper_scenario_2_melanoma_leaves_by_the_upper_outlet(paper_scenario):
     cell = run_to_exit(ImmersedBoundary(paper_scenario.with_numerics(dt=25e-6)), "melanoma", 1.0)
     assert cell.fate == "upper"
     assert cell.exit_time == pytest.approx(2.0e-3, rel=0.1)
+
+
+@pytest.mark.slow
+def test_measured_stable_dt_of_the_melanoma_brackets_the_papers_step(paper_scenario):
+    """The melanoma's stability limit at the paper's mesh (about 40 us) lies above the paper's 25 us."""
+    from sim.stability import stable_dt
+    result = stable_dt(paper_scenario, paper_scenario.cell_type("melanoma"))
+    assert 25e-6 <= result.stable_dt < result.unstable_dt < 100e-6

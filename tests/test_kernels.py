@@ -68,3 +68,14 @@ def test_points_outside_the_channel_are_reported_not_extrapolated(space):
     elements, _ = locator.locate(outside)
     assert (elements == -1).all()
     assert np.isnan(locator.interpolate(np.ones((1, space.N)), outside)).all()
+
+
+@pytest.mark.parametrize("newton", [False, True])
+def test_linearised_convection_kernel_matches_scikit_fem_forms(space, newton):
+    velocity = np.random.default_rng(5).standard_normal((2, space.N))
+    fast = space.convection_matrices(velocity, newton)
+    reference = space.convection_matrices_reference(velocity, newton)
+    scale = max(abs(block).max() for row in reference for block in row)
+    for a in range(2):
+        for b in range(2):
+            assert abs(fast[a][b] - reference[a][b]).max() <= 1e-12 * scale

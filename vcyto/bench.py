@@ -14,7 +14,7 @@ import time
 import numpy as np
 
 from sim.fluid import NavierStokes, TaylorHood
-from sim.linalg import SuperLU, pardiso_available
+from sim.linalg import Pardiso, SuperLU, pardiso_available
 from sim.mesh import channel_mesh
 from sim.scenario import UM, Scenario
 
@@ -41,6 +41,7 @@ def bench_fluid(scenario: Scenario, repeats: int = 40, progress=lambda message: 
     base = NavierStokes(scenario.with_numerics(convection="imex"), space)
     result["factorisation_s"] = base.timings.factor
     result["linear_solver"] = base.solver_name
+    result["reproducible"] = scenario.numerics.reproducible
     started = time.perf_counter()
     start = base.steady(0.0)
     result["steady_solve_s"] = time.perf_counter() - started
@@ -62,6 +63,13 @@ def bench_fluid(scenario: Scenario, repeats: int = 40, progress=lambda message: 
         state = solver.step(start)          # warm-up (first factorisation)
         result["steps_ms"][treatment] = _median_ms(lambda: solver.step(state), max(2, min(count, repeats)))
     if pardiso_available() and base.solver_name == "pardiso":
+        other = not scenario.numerics.reproducible
+        progress(f"PARDISO back-solve with reproducible={other}")
+        twin = Pardiso(base.constant_matrix(), symmetric=True, reproducible=other)
+        twin.solve(rhs)
+        result["backsolve_reproducible_ms" if other else "backsolve_parallel_ms"] = \
+            _median_ms(lambda: twin.solve(rhs), repeats)
+        twin.release()
         progress("SuperLU comparison")
         matrix = base.constant_matrix()
         started = time.perf_counter()
@@ -73,7 +81,8 @@ def bench_fluid(scenario: Scenario, repeats: int = 40, progress=lambda message: 
 
 def report_lines(result: dict) -> list[str]:
     lines = [
-        f"fluid benchmark: h = {result['mesh_h_um']:.3g} um, {result['dofs']:,} DOFs, solver {result['linear_solver']}",
+        f"fluid benchmark: h = {result['mesh_h_um']:.3g} um, {result['dofs']:,} DOFs, solver {result['linear_solver']}"
+        f" ({'reproducible' if result['reproducible'] else 'parallel'} substitution)",
         f"  assembly          {result['assembly_s']:8.2f} s",
         f"  factorisation     {result['factorisation_s']:8.2f} s",
         f"  steady start      {result['steady_solve_s']:8.2f} s",
@@ -83,6 +92,12 @@ def report_lines(result: dict) -> list[str]:
         lines.append(f"  step {treatment:<12} {value:8.2f} ms")
     lines.append(f"  imex step / back-solve = {result['imex_over_backsolve']:.2f}  (median of interleaved pairs; "
                  "target <= 1.3)")
+    if "backsolve_parallel_ms" in result:
+        lines.append(f"  PARDISO with parallel substitution (numerics.reproducible = false): back-solve "
+                     f"{result['backsolve_parallel_ms']:.2f} ms")
+    if "backsolve_reproducible_ms" in result:
+        lines.append(f"  PARDISO with sequential, reproducible substitution: back-solve "
+                     f"{result['backsolve_reproducible_ms']:.2f} ms")
     if "superlu_backsolve_ms" in result:
         lines.append(f"  SuperLU (MMD on A^T+A): factor {result['superlu_factorisation_s']:.2f} s, "
                      f"back-solve {result['superlu_backsolve_ms']:.2f} ms")
@@ -124,4 +139,41 @@ def treatment_lines(result: dict) -> list[str]:
              "  treatment    ms/step   |v - v_implicit| / |v_implicit|"]
     for treatment, value in result["step_ms"].items():
         lines.append(f"  {treatment:<11} {value:8.2f}   {result['difference_from_implicit'][treatment]:.2e}")
+    return lines
+
+
+def bench_paper_treatments(number: int, scenario: Scenario, treatments=("imex", "implicit"), progress=None) -> dict:
+    """Run paper scenario ``number`` with each convection treatment; outlet, exit time and path differences
+    from the first listed as the reference is the last (the fully implicit one by default)."""
+    from .paper import paper_scenario, run_paper
+    runs = {}
+    for treatment in treatments:
+        if progress:
+            progress.note(f"paper scenario {number} with {treatment} convection")
+        chosen = paper_scenario(number, scenario, dt_given=False).with_numerics(convection=treatment)
+        started = time.perf_counter()
+        result = run_paper(number, chosen, progress=None)
+        runs[treatment] = (result, time.perf_counter() - started)
+    reference, _ = runs[treatments[-1]]
+    rows = {}
+    for treatment, (result, wall) in runs.items():
+        steps = min(len(result["_path"]), len(reference["_path"]))
+        distance = np.linalg.norm(result["_path"][:steps] - reference["_path"][:steps], axis=1)
+        cell, reference_cell = result["cells"][0], reference["cells"][0]
+        rows[treatment] = {
+            "outlet": cell["outlet"], "exit_time_ms": cell["exit_time_ms"], "exit_y_um": cell["exit_y_um"],
+            "exit_time_difference_us": 1e3 * (cell["exit_time_ms"] - reference_cell["exit_time_ms"]),
+            "path_max_distance_um": float(distance.max() / UM), "path_mean_distance_um": float(distance.mean() / UM),
+            "wall_time_s": wall, "steps": result["steps"],
+        }
+    return {"scenario": number, "reference": treatments[-1], "runs": rows}
+
+
+def paper_treatment_lines(result: dict) -> list[str]:
+    lines = [f"paper scenario {result['scenario']}: convection treatments against {result['reference']}",
+             "  treatment  outlet  exit (ms)  exit y (um)  d exit (us)  path max / mean (um)  wall (s)"]
+    for treatment, row in result["runs"].items():
+        lines.append(f"  {treatment:<10} {row['outlet']:<6} {row['exit_time_ms']:9.4f} {row['exit_y_um']:12.2f} "
+                     f"{row['exit_time_difference_us']:12.2f} {row['path_max_distance_um']:10.3f} / "
+                     f"{row['path_mean_distance_um']:.3f} {row['wall_time_s']:9.1f}")
     return lines

@@ -104,6 +104,11 @@ def command_bench(args):
     from . import bench
     scenario = _scenario(args)
     progress = _progress(args.quiet or args.json)
+    if args.target == "paper":
+        from .progress import Progress
+        result = bench.bench_paper_treatments(args.number, scenario, progress=Progress(quiet=args.quiet or args.json))
+        _emit(args, result, bench.paper_treatment_lines(result))
+        return
     if args.target == "treatments":
         if args.steps < 1:
             raise UsageError(f"--steps must be at least 1 (got {args.steps})")
@@ -136,6 +141,37 @@ def command_paper(args):
     _emit(args, paper.public(result), lines)
 
 
+def _lengths(text: str) -> list[float]:
+    from .config import parse_quantity
+    try:
+        values = [parse_quantity(part) for part in text.split(",") if part.strip()]
+    except ValueError as error:
+        raise UsageError(f"--mesh-sizes: {error}") from None
+    if not values or any(v <= 0 for v in values):
+        raise UsageError(f"--mesh-sizes needs positive lengths such as 6.67um,3.33um (got {text!r})")
+    return values
+
+
+def command_stability(args):
+    from . import stabilitymap
+    from .progress import Progress
+    scenario = _scenario(args)
+    cells = [name.strip() for name in args.cells.split(",") if name.strip()]
+    if not cells:
+        raise UsageError("--cells needs at least one cell type, e.g. --cells RBC,melanoma")
+    for name in cells:
+        scenario.cell_type(name)
+    sizes = _lengths(args.mesh_sizes)
+    for h in sizes:
+        scenario.with_numerics(mesh_h=h)          # validates that each mesh resolves the inlets
+    progress = Progress(quiet=args.quiet or args.json)
+    try:
+        result = stabilitymap.stability_map(scenario, cells, sizes, progress)
+    finally:
+        progress.close()
+    _emit(args, result, stabilitymap.report_lines(result))
+
+
 def command_scenario(args):
     from .config import scenario_to_toml
     print(scenario_to_toml(_scenario(args)), end="")
@@ -165,6 +201,15 @@ def build_parser() -> argparse.ArgumentParser:
     paper.add_argument("--quiet", action="store_true", help="no progress messages")
     paper.set_defaults(handler=command_paper)
 
+    stability = commands.add_parser("stability", help="measure the largest stable dt per cell type and mesh size")
+    _scenario_options(stability)
+    stability.add_argument("--cells", default="RBC,melanoma", help="cell types (default RBC,melanoma)")
+    stability.add_argument("--mesh-sizes", default="6.667um,3.333um,1.667um",
+                           help="comma-separated mesh sizes (default 6.667um,3.333um,1.667um)")
+    stability.add_argument("--json", action="store_true", help="print a machine-readable result")
+    stability.add_argument("--quiet", action="store_true", help="no progress messages")
+    stability.set_defaults(handler=command_stability)
+
     scenario = commands.add_parser("scenario", help="print the effective scenario (defaults + file + overrides) as TOML")
     _scenario_options(scenario)
     scenario.set_defaults(handler=command_scenario)
@@ -183,6 +228,13 @@ def build_parser() -> argparse.ArgumentParser:
     treatments.add_argument("--json", action="store_true", help="print a machine-readable result")
     treatments.add_argument("--quiet", action="store_true", help="no progress messages")
     treatments.set_defaults(handler=command_bench)
+    paper_bench = targets.add_parser("paper", help="a paper scenario with imex and with implicit convection: "
+                                                   "outlet, exit time and path differences")
+    paper_bench.add_argument("number", type=int, choices=(1, 2))
+    _scenario_options(paper_bench)
+    paper_bench.add_argument("--json", action="store_true", help="print a machine-readable result")
+    paper_bench.add_argument("--quiet", action="store_true", help="no progress messages")
+    paper_bench.set_defaults(handler=command_bench)
     return parser
 
 

@@ -37,10 +37,15 @@ def _scenario_options(parser: argparse.ArgumentParser):
     group.add_argument("--set", dest="overrides", action="append", default=[], metavar="FIELD=VALUE",
                        help="override one field, e.g. --set fluid.viscosity=1e-3 (repeatable)")
     group.add_argument("--mesh-h", metavar="LENGTH", help="mesh size (default 3.33um, the paper's 54,243 DOFs)")
-    group.add_argument("--dt", metavar="TIME", help="time step (default 2.5us)")
+    group.add_argument("--dt", metavar="TIME", help="time step (default 2.5us; vcyto paper: the paper's step for the scenario)")
     group.add_argument("--convection", choices=CONVECTIONS, help="convection treatment (default imex)")
     group.add_argument("--saw-model", choices=SAW_MODELS, help="SAW model (default paper)")
     group.add_argument("--solver", choices=("auto", "pardiso", "superlu"), help="linear solver (default auto)")
+
+
+def _output_options(parser: argparse.ArgumentParser):
+    parser.add_argument("--json", action="store_true", help="print a machine-readable result on stdout")
+    parser.add_argument("--quiet", action="store_true", help="no progress messages on stderr")
 
 
 def _scenario(args):
@@ -186,8 +191,7 @@ def build_parser() -> argparse.ArgumentParser:
     flow.add_argument("--png", metavar="FILE", help="save the speed field with the streamlines as a PNG")
     flow.add_argument("--calibrate-streaming", action="store_true",
                       help="find the streaming force that deflects the streamline as far as the paper's jet")
-    flow.add_argument("--json", action="store_true", help="print a machine-readable summary")
-    flow.add_argument("--quiet", action="store_true", help="no progress messages")
+    _output_options(flow)
     flow.set_defaults(handler=command_flow)
 
     paper = commands.add_parser("paper", help="run the paper's scenario 1 (RBC, IDT off) or 2 (melanoma, IDT on)")
@@ -197,8 +201,7 @@ def build_parser() -> argparse.ArgumentParser:
     paper.add_argument("--no-png", action="store_true", help="do not save a PNG")
     paper.add_argument("--max-time", type=float, default=20.0, metavar="MS",
                        help="give up (outlet 'lost') after this much simulated time in ms (default 20)")
-    paper.add_argument("--json", action="store_true", help="print a machine-readable summary")
-    paper.add_argument("--quiet", action="store_true", help="no progress messages")
+    _output_options(paper)
     paper.set_defaults(handler=command_paper)
 
     stability = commands.add_parser("stability", help="measure the largest stable dt per cell type and mesh size")
@@ -206,8 +209,7 @@ def build_parser() -> argparse.ArgumentParser:
     stability.add_argument("--cells", default="RBC,melanoma", help="cell types (default RBC,melanoma)")
     stability.add_argument("--mesh-sizes", default="6.667um,3.333um,1.667um",
                            help="comma-separated mesh sizes (default 6.667um,3.333um,1.667um)")
-    stability.add_argument("--json", action="store_true", help="print a machine-readable result")
-    stability.add_argument("--quiet", action="store_true", help="no progress messages")
+    _output_options(stability)
     stability.set_defaults(handler=command_stability)
 
     scenario = commands.add_parser("scenario", help="print the effective scenario (defaults + file + overrides) as TOML")
@@ -219,21 +221,18 @@ def build_parser() -> argparse.ArgumentParser:
     fluid = targets.add_parser("fluid", help="set-up and per-step cost of the fluid solver, per convection treatment")
     _scenario_options(fluid)
     fluid.add_argument("--repeats", type=int, default=40, help="timed repetitions per median (default 40)")
-    fluid.add_argument("--json", action="store_true", help="print a machine-readable result")
-    fluid.add_argument("--quiet", action="store_true", help="no progress messages")
+    _output_options(fluid)
     fluid.set_defaults(handler=command_bench)
     treatments = targets.add_parser("treatments", help="how far imex, oseen and stokes steps differ from implicit ones")
     _scenario_options(treatments)
     treatments.add_argument("--steps", type=int, default=20, help="steps after switching the IDT on (default 20)")
-    treatments.add_argument("--json", action="store_true", help="print a machine-readable result")
-    treatments.add_argument("--quiet", action="store_true", help="no progress messages")
+    _output_options(treatments)
     treatments.set_defaults(handler=command_bench)
     paper_bench = targets.add_parser("paper", help="a paper scenario with imex and with implicit convection: "
                                                    "outlet, exit time and path differences")
     paper_bench.add_argument("number", type=int, choices=(1, 2))
     _scenario_options(paper_bench)
-    paper_bench.add_argument("--json", action="store_true", help="print a machine-readable result")
-    paper_bench.add_argument("--quiet", action="store_true", help="no progress messages")
+    _output_options(paper_bench)
     paper_bench.set_defaults(handler=command_bench)
     return parser
 

@@ -7,6 +7,7 @@ import argparse
 import json
 import os
 import sys
+import time
 from pathlib import Path
 
 from sim.fluid import NumericalBlowUp
@@ -107,8 +108,14 @@ def command_flow(args):
 
 def command_bench(args):
     from . import bench
-    scenario = _scenario(args)
     progress = _progress(args.quiet or args.json)
+    if args.target == "controller":
+        if args.events < 1:
+            raise UsageError(f"--events must be at least 1 (got {args.events})")
+        result = bench.bench_controller(args.events)
+        _emit(args, result, bench.controller_lines(result))
+        return
+    scenario = _scenario(args)
     if args.target == "paper":
         from .progress import Progress
         result = bench.bench_paper_treatments(args.number, scenario, progress=Progress(quiet=args.quiet or args.json))
@@ -177,6 +184,84 @@ def command_stability(args):
     _emit(args, result, stabilitymap.report_lines(result))
 
 
+def _cell_list(text: str) -> tuple[str, ...]:
+    names = tuple(name.strip() for name in text.split(",") if name.strip())
+    if not names:
+        raise UsageError("--cells needs at least one cell type, e.g. --cells RBC,melanoma")
+    return names
+
+
+def _mix(text: str) -> tuple[tuple[str, float], ...]:
+    pairs = []
+    for part in text.split(","):
+        name, _, weight = part.partition(":")
+        try:
+            pairs.append((name.strip(), float(weight)))
+        except ValueError:
+            raise UsageError(f"--mix wants TYPE:WEIGHT pairs such as RBC:0.9,melanoma:0.1 (got {text!r})") from None
+    return tuple(pairs)
+
+
+def command_stream(args):
+    from controller.detector import DetectorSettings
+    from controller.sorter import ControllerSettings
+    from sim.arrivals import Arrivals
+    from . import stream
+    from .progress import Progress
+    scenario = _scenario(args)
+    try:
+        cells = args.cells if args.cells is not None else ("" if args.count else "RBC,melanoma")
+        arrivals = Arrivals(cells=_cell_list(cells) if cells else (), count=args.count or 0,
+                            mix=_mix(args.mix) if args.mix else (), rate=args.rate, process=args.arrivals,
+                            min_spacing=args.min_spacing * 1e-3)
+        for name in set(arrivals.cells) | {name for name, _ in arrivals.mix}:
+            scenario.cell_type(name)
+        low, high = (float(v) * 1e-6 for v in args.detection_window.split(","))
+        if high > scenario.channel.length:
+            raise UsageError(f"--detection-window {args.detection_window} um lies outside the channel "
+                             f"(0, {scenario.channel.length * 1e6:g}) um")
+        detector = DetectorSettings(window=(low, high), gate=args.gate, noise_cv=args.noise)
+        controller = ControllerSettings(delay=args.delay * 1e-3, lead=args.lead * 1e-3, pulse=args.pulse * 1e-3,
+                                        mode=args.mode, coincidence_window=args.coincidence * 1e-3,
+                                        enabled=not args.no_controller)
+        settings = stream.StreamSettings(arrivals, detector, controller, args.model, args.seed,
+                                         max_time=args.max_time * 1e-3)
+    except ValueError as error:
+        if isinstance(error, (UsageError, ScenarioError)):
+            raise
+        raise UsageError(str(error)) from None
+    output = _output_directory(args.output)
+    progress = Progress(quiet=args.quiet or args.json)
+    try:
+        result = stream.run_stream(scenario, settings, progress)
+    finally:
+        progress.close()
+    lines = stream.report_lines(result)
+    if output is not None:
+        from . import fcs
+        run_id = time.strftime("stream-%Y%m%d-%H%M%S")
+        fcs_path = fcs.write_fcs(output / f"{run_id}.fcs", result, {"VCYTO_COMMAND": " ".join(sys.argv)})
+        summary_path = output / f"{run_id}.json"
+        summary_path.write_text(json.dumps(result, indent=2, default=_plain))
+        result["files"] = {"fcs": str(fcs_path), "summary": str(summary_path)}
+        lines.append(f"detector events: {fcs_path} (FCS 3.1); summary: {summary_path}")
+    _emit(args, result, lines)
+
+
+def _output_directory(path: str | None) -> Path | None:
+    """Create (if needed) and check the output directory before any work."""
+    if path is None or path == "":
+        return None
+    directory = Path(path)
+    try:
+        directory.mkdir(parents=True, exist_ok=True)
+    except OSError as error:
+        raise UsageError(f"cannot create output directory {path}: {error.strerror}") from None
+    if not os.access(directory, os.W_OK):
+        raise UsageError(f"output directory {path} is not writable")
+    return directory
+
+
 def command_scenario(args):
     from .config import scenario_to_toml
     print(scenario_to_toml(_scenario(args)), end="")
@@ -203,6 +288,42 @@ def build_parser() -> argparse.ArgumentParser:
                        help="give up (outlet 'lost') after this much simulated time in ms (default 20)")
     _output_options(paper)
     paper.set_defaults(handler=command_paper)
+
+    stream = commands.add_parser("stream", help="run cells through the closed sorting loop (detector, controller, plant)")
+    _scenario_options(stream)
+    arrivals = stream.add_argument_group("cell arrivals (through the injection inlet)")
+    arrivals.add_argument("--cells", help="explicit ordered list, e.g. RBC,melanoma,RBC (default RBC,melanoma "
+                                          "unless --count is given)")
+    arrivals.add_argument("--count", type=int, help="number of cells drawn from --mix")
+    arrivals.add_argument("--mix", help="type mix for --count, e.g. RBC:0.9,melanoma:0.1")
+    arrivals.add_argument("--rate", type=float, default=500.0, help="arrival rate in cells/s (default 500)")
+    arrivals.add_argument("--arrivals", choices=("regular", "poisson"), default="regular",
+                          help="arrival process (default regular)")
+    arrivals.add_argument("--min-spacing", type=float, default=0.5, metavar="MS",
+                          help="minimum time between arrivals in ms (default 0.5)")
+    optics = stream.add_argument_group("detector and controller")
+    optics.add_argument("--detection-window", default="30,60", metavar="X0,X1",
+                        help="detection window along the channel in um (default 30,60)")
+    optics.add_argument("--gate", type=float, default=0.5, help="fluorescence gate for type II (default 0.5)")
+    optics.add_argument("--noise", type=float, default=0.2, help="fluorescence noise CV (default 0.2)")
+    optics.add_argument("--delay", type=float, default=0.56, metavar="MS",
+                        help="calibrated delay from the detector to the SAW window at 0.095 m/s (default 0.56)")
+    optics.add_argument("--lead", type=float, default=0.5, metavar="MS",
+                        help="IDT on this long before the predicted arrival (default 0.5)")
+    optics.add_argument("--pulse", type=float, default=1.2, metavar="MS", help="IDT pulse length (default 1.2)")
+    optics.add_argument("--mode", choices=("purity", "yield"), default="purity", help="sort mode (default purity)")
+    optics.add_argument("--coincidence", type=float, default=1.2, metavar="MS",
+                        help="purity mode aborts a sort with a type-I cell predicted within half this (default 1.2)")
+    optics.add_argument("--no-controller", action="store_true", help="never switch the IDT on")
+    stream.add_argument("--model", choices=("feib", "streamline"), default="feib",
+                        help="plant: full FE-IB (default) or cheap streamline stand-in")
+    stream.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+    stream.add_argument("--output", default="recordings", metavar="DIR",
+                        help="where the run's files go: FCS 3.1 detector events and a JSON summary "
+                             "(default recordings/; --output '' writes nothing)")
+    stream.add_argument("--max-time", type=float, default=50.0, metavar="MS", help="stop after this simulated time")
+    _output_options(stream)
+    stream.set_defaults(handler=command_stream)
 
     stability = commands.add_parser("stability", help="measure the largest stable dt per cell type and mesh size")
     _scenario_options(stability)
@@ -234,6 +355,10 @@ def build_parser() -> argparse.ArgumentParser:
     _scenario_options(paper_bench)
     _output_options(paper_bench)
     paper_bench.set_defaults(handler=command_bench)
+    controller_bench = targets.add_parser("controller", help="decision latency of the sorting controller")
+    controller_bench.add_argument("--events", type=int, default=20_000, help="synthetic events (default 20000)")
+    _output_options(controller_bench)
+    controller_bench.set_defaults(handler=command_bench)
     return parser
 
 

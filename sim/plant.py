@@ -1,0 +1,256 @@
+"""The plant contract of the closed loop, and the plants that implement it.
+
+A plant is reset with a schedule of arrivals (time, cell type) and a seed, then stepped one control period
+at a time with the IDT drive in [0, 1]; each step returns an ``Observation`` (what an instrument can see:
+where each cell in the channel is, its size and label brightness) and ``truth()`` gives the ground truth
+for logging and statistics only (types, fates, exit times). ``check_plant`` tests any plant against the
+contract: determinism, time advance, cells conserved.
+
+- ``FeibPlant``: the full two-way coupled FE-IB model (``sim.feib``), several physics steps per control
+  period when the period is longer than dt.
+- ``StreamlinePlant``: a cheap stand-in: the steady flows with the IDT off and on, blended by a first-order
+  lag of the drive, carry each cell's centroid (no deformation, no feedback on the fluid).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from .feib import Cell, ImmersedBoundary, State
+from .fluid import NavierStokes
+from .scenario import Scenario
+from .streamline import outlet_at
+from .transfer import PointLocator
+
+
+@dataclass(frozen=True)
+class CellView:
+    """What the optics can see of one cell."""
+
+    key: int
+    x: float
+    y: float
+    area: float
+    brightness: float
+
+
+@dataclass(frozen=True)
+class Observation:
+    time: float
+    cells: tuple[CellView, ...]
+
+
+@dataclass(frozen=True)
+class CellTruth:
+    key: int
+    type: str
+    born: float
+    fate: str                 # "in_channel", an outlet name, "wall" or "lost"
+    exit_time: float
+    exit_y: float
+    x: float
+    y: float
+    area_ratio: float
+
+
+@dataclass(frozen=True)
+class Truth:
+    time: float
+    cells: tuple[CellTruth, ...]
+    waiting: int              # scheduled cells not yet injected
+
+
+class _Schedule:
+    """Arrivals not yet injected, in time order."""
+
+    def __init__(self, arrivals):
+        self.items = sorted(arrivals)
+        self.position = 0
+
+    def due(self, time: float, tolerance: float):
+        while self.position < len(self.items) and self.items[self.position][0] <= time + tolerance:
+            yield self.position, self.items[self.position]
+            self.position += 1
+
+    @property
+    def waiting(self) -> int:
+        return len(self.items) - self.position
+
+
+class FeibPlant:
+    """The FE-IB model behind the plant contract."""
+
+    def __init__(self, scenario: Scenario, control_period: float | None = None, plant: ImmersedBoundary | None = None):
+        self.scenario = scenario
+        self.ib = plant or ImmersedBoundary(scenario)
+        dt = scenario.numerics.dt
+        self.control_period = control_period or dt
+        self.substeps = max(1, round(self.control_period / dt))
+        self._initial = None
+        self.state = None
+
+    def reset(self, arrivals, seed: int | None = None) -> Observation:
+        if self._initial is None:
+            self._initial = self.ib.fluid.initial_flow(0.0)
+        self.schedule = _Schedule(arrivals)
+        self.state = State(self._initial, ())
+        self._inject()
+        return self.observe()
+
+    def _inject(self):
+        dt = self.scenario.numerics.dt
+        new = [self.ib.new_cell(self.scenario.cell_type(name), key, self.state.time)
+               for key, (_, name) in self.schedule.due(self.state.time, 0.5 * dt)]
+        if new:
+            self.state = State(self.state.flow, self.state.cells + tuple(new), self.state.step)
+
+    def step(self, actuation: float) -> Observation:
+        for _ in range(self.substeps):
+            self.state = self.ib.step(self.state, actuation)
+            self._inject()
+        return self.observe()
+
+    def observe(self) -> Observation:
+        views = []
+        for cell in self.state.cells:
+            if cell.in_channel:
+                x, y = cell.membrane.centroid()
+                views.append(CellView(cell.id, float(x), float(y), cell.membrane.area(),
+                                      cell.membrane.cell_type.fluorescence))
+        return Observation(self.state.time, tuple(views))
+
+    def truth(self) -> Truth:
+        cells = []
+        for cell in self.state.cells:
+            x, y = cell.membrane.centroid()
+            cells.append(CellTruth(cell.id, cell.membrane.cell_type.name, cell.born, cell.fate, cell.exit_time,
+                                   cell.exit_y, float(x), float(y), cell.membrane.area() / cell.membrane.initial_area))
+        return Truth(self.state.time, tuple(cells), self.schedule.waiting)
+
+    @property
+    def done(self) -> bool:
+        return self.schedule.waiting == 0 and not any(cell.in_channel for cell in self.state.cells)
+
+
+@dataclass
+class _Point:
+    key: int
+    type: str
+    born: float
+    position: np.ndarray
+    fate: str = "in_channel"
+    exit_time: float = float("nan")
+    exit_y: float = float("nan")
+
+
+class StreamlinePlant:
+    """Cells as points carried by the blend (1 - s) v_off + s v_on of two steady flows, s lagging the drive.
+
+    ``response_time`` is the lag of the flow behind the IDT (first order). Cheap: one interpolation per
+    cell per control period. It ignores cell size and deformation and the cells' effect on the fluid.
+    """
+
+    def __init__(self, scenario: Scenario, control_period: float = 10e-6, response_time: float = 0.1e-3,
+                 fluid: NavierStokes | None = None):
+        self.scenario = scenario
+        self.control_period = control_period
+        self.response_time = response_time
+        fluid = fluid or NavierStokes(scenario.with_numerics(convection="stokes"))
+        self.flows = np.stack([fluid.steady(0.0).velocity, fluid.steady(1.0).velocity])   # (2, 2, N)
+        self.locator = PointLocator(fluid.space.cmesh, fluid.space.velocity_basis.element_dofs)
+        self._values = self.flows.reshape(4, -1)
+
+    def reset(self, arrivals, seed: int | None = None) -> Observation:
+        self.schedule = _Schedule(arrivals)
+        self.time = 0.0
+        self.level = 0.0
+        self.points: list[_Point] = []
+        self._inject()
+        return self.observe()
+
+    def _inject(self):
+        channel = self.scenario.channel
+        inlet = channel.inlet(channel.injection_inlet)
+        for key, (_, name) in self.schedule.due(self.time, 0.5 * self.control_period):
+            radius = self.scenario.cell_type(name).semi_axes[0]
+            start = np.array([radius + 1e-6, 0.5 * (inlet.span[0] + inlet.span[1])])
+            self.points.append(_Point(key, name, self.time, start))
+
+    def _velocity(self, positions, level):
+        values = self.locator.interpolate(self._values, positions)            # (n, 4)
+        return (1 - level) * values[:, 0:2] + level * values[:, 2:4]
+
+    def step(self, actuation: float) -> Observation:
+        dt = self.control_period
+        previous = self.level
+        self.level = actuation + (self.level - actuation) * math.exp(-dt / self.response_time)
+        active = [p for p in self.points if p.fate == "in_channel"]
+        if active:
+            positions = np.array([p.position for p in active])
+            half = positions + 0.5 * dt * self._velocity(positions, previous)
+            inside = np.column_stack([np.minimum(half[:, 0], self.scenario.channel.length * (1 - 1e-12)), half[:, 1]])
+            moved = positions + dt * self._velocity(inside, 0.5 * (previous + self.level))
+            for point, old, new in zip(active, positions, moved):
+                self._settle(point, old, new)
+        self.time += dt
+        self._inject()
+        return self.observe()
+
+    def _settle(self, point, old, new):
+        channel = self.scenario.channel
+        if not np.all(np.isfinite(new)):
+            point.fate = "lost"
+            return
+        point.position = new
+        if new[0] >= channel.length:
+            weight = (channel.length - old[0]) / (new[0] - old[0])
+            point.exit_y = float(old[1] + weight * (new[1] - old[1]))
+            point.exit_time = self.time + weight * self.control_period
+            point.fate = outlet_at(channel, point.exit_y)
+        elif not (0 <= new[1] <= channel.height):
+            point.fate = "wall"
+
+    def observe(self) -> Observation:
+        views = tuple(CellView(p.key, float(p.position[0]), float(p.position[1]),
+                               self.scenario.cell_type(p.type).area, self.scenario.cell_type(p.type).fluorescence)
+                      for p in self.points if p.fate == "in_channel")
+        return Observation(self.time, views)
+
+    def truth(self) -> Truth:
+        cells = tuple(CellTruth(p.key, p.type, p.born, p.fate, p.exit_time, p.exit_y, float(p.position[0]),
+                                float(p.position[1]), 1.0) for p in self.points)
+        return Truth(self.time, cells, self.schedule.waiting)
+
+    @property
+    def done(self) -> bool:
+        return self.schedule.waiting == 0 and all(p.fate != "in_channel" for p in self.points)
+
+
+def check_plant(make_plant, arrivals, steps: int = 20, seed: int = 1):
+    """Check a plant against the contract; returns a list of violations (empty when it conforms).
+
+    ``make_plant()`` builds a fresh plant. Checked: same seed -> same observations; time advances by one
+    control period per step; every scheduled cell is waiting, in the channel or settled, exactly once.
+    """
+    problems = []
+    runs = []
+    for _ in range(2):
+        plant = make_plant()
+        observations = [plant.reset(arrivals, seed=seed)]
+        for step in range(steps):
+            observations.append(plant.step(1.0 if step % 7 < 3 else 0.0))
+        runs.append((plant, observations))
+    (plant, first), (_, second) = runs
+    if first != second:
+        problems.append("not deterministic: the same seed gave different observations")
+    times = np.array([o.time for o in first])
+    if not np.allclose(np.diff(times), plant.control_period, rtol=1e-9, atol=1e-15):
+        problems.append("time does not advance by one control period per step")
+    truth = plant.truth()
+    keys = [cell.key for cell in truth.cells]
+    if len(set(keys)) != len(keys) or len(keys) + truth.waiting != len(arrivals):
+        problems.append(f"cells not conserved: {len(keys)} known + {truth.waiting} waiting != {len(arrivals)} scheduled")
+    return problems

@@ -1,0 +1,172 @@
+"""The closed sorting loop: plant contract, detector, controller, outlets and sort statistics."""
+
+import math
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from controller.detector import DetectorSettings
+from controller.sorter import ControllerSettings
+from sim.arrivals import Arrivals, schedule
+from sim.plant import FeibPlant, StreamlinePlant, check_plant
+from sim.scenario import UM, Scenario
+from vcyto.stream import StreamSettings, run_stream, statistics_of
+
+
+@pytest.fixture(scope="module")
+def scenario():
+    return Scenario()
+
+
+@pytest.fixture(scope="module")
+def streamline_plant(scenario):
+    return StreamlinePlant(scenario)
+
+
+def stream(scenario, plant, cells=(), **options):
+    arrivals = options.pop("arrivals", None) or Arrivals(cells=tuple(cells))
+    settings = StreamSettings(arrivals, model="streamline", **options)
+    return run_stream(scenario, settings, plant=plant)
+
+
+def outcomes(result):
+    return [(c["type"], c["detected_class"], c["decision"], c["outlet"]) for c in result["cells"]]
+
+
+def test_controller_package_needs_no_numerics_library():
+    code = "import controller.detector, controller.sorter, sys; print('skfem' in sys.modules, 'numba' in sys.modules)"
+    output = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+    assert output.split() == ["False", "False"]
+
+
+def test_plants_conform_to_the_contract(scenario, streamline_plant):
+    arrivals = [(0.0, "RBC"), (30e-6, "melanoma")]
+    assert check_plant(lambda: streamline_plant, arrivals, steps=20) == []
+    coarse = Scenario().with_numerics(mesh_h=5 * UM, dt=10e-6)
+    feib = FeibPlant(coarse)
+    assert check_plant(lambda: feib, arrivals, steps=6) == []
+
+
+def test_rbc_then_melanoma_are_sorted_by_the_feib_plant(scenario):
+    settings = StreamSettings(Arrivals(cells=("RBC", "melanoma")), model="feib")
+    result = run_stream(scenario.with_numerics(dt=10e-6), settings)
+    assert outcomes(result) == [("RBC", "I", "pass", "lower"), ("melanoma", "II", "sort", "upper")]
+
+
+def test_melanoma_rbc_melanoma_and_a_longer_mixed_sequence(scenario, streamline_plant):
+    result = stream(scenario, streamline_plant, ("melanoma", "RBC", "melanoma"))
+    assert [c["outlet"] for c in result["cells"]] == ["upper", "lower", "upper"]
+    names = ("RBC", "melanoma", "melanoma", "RBC", "RBC", "melanoma", "RBC", "melanoma", "RBC", "RBC")
+    result = stream(scenario, streamline_plant, names)
+    for cell in result["cells"]:
+        expected = "upper" if cell["detected_class"] == "II" and cell["true_class"] == "II" else "lower"
+        assert cell["outlet"] == expected, cell
+    assert result["statistics"]["purity"] == 1.0 and result["statistics"]["yield"] == 1.0
+
+
+def test_spacing_too_tight_aborts_in_purity_mode_and_never_mis_sorts(scenario, streamline_plant):
+    arrivals = Arrivals(cells=("melanoma", "RBC", "melanoma", "RBC"), rate=4000.0, min_spacing=0.2e-3)
+    purity = stream(scenario, streamline_plant, arrivals=arrivals)
+    assert purity["statistics"]["aborts"] >= 1
+    for cell in purity["cells"]:
+        if cell["type"] == "RBC":
+            assert cell["outlet"] == "lower"
+        if cell["decision"] == "abort":
+            assert cell["outlet"] == "lower"
+    yield_mode = stream(scenario, streamline_plant, arrivals=arrivals, controller=ControllerSettings(mode="yield"))
+    assert yield_mode["statistics"]["aborts"] == 0
+    assert yield_mode["statistics"]["yield"] == 1.0 and yield_mode["statistics"]["purity"] < 1.0
+
+
+def test_controller_disabled_sends_every_cell_lower(scenario, streamline_plant):
+    result = stream(scenario, streamline_plant, ("melanoma", "RBC", "melanoma"),
+                    controller=ControllerSettings(enabled=False))
+    assert [c["outlet"] for c in result["cells"]] == ["lower"] * 3
+
+
+def test_dim_type_ii_cell_is_a_counted_misclassification_and_ends_lower(scenario, streamline_plant):
+    result = stream(scenario, streamline_plant, ("melanoma",), detector=DetectorSettings(gate=100.0))
+    assert outcomes(result) == [("melanoma", "I", "pass", "lower")]
+    assert result["statistics"]["misclassified"] == 1
+
+
+def test_statistics_agree_with_counts_made_from_the_outcomes():
+    cells = [
+        {"true_class": "II", "detected_class": "II", "decision": "sort", "outlet": "upper", "exit_time_ms": 2.0},
+        {"true_class": "II", "detected_class": "II", "decision": "abort", "outlet": "lower", "exit_time_ms": 3.0},
+        {"true_class": "I", "detected_class": "I", "decision": "pass", "outlet": "upper", "exit_time_ms": 3.5},
+        {"true_class": "I", "detected_class": "II", "decision": "sort", "outlet": "upper", "exit_time_ms": 4.0},
+    ]
+    stats = statistics_of(cells, 4e-3)
+    assert stats["purity"] == pytest.approx(1 / 3)
+    assert stats["yield"] == pytest.approx(1 / 2)
+    assert stats["abort_rate"] == pytest.approx(1 / 3)
+    assert stats["misclassified"] == 1
+    assert stats["throughput_cells_per_s"] == pytest.approx(4 / 4e-3)
+
+
+def test_poisson_abort_rate_matches_the_coincidence_estimate(scenario, streamline_plant):
+    rate, window, share_i = 1000.0, 1.2e-3, 0.5
+    arrivals = Arrivals(count=500, mix=(("RBC", share_i), ("melanoma", 1 - share_i)), rate=rate, process="poisson",
+                        min_spacing=0.0, first=0.0)
+    result = stream(scenario, streamline_plant, arrivals=arrivals, seed=3, max_time=1.0)
+    sorts = [c for c in result["cells"] if c["detected_class"] == "II"]
+    measured = result["statistics"]["abort_rate"]
+    expected = 1 - math.exp(-rate * share_i * window)
+    sigma = math.sqrt(expected * (1 - expected) / len(sorts))
+    assert abs(measured - expected) < 3 * sigma + 0.02, (measured, expected, sigma)
+
+
+def test_same_seed_same_stream(scenario, streamline_plant):
+    arrivals = Arrivals(count=20, mix=(("RBC", 0.7), ("melanoma", 0.3)), rate=2000.0, process="poisson")
+    first = stream(scenario, streamline_plant, arrivals=arrivals, seed=5)
+    second = stream(scenario, streamline_plant, arrivals=arrivals, seed=5)
+    other = stream(scenario, streamline_plant, arrivals=arrivals, seed=6)
+    assert first["cells"] == second["cells"]
+    assert first["cells"] != other["cells"]
+
+
+def test_arrivals_keep_the_minimum_spacing():
+    planned = schedule(Arrivals(count=200, mix=(("RBC", 1.0),), rate=5000.0, process="poisson", min_spacing=0.3e-3),
+                       np.random.default_rng(0))
+    gaps = np.diff([t for t, _ in planned])
+    assert gaps.min() >= 0.3e-3 - 1e-15
+
+
+@pytest.mark.parametrize("args, words", [
+    (["--cells", "RBC,platelet"], "unknown cell type 'platelet'"),
+    (["--cells", ","], "--cells needs at least one"),
+    (["--count", "5", "--mix", "RBC:1", "--rate", "-3"], "rate must be positive"),
+    (["--detection-window", "30,400"], "outside the channel"),
+])
+def test_stream_rejects_bad_input_in_one_line(args, words):
+    result = subprocess.run([sys.executable, "-m", "vcyto.cli", "stream", *args], capture_output=True, text=True)
+    assert result.returncode == 2 and "Traceback" not in result.stderr
+    lines = result.stderr.strip().splitlines()
+    assert len(lines) == 1 and words in lines[0]
+
+
+def test_fcs_export_round_trips(scenario, streamline_plant, tmp_path):
+    from vcyto.fcs import CHANNELS, read_fcs, write_fcs
+    result = stream(scenario, streamline_plant, ("melanoma", "RBC", "melanoma"))
+    path = write_fcs(tmp_path / "events.fcs", result, {"VCYTO_NOTE": "test"})
+    names, events, keywords = read_fcs(path)
+    assert names == list(CHANNELS)
+    assert events.shape == (3, len(CHANNELS))
+    detected = sorted(result["cells"], key=lambda c: c["detection_time_ms"])
+    assert np.allclose(events[:, 0], [c["detection_time_ms"] for c in detected], rtol=1e-6)
+    assert np.allclose(events[:, 1], [c["fluorescence"] for c in detected], rtol=1e-6)
+    assert list(events[:, 6]) == [1.0 if c["outlet"] == "upper" else 0.0 for c in detected]
+    assert keywords["vcyto_note"] == "test" and keywords["vcyto_outlet_codes"].startswith("0=lower")
+
+
+def test_stream_command_writes_fcs_and_summary(tmp_path):
+    result = subprocess.run([sys.executable, "-m", "vcyto.cli", "stream", "--model", "streamline", "--json",
+                             "--cells", "RBC,melanoma", "--output", str(tmp_path)], capture_output=True, text=True)
+    assert result.returncode == 0, result.stderr
+    import json
+    summary = json.loads(result.stdout)
+    assert [c["outlet"] for c in summary["cells"]] == ["lower", "upper"]
+    assert len(list(tmp_path.glob("*.fcs"))) == 1 and len(list(tmp_path.glob("*.json"))) == 1

@@ -1,0 +1,168 @@
+"""`vcyto stream`: the closed sorting loop. The one function that owns the loop is ``run_stream``.
+
+plant.step(actuation) -> observation -> detector -> controller -> actuation for the next control period;
+outcomes come from the plant's ground truth, which the controller never sees.
+"""
+
+from __future__ import annotations
+
+import statistics
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from controller.detector import Detector, DetectorSettings
+from controller.events import TYPE_I, TYPE_II, Sighting
+from controller.sorter import ControllerSettings, SortController
+from sim.arrivals import Arrivals, schedule
+from sim.plant import FeibPlant, StreamlinePlant
+from sim.scenario import UM, Scenario
+
+MODELS = ("feib", "streamline")
+SORTED_OUTLET = "upper"
+TYPE_II_CELLS = ("melanoma",)
+
+
+@dataclass(frozen=True)
+class StreamSettings:
+    arrivals: Arrivals
+    detector: DetectorSettings = field(default_factory=DetectorSettings)
+    controller: ControllerSettings = field(default_factory=ControllerSettings)
+    model: str = "feib"
+    seed: int = 0
+    control_period: float | None = None       # default: the plant's natural period (dt for feib)
+    max_time: float = 50e-3
+
+    def __post_init__(self):
+        if self.model not in MODELS:
+            raise ValueError(f"model must be one of {', '.join(MODELS)} (got {self.model!r})")
+        if self.max_time <= 0:
+            raise ValueError("max_time must be positive")
+
+
+def make_plant(scenario: Scenario, settings: StreamSettings):
+    if settings.model == "streamline":
+        return StreamlinePlant(scenario, control_period=settings.control_period or 10e-6)
+    return FeibPlant(scenario, control_period=settings.control_period)
+
+
+def run_stream(scenario: Scenario, settings: StreamSettings, progress=None, plant=None) -> dict:
+    """Run the loop until every scheduled cell has left (or ``max_time``); a JSON-ready summary."""
+    started = time.perf_counter()
+    rng = np.random.default_rng(settings.seed)
+    arrivals_rng, detector_rng = rng.spawn(2)
+    planned = schedule(settings.arrivals, arrivals_rng)
+    plant = plant or make_plant(scenario, settings)
+    detector = Detector(settings.detector, detector_rng)
+    controller = SortController(settings.controller)
+    observation = plant.reset(planned, seed=settings.seed)
+    setup = time.perf_counter() - started
+    events, reported, actuation, idt_time = {}, set(), 0.0, 0.0
+    while not plant.done and observation.time < settings.max_time:
+        observation = plant.step(actuation)
+        idt_time += actuation * plant.control_period
+        sightings = [Sighting(c.key, c.x, c.y, c.area, c.brightness) for c in observation.cells]
+        for event in detector.observe(observation.time, sightings):
+            controller.on_event(event)
+            events[event.key] = event
+            if progress:
+                decision = controller.decision_for(event.event_id)
+                progress.note(f"t = {event.time * 1e3:7.3f} ms  cell {event.key}: detected type {event.classification}"
+                              f" (fluorescence {event.fluorescence:.2f}), decision {decision.action}")
+        actuation = controller.actuation(observation.time)
+        if progress:
+            _report_exits(plant.truth(), reported, progress)
+            progress.update(f"t = {observation.time * 1e3:.3f} ms, {len(observation.cells)} cells in the channel, "
+                            f"IDT {'on' if actuation else 'off'}")
+    return summarise(planned, plant.truth(), events, controller, time.perf_counter() - started, setup, idt_time,
+                     settings, scenario)
+
+
+def _report_exits(truth, reported, progress):
+    for cell in truth.cells:
+        if cell.fate != "in_channel" and cell.key not in reported:
+            reported.add(cell.key)
+            progress.note(f"t = {cell.exit_time * 1e3:7.3f} ms  cell {cell.key} ({cell.type}) left by: {cell.fate}")
+
+
+def true_class(type_name: str) -> str:
+    return TYPE_II if type_name in TYPE_II_CELLS else TYPE_I
+
+
+def summarise(planned, truth, events, controller, wall, setup, idt_time, settings, scenario) -> dict:
+    by_key = {cell.key: cell for cell in truth.cells}
+    cells = []
+    for key, (arrival, type_name) in enumerate(planned):
+        cell = by_key.get(key)
+        event = events.get(key)
+        decision = controller.decision_for(event.event_id) if event else None
+        cells.append({
+            "key": key, "type": type_name, "true_class": true_class(type_name), "arrival_ms": arrival * 1e3,
+            "detected_class": event.classification if event else None,
+            "detection_time_ms": event.time * 1e3 if event else None,
+            "fluorescence": event.fluorescence if event else None,
+            "scatter": event.scatter if event else None,
+            "velocity_mm_s": event.velocity * 1e3 if event else None,
+            "decision": decision.action if decision else None,
+            "outlet": (cell.fate if cell.fate != "in_channel" else "lost") if cell else "lost",
+            "exit_time_ms": cell.exit_time * 1e3 if cell else None,
+            "area_ratio": cell.area_ratio if cell else None,
+        })
+    return {"cells": cells, "statistics": statistics_of(cells, truth.time),
+            "wall_time_s": wall, "setup_time_s": setup, "simulated_time_ms": truth.time * 1e3,
+            "idt_on_time_ms": idt_time * 1e3, "model": settings.model, "seed": settings.seed,
+            "controller_mode": settings.controller.mode,
+            "controller_latency_us": _latency(controller.latencies)}
+
+
+def _latency(samples):
+    if not samples:
+        return {}
+    micro = np.array(samples) * 1e6
+    return {"median": float(np.median(micro)), "p99": float(np.percentile(micro, 99)), "max": float(micro.max())}
+
+
+def statistics_of(cells, simulated_time) -> dict:
+    """Purity, yield, abort rate, throughput and misclassifications from per-cell outcomes."""
+    sorted_cells = [c for c in cells if c["outlet"] == SORTED_OUTLET]
+    wanted = [c for c in cells if c["true_class"] == TYPE_II]
+    detected_ii = [c for c in cells if c["detected_class"] == TYPE_II]
+    aborts = [c for c in cells if c["decision"] == "abort"]
+    exits = [c["exit_time_ms"] for c in cells if c["exit_time_ms"] is not None and c["outlet"] != "lost"]
+    return {
+        "cells": len(cells),
+        "purity": (sum(c["true_class"] == TYPE_II for c in sorted_cells) / len(sorted_cells)) if sorted_cells else None,
+        "yield": (sum(c["outlet"] == SORTED_OUTLET for c in wanted) / len(wanted)) if wanted else None,
+        "abort_rate": (len(aborts) / len(detected_ii)) if detected_ii else None,
+        "aborts": len(aborts),
+        "misclassified": sum(c["detected_class"] is not None and c["detected_class"] != c["true_class"] for c in cells),
+        "undetected": sum(c["detected_class"] is None for c in cells),
+        "throughput_cells_per_s": (len(cells) / (max(exits) * 1e-3)) if exits else None,
+        "outlets": {outlet: sum(c["outlet"] == outlet for c in cells)
+                    for outlet in sorted({c["outlet"] for c in cells})},
+    }
+
+
+def report_lines(result: dict) -> list[str]:
+    lines = [f"{'cell':>4}  {'type':<9} {'detected':>8}  {'decision':<8} {'outlet':<7} {'exit (ms)':>9}  area kept"]
+    for cell in result["cells"]:
+        exit_ms = f"{cell['exit_time_ms']:9.3f}" if cell["exit_time_ms"] is not None else "        -"
+        area = f"{100 * cell['area_ratio']:5.1f} %" if cell["area_ratio"] is not None else "-"
+        lines.append(f"{cell['key']:>4}  {cell['type']:<9} {cell['detected_class'] or '-':>8}  "
+                     f"{cell['decision'] or '-':<8} {cell['outlet']:<7} {exit_ms}  {area}")
+    stats = result["statistics"]
+
+    def percent(value):
+        return "n/a" if value is None else f"{100 * value:.1f} %"
+
+    throughput = stats["throughput_cells_per_s"]
+    lines += [
+        f"purity {percent(stats['purity'])}, yield {percent(stats['yield'])}, abort rate {percent(stats['abort_rate'])}"
+        f" ({stats['aborts']} aborts), misclassified {stats['misclassified']}, undetected {stats['undetected']}",
+        f"throughput {throughput:.0f} cells/s of simulated time" if throughput else "throughput n/a",
+        f"simulated {result['simulated_time_ms']:.3f} ms (IDT on {result['idt_on_time_ms']:.3f} ms) in "
+        f"{result['wall_time_s']:.1f} s wall ({result['model']} model, set-up {result['setup_time_s']:.1f} s); "
+        f"controller latency p99 {result['controller_latency_us'].get('p99', float('nan')):.1f} us",
+    ]
+    return lines

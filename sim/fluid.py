@@ -8,7 +8,8 @@ Convection treatments (``Numerics.convection``), c(v) = (v . grad) v evaluated a
 
 - ``imex``:     c(v^m) on the right-hand side; the matrix never changes and is factored once, so a step
                 is one numba load kernel plus one back-solve. First order in dt, like backward Euler.
-- ``oseen``:    (v^m . grad) v^{m+1}; one solve per step, but the matrix is assembled and factored anew.
+- ``oseen``:    (v^m . grad) v^{m+1}; one solve per step, but the matrix is assembled (numba) and
+                refactored every step (same sparsity pattern: the ordering is reused).
 - ``implicit``: c(v^{m+1}), the paper's (26), solved to ``nonlinear_tolerance``: fixed-point iterations
                 on the constant factorisation (each costs one back-solve), switching to Newton's method
                 when they do not contract (large dt * |grad v|).
@@ -338,10 +339,6 @@ class NavierStokes:
             return 0.0
         return actuation * saw_jet_factor(saw, time)
 
-    def boundary_values(self, time: float, actuation: float) -> np.ndarray:
-        """Velocity (2, N) on the boundary at ``time`` (only Dirichlet nodes matter)."""
-        return self.inflow + self.jet_weight(time, actuation) * self.jet
-
     def streaming_level(self, previous_level: float, actuation: float, dt: float) -> float:
         """The streaming drive after ``dt``: a first-order lag towards ``actuation``."""
         saw = self.scenario.saw
@@ -448,13 +445,13 @@ class NavierStokes:
         velocity, pressure, newton_iterations = self._newton(velocity, pressure, momentum, jet, time, with_mass=True)
         return velocity, pressure, len(residuals) + newton_iterations
 
-    def _newton(self, velocity, pressure, momentum, jet, time, with_mass, load=None):
-        """Newton's method for (m M + eta L) v + rho c(v) - B^T p = momentum + load, B v = 0, v = data on Gamma_D."""
+    def _newton(self, velocity, pressure, momentum, jet, time, with_mass):
+        """Newton's method for (m M + eta L) v + rho c(v) - B^T p = momentum, B v = 0, v = data on Gamma_D."""
         numerics = self.scenario.numerics
         velocity = velocity.copy()
         boundary = self.inflow + jet * self.jet
         velocity.ravel()[self.dirichlet] = boundary.ravel()[self.dirichlet]
-        target = momentum if load is None else momentum + load
+        target = momentum
         sizes = []
         for iteration in range(1, numerics.max_nonlinear_iterations + 1):
             residual = self._residual(velocity, pressure, target, with_mass)

@@ -21,7 +21,7 @@ from functools import lru_cache
 
 import numpy as np
 
-from .scenario import MELANOMA, RBC, CellType
+from .scenario import CellType
 
 # 3-point Gauss-Legendre on [0, 1]: exact to degree 5 (|X_q|^2 is degree 4, |X_qq|^2 degree 2)
 _GAUSS_T = 0.5 + 0.5 * np.array([-math.sqrt(3 / 5), 0.0, math.sqrt(3 / 5)])
@@ -70,9 +70,6 @@ def _energy_matrices(points: int):
         k1 += w * first.T @ first
         k2 += w * second.T @ second
     return k1, k2
-
-
-CELL_TYPES = {cell.name: cell for cell in (RBC, MELANOMA)}
 
 
 def ellipse_by_arc_length(a: float, b: float, points: int, centre=(0.0, 0.0)) -> np.ndarray:

@@ -22,6 +22,7 @@ import numpy as np
 from .feib import ImmersedBoundary, State
 from .fluid import Flow, NavierStokes
 from .health import HealthError
+from .membrane import Membrane
 from .scenario import CellType, Scenario
 
 
@@ -37,9 +38,8 @@ class StabilityResult:
 
 def paper_bound(cell_type: CellType, scenario: Scenario) -> float:
     """The right-hand side of (33) times h, with C_cell = 1, on the initial shape."""
-    plant_spacing = scenario.numerics.membrane_spacing * scenario.numerics.mesh_h
-    from .membrane import Membrane
-    membrane = Membrane.of(cell_type, (0.0, 0.0), plant_spacing)
+    spacing = scenario.numerics.membrane_spacing * scenario.numerics.mesh_h
+    membrane = Membrane.of(cell_type, (0.0, 0.0), spacing)
     first = np.linalg.norm(membrane.evaluate(4, derivative=1), axis=1).max()
     third = np.linalg.norm(membrane.evaluate(4, derivative=3), axis=1).max()
     stiffness = cell_type.kappa_e * first + cell_type.kappa_b * third

@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 from scipy.interpolate import CubicSpline
 
-from sim.membrane import MELANOMA, RBC, CellType, Membrane, ellipse_by_arc_length
+from sim.membrane import Membrane, ellipse_by_arc_length
+from sim.scenario import MELANOMA, RBC, CellType
 
 ELLIPSE = CellType("test", kappa_e=1e-5, kappa_b=1e-17, semi_axes=(6e-6, 3e-6))
 

@@ -50,6 +50,7 @@ class SortController:
     _decisions: dict = field(default_factory=dict)    # event_id -> Decision, in event order
     _recent: list = field(default_factory=list)       # (classification, arrival, event_id) still able to coincide
     _pulses: dict = field(default_factory=dict)       # event_id -> (on, off), not yet over
+    _changes: list = field(default_factory=list)      # decisions made or revised since take_changes()
 
     @property
     def decisions(self) -> list[Decision]:
@@ -75,6 +76,12 @@ class SortController:
 
     def _decide(self, decision: Decision):
         self._decisions[decision.event_id] = decision
+        self._changes.append(decision)
+
+    def take_changes(self) -> list[Decision]:
+        """Decisions made or revised (a sort turned into an abort) since the last call."""
+        changes, self._changes = self._changes, []
+        return changes
 
     def _sort(self, event, arrival):
         settings = self.settings

@@ -54,6 +54,7 @@ class CellTruth:
     x: float
     y: float
     area_ratio: float
+    membrane: np.ndarray | None = None    # (R, 2) material points, for logging
 
 
 @dataclass(frozen=True)
@@ -127,12 +128,18 @@ class FeibPlant:
         for cell in self.state.cells:
             x, y = cell.membrane.centroid()
             cells.append(CellTruth(cell.id, cell.membrane.cell_type.name, cell.born, cell.fate, cell.exit_time,
-                                   cell.exit_y, float(x), float(y), cell.membrane.area() / cell.membrane.initial_area))
+                                   cell.exit_y, float(x), float(y), cell.membrane.area() / cell.membrane.initial_area,
+                                   cell.membrane.points))
         return Truth(self.state.time, tuple(cells), self.schedule.waiting)
 
     @property
     def done(self) -> bool:
         return self.schedule.waiting == 0 and not any(cell.in_channel for cell in self.state.cells)
+
+    def fields(self):
+        """The current velocity at the mesh vertices and the vertex grid (for recordings)."""
+        cmesh = self.ib.fluid.space.cmesh
+        return cmesh.mesh.p, self.state.flow.velocity, cmesh.x, cmesh.y
 
 
 @dataclass

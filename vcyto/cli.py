@@ -231,21 +231,70 @@ def command_stream(args):
             raise
         raise UsageError(str(error)) from None
     output = _output_directory(args.output)
+    run_id = time.strftime("stream-%Y%m%d-%H%M%S")
+    sinks = []
+    if output is not None and not args.no_record:
+        from .recording import McapRecorder
+        sinks.append(McapRecorder(output / f"{run_id}.mcap", _run_metadata(scenario, settings),
+                                  flush_every=args.flush_every, field_every=args.field_every))
     progress = Progress(quiet=args.quiet or args.json)
     try:
-        result = stream.run_stream(scenario, settings, progress)
+        with _sigterm_as_interrupt():
+            result = stream.run_stream(scenario, settings, progress, sinks=sinks)
+    except KeyboardInterrupt:
+        progress.close()
+        for sink in sinks:
+            sink.close()
+            print(f"vcyto: interrupted; the recording up to now is in {sink.path}", file=sys.stderr)
+        raise
     finally:
         progress.close()
+        for sink in sinks:
+            sink.close()
     lines = stream.report_lines(result)
+    if sinks:
+        result["files"] = {"mcap": str(sinks[0].path)}
+        lines.append(f"recording: {sinks[0].path} (MCAP)")
     if output is not None:
         from . import fcs
-        run_id = time.strftime("stream-%Y%m%d-%H%M%S")
         fcs_path = fcs.write_fcs(output / f"{run_id}.fcs", result, {"VCYTO_COMMAND": " ".join(sys.argv)})
         summary_path = output / f"{run_id}.json"
         summary_path.write_text(json.dumps(result, indent=2, default=_plain))
-        result["files"] = {"fcs": str(fcs_path), "summary": str(summary_path)}
+        result.setdefault("files", {}).update({"fcs": str(fcs_path), "summary": str(summary_path)})
         lines.append(f"detector events: {fcs_path} (FCS 3.1); summary: {summary_path}")
     _emit(args, result, lines)
+
+
+def _run_metadata(scenario, settings) -> dict:
+    import numpy
+    import scipy
+    import skfem
+    from . import __version__
+    from .config import scenario_to_toml
+    return {"scenario_toml": scenario_to_toml(scenario), "seed": settings.seed, "model": settings.model,
+            "arrivals": settings.arrivals, "detector": settings.detector, "controller": settings.controller,
+            "command_line": " ".join(sys.argv), "vcyto": __version__, "numpy": numpy.__version__,
+            "scipy": scipy.__version__, "scikit-fem": skfem.__version__, "python": sys.version.split()[0]}
+
+
+class _sigterm_as_interrupt:
+    """Within the block, SIGTERM raises KeyboardInterrupt so files are finalised as on Ctrl-C."""
+
+    def __enter__(self):
+        import signal
+        def interrupt(signum, frame):
+            raise KeyboardInterrupt
+        try:
+            self._previous = signal.signal(signal.SIGTERM, interrupt)
+        except ValueError:          # not the main thread
+            self._previous = None
+        return self
+
+    def __exit__(self, *exc):
+        import signal
+        if self._previous is not None:
+            signal.signal(signal.SIGTERM, self._previous)
+        return False
 
 
 def _output_directory(path: str | None) -> Path | None:
@@ -319,8 +368,13 @@ def build_parser() -> argparse.ArgumentParser:
                         help="plant: full FE-IB (default) or cheap streamline stand-in")
     stream.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
     stream.add_argument("--output", default="recordings", metavar="DIR",
-                        help="where the run's files go: FCS 3.1 detector events and a JSON summary "
-                             "(default recordings/; --output '' writes nothing)")
+                        help="where the run's files go: the MCAP recording, FCS 3.1 detector events and a JSON "
+                             "summary (default recordings/; --output '' writes nothing)")
+    stream.add_argument("--no-record", action="store_true", help="no MCAP recording")
+    stream.add_argument("--flush-every", type=int, default=50, metavar="N",
+                        help="flush the recording every N control periods: a crash loses at most N (default 50)")
+    stream.add_argument("--field-every", type=int, default=200, metavar="N",
+                        help="record the velocity field every N control periods, 0 = never (default 200)")
     stream.add_argument("--max-time", type=float, default=50.0, metavar="MS", help="stop after this simulated time")
     _output_options(stream)
     stream.set_defaults(handler=command_stream)

@@ -47,8 +47,11 @@ def make_plant(scenario: Scenario, settings: StreamSettings):
     return FeibPlant(scenario, control_period=settings.control_period)
 
 
-def run_stream(scenario: Scenario, settings: StreamSettings, progress=None, plant=None) -> dict:
-    """Run the loop until every scheduled cell has left (or ``max_time``); a JSON-ready summary."""
+def run_stream(scenario: Scenario, settings: StreamSettings, progress=None, plant=None, sinks=()) -> dict:
+    """Run the loop until every scheduled cell has left (or ``max_time``); a JSON-ready summary.
+
+    ``sinks`` (e.g. an MCAP recorder) get every control period through ``on_step``; the caller closes them.
+    """
     started = time.perf_counter()
     rng = np.random.default_rng(settings.seed)
     arrivals_rng, detector_rng = rng.spawn(2)
@@ -58,12 +61,15 @@ def run_stream(scenario: Scenario, settings: StreamSettings, progress=None, plan
     controller = SortController(settings.controller)
     observation = plant.reset(planned, seed=settings.seed)
     setup = time.perf_counter() - started
-    events, reported, actuation, idt_time = {}, set(), 0.0, 0.0
+    events, reported, actuation, idt_time, step = {}, set(), 0.0, 0.0, 0
+    fields = _field_payload(plant) if hasattr(plant, "fields") else None
     while not plant.done and observation.time < settings.max_time:
         observation = plant.step(actuation)
+        step += 1
         idt_time += actuation * plant.control_period
         sightings = [Sighting(c.key, c.x, c.y, c.area, c.brightness) for c in observation.cells]
-        for event in detector.observe(observation.time, sightings):
+        new_events = detector.observe(observation.time, sightings)
+        for event in new_events:
             controller.on_event(event)
             events[event.key] = event
             if progress:
@@ -71,12 +77,26 @@ def run_stream(scenario: Scenario, settings: StreamSettings, progress=None, plan
                 progress.note(f"t = {event.time * 1e3:7.3f} ms  cell {event.key}: detected type {event.classification}"
                               f" (fluorescence {event.fluorescence:.2f}), decision {decision.action}")
         actuation = controller.actuation(observation.time)
+        if sinks:
+            truth = plant.truth()
+            decisions = controller.take_changes()
+            for sink in sinks:
+                sink.on_step(step, observation, truth, actuation, new_events, decisions, fields)
         if progress:
             _report_exits(plant.truth(), reported, progress)
             progress.update(f"t = {observation.time * 1e3:.3f} ms, {len(observation.cells)} cells in the channel, "
                             f"IDT {'on' if actuation else 'off'}")
     return summarise(planned, plant.truth(), events, controller, time.perf_counter() - started, setup, idt_time,
                      settings, scenario)
+
+
+def _field_payload(plant):
+    from .recording import velocity_field
+
+    def payload():
+        vertices, velocity, grid_x, grid_y = plant.fields()
+        return velocity_field(vertices, velocity, grid_x, grid_y, plant.truth().time)
+    return payload
 
 
 def _report_exits(truth, reported, progress):

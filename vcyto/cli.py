@@ -237,6 +237,10 @@ def command_stream(args):
         from .recording import McapRecorder
         sinks.append(McapRecorder(output / f"{run_id}.mcap", _run_metadata(scenario, settings),
                                   flush_every=args.flush_every, field_every=args.field_every))
+    target = _viewer_target(args, output, run_id)
+    if target is not None:
+        from .viewer import RerunSink
+        sinks.append(RerunSink(scenario, detector.window, target, field_every=args.field_every))
     progress = Progress(quiet=args.quiet or args.json)
     try:
         with _sigterm_as_interrupt():
@@ -245,16 +249,22 @@ def command_stream(args):
         progress.close()
         for sink in sinks:
             sink.close()
-            print(f"vcyto: interrupted; the recording up to now is in {sink.path}", file=sys.stderr)
+            if hasattr(sink, "path"):
+                print(f"vcyto: interrupted; the recording up to now is in {sink.path}", file=sys.stderr)
         raise
     finally:
         progress.close()
         for sink in sinks:
             sink.close()
     lines = stream.report_lines(result)
-    if sinks:
-        result["files"] = {"mcap": str(sinks[0].path)}
-        lines.append(f"recording: {sinks[0].path} (MCAP)")
+    result["files"] = {}
+    for sink in sinks:
+        if hasattr(sink, "path"):
+            result["files"]["mcap"] = str(sink.path)
+            lines.append(f"recording: {sink.path} (MCAP; replay with: vcyto replay {sink.path})")
+    if target is not None:
+        result["files"]["rerun"] = target[0] if target[0] != "save" else str(target[1])
+        lines.append(f"Rerun: {'saved to ' + str(target[1]) if target[0] == 'save' else target[0]}")
     if output is not None:
         from . import fcs
         fcs_path = fcs.write_fcs(output / f"{run_id}.fcs", result, {"VCYTO_COMMAND": " ".join(sys.argv)})
@@ -263,6 +273,66 @@ def command_stream(args):
         result.setdefault("files", {}).update({"fcs": str(fcs_path), "summary": str(summary_path)})
         lines.append(f"detector events: {fcs_path} (FCS 3.1); summary: {summary_path}")
     _emit(args, result, lines)
+
+
+def _viewer_target(args, output: Path | None, run_id: str):
+    """Where the Rerun view goes: --spawn, --connect, --save, or by default a viewer when there is a display
+    and an .rrd file in the output directory when there is none (spawning without a display would block)."""
+    from .viewer import has_display
+    if args.no_viewer:
+        return None
+    if args.save:
+        return ("save", _output_path(args.save))
+    if args.connect is not None:
+        return ("connect", args.connect)
+    if args.spawn or has_display():
+        if has_display():
+            return ("spawn",)
+        print("vcyto: no display for --spawn; saving the Rerun view to a file instead", file=sys.stderr)
+    return ("save", output / f"{run_id}.rrd") if output is not None else None
+
+
+def _viewer_options(parser: argparse.ArgumentParser):
+    group = parser.add_argument_group("Rerun viewer (default: spawn one if there is a display, else save an .rrd)")
+    group.add_argument("--spawn", action="store_true", help="start a Rerun viewer and stream to it")
+    group.add_argument("--connect", nargs="?", const="", metavar="URL",
+                       help="stream to a running viewer (default rerun+http://127.0.0.1:9876/proxy)")
+    group.add_argument("--save", metavar="FILE.rrd", help="write the Rerun view to a file")
+    group.add_argument("--no-viewer", action="store_true", help="no Rerun output")
+
+
+def command_replay(args):
+    from .replay import ReplayError, replay
+    path = Path(args.file)
+    if not path.is_file():
+        raise UsageError(f"recording {args.file} does not exist")
+    if args.save:
+        target = ("save", _output_path(args.save))
+    elif args.connect is not None:
+        target = ("connect", args.connect)
+    elif args.spawn and _has_display():
+        target = ("spawn",)
+    else:
+        target = ("save", path.with_suffix(".rrd"))
+        if args.spawn:
+            print("vcyto: no display for --spawn; saving the Rerun view to a file instead", file=sys.stderr)
+    try:
+        result = replay(path, target)
+    except ReplayError as error:
+        raise UsageError(str(error)) from None
+    lines = [f"replayed {result['steps']} steps ({result['messages']} messages, up to t = {result['last_time_ms']:.3f} ms)"
+             f" from {path}"]
+    if result["damaged"]:
+        lines.append(f"  the file is damaged or truncated ({result['problem']}): everything before the damage "
+                     "was replayed, the rest is lost")
+    lines.append(f"  Rerun: {'saved to ' + str(target[1]) if target[0] == 'save' else target[0]}")
+    result["target"] = str(target[1]) if target[0] == "save" else target[0]
+    _emit(args, result, lines)
+
+
+def _has_display():
+    from .viewer import has_display
+    return has_display()
 
 
 def _run_metadata(scenario, settings) -> dict:
@@ -376,8 +446,17 @@ def build_parser() -> argparse.ArgumentParser:
     stream.add_argument("--field-every", type=int, default=200, metavar="N",
                         help="record the velocity field every N control periods, 0 = never (default 200)")
     stream.add_argument("--max-time", type=float, default=50.0, metavar="MS", help="stop after this simulated time")
+    _viewer_options(stream)
     _output_options(stream)
     stream.set_defaults(handler=command_stream)
+
+    replay_parser = commands.add_parser("replay", help="re-log an MCAP recording to Rerun")
+    replay_parser.add_argument("file", metavar="FILE.mcap", help="a recording written by vcyto stream")
+    replay_parser.add_argument("--spawn", action="store_true", help="start a Rerun viewer (needs a display)")
+    replay_parser.add_argument("--connect", nargs="?", const="", metavar="URL", help="stream to a running viewer")
+    replay_parser.add_argument("--save", metavar="FILE.rrd", help="write an .rrd file (default: next to the recording)")
+    _output_options(replay_parser)
+    replay_parser.set_defaults(handler=command_replay)
 
     stability = commands.add_parser("stability", help="measure the largest stable dt per cell type and mesh size")
     _scenario_options(stability)

@@ -67,6 +67,16 @@ def load_scenario(path: str | os.PathLike | None = None, overrides: Sequence[str
     return _build(Scenario, tree, "")
 
 
+def scenario_from_toml(text: str) -> Scenario:
+    """The scenario a TOML document describes (as written by ``scenario_to_toml``, e.g. into recordings)."""
+    tree = as_dict(Scenario())
+    try:
+        _merge(tree, tomllib.loads(text))
+    except tomllib.TOMLDecodeError as error:
+        raise ScenarioError("scenario", f"not valid TOML: {_one_line(error)}") from None
+    return _build(Scenario, tree, "")
+
+
 def scenario_to_toml(scenario: Scenario) -> str:
     """A complete TOML document, in plain SI numbers, that ``load_scenario`` reads back to ``scenario``."""
     lines = ["# vcyto scenario; SI units (m, s, kg/m^3, Pa s, Hz, rad)"]

@@ -1,0 +1,87 @@
+"""Rerun output: the live view saved by `vcyto stream --save` and `vcyto replay`, read back with Rerun's reader."""
+
+import collections
+import json
+import subprocess
+import sys
+
+import pytest
+from rerun.chunk import RrdReader
+
+STATIC = {"/device/outline", "/device/inlets", "/device/outlets", "/device/saw_window", "/device/detection_window"}
+
+
+def vcyto(*args):
+    return subprocess.run([sys.executable, "-m", "vcyto.cli", *args], capture_output=True, text=True, timeout=600)
+
+
+def entities(path):
+    rows, static = collections.Counter(), set()
+    for chunk in RrdReader(str(path)).stream():
+        if chunk.is_static:
+            static.add(chunk.entity_path)
+        else:
+            rows[chunk.entity_path] += chunk.num_rows
+    return static, rows
+
+
+@pytest.fixture(scope="module")
+def run(tmp_path_factory):
+    directory = tmp_path_factory.mktemp("run")
+    result = vcyto("stream", "--model", "streamline", "--cells", "melanoma,RBC", "--json", "--output", str(directory),
+                   "--save", str(directory / "live.rrd"))
+    assert result.returncode == 0, result.stderr
+    summary = json.loads(result.stdout)
+    return directory, summary
+
+
+def steps_in(mcap_path):
+    from vcyto.replay import read_recording
+    _, messages, _ = read_recording(mcap_path)
+    return sum(topic == "/loop/step" for topic, _ in messages)
+
+
+def test_live_view_has_the_device_cells_idt_and_log(run):
+    directory, summary = run
+    static, rows = entities(directory / "live.rrd")
+    assert STATIC <= static
+    steps = steps_in(summary["files"]["mcap"])
+    assert rows["/idt"] == steps
+    assert {f"/device/cells/{cell['key']}" for cell in summary["cells"]} <= set(rows)
+    assert rows["/log"] == 3 * len(summary["cells"])       # an event, a decision and an outcome per cell
+
+
+def test_replay_relogs_every_step(run, tmp_path):
+    directory, summary = run
+    result = vcyto("replay", summary["files"]["mcap"], "--save", str(tmp_path / "replay.rrd"), "--json")
+    assert result.returncode == 0, result.stderr
+    static, rows = entities(tmp_path / "replay.rrd")
+    live_static, live_rows = entities(directory / "live.rrd")
+    assert static == live_static and rows["/idt"] == live_rows["/idt"] and rows["/log"] == live_rows["/log"]
+    assert json.loads(result.stdout)["damaged"] is False
+
+
+def test_truncated_recording_replays_what_survives(run, tmp_path):
+    _, summary = run
+    data = open(summary["files"]["mcap"], "rb").read()
+    truncated = tmp_path / "truncated.mcap"
+    truncated.write_bytes(data[: len(data) // 2])
+    result = vcyto("replay", str(truncated), "--save", str(tmp_path / "t.rrd"))
+    assert result.returncode == 0 and "Traceback" not in result.stderr
+    assert "damaged or truncated" in result.stdout
+    _, rows = entities(tmp_path / "t.rrd")
+    assert 0 < rows["/idt"] < steps_in(summary["files"]["mcap"])
+
+
+@pytest.mark.parametrize("content", [b"", b"not an mcap file at all" * 10])
+def test_garbage_is_refused_in_one_line(tmp_path, content):
+    path = tmp_path / "bad.mcap"
+    path.write_bytes(content)
+    result = vcyto("replay", str(path))
+    assert result.returncode == 2 and "Traceback" not in result.stderr
+    assert len(result.stderr.strip().splitlines()) == 1 and "bad.mcap" in result.stderr
+
+
+def test_missing_recording_is_refused():
+    result = vcyto("replay", "no-such-run.mcap")
+    assert result.returncode == 2 and "does not exist" in result.stderr

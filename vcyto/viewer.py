@@ -1,0 +1,166 @@
+"""The Rerun view of a run, live (a sink of the closed loop) or replayed from an MCAP recording.
+
+Entities (2D, micrometres, y up as in the paper: logged as (x, height - y) because Rerun's 2D y axis
+points down): ``device/outline``, ``device/inlets``, ``device/outlets``, ``device/saw_window``,
+``device/detection_window`` (static); ``device/flow`` (the speed as an image, at the field cadence);
+``device/cells/<key>`` (membrane line strips), ``device/paths/<key>`` (centroid paths); ``idt`` (the IDT
+drive, a time series); ``log`` (detector events, decisions and outcomes as text). Timeline: ``sim_time``
+(simulated seconds) and ``step``. A blueprint lays out the channel, the IDT plot and the log.
+"""
+
+from __future__ import annotations
+
+import base64
+import os
+import sys
+
+import numpy as np
+
+from sim.scenario import UM, Scenario
+
+TYPE_COLOURS = {"RBC": (220, 40, 40), "melanoma": (250, 200, 30)}
+
+
+def has_display() -> bool:
+    return bool(os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")) or sys.platform in ("darwin", "win32")
+
+
+def blueprint():
+    import rerun.blueprint as rrb
+    return rrb.Blueprint(
+        rrb.Horizontal(
+            rrb.Spatial2DView(origin="device", name="channel"),
+            rrb.Vertical(rrb.TimeSeriesView(origin="idt", name="IDT drive"), rrb.TextLogView(origin="log", name="events")),
+            column_shares=[3, 2]),
+        collapse_panels=True)
+
+
+class RerunLogger:
+    """Logs the pieces of a run to one Rerun recording stream."""
+
+    def __init__(self, scenario: Scenario, detection_window=None, target=("save", "run.rrd"), application_id="vcyto"):
+        import rerun as rr
+        self.rr = rr
+        self.height_um = scenario.channel.height / UM
+        self.stream = rr.RecordingStream(application_id)
+        kind = target[0]
+        if kind == "save":
+            self.stream.save(str(target[1]), default_blueprint=blueprint())
+        elif kind == "spawn":
+            self.stream.spawn(default_blueprint=blueprint())
+        elif kind == "connect":
+            self.stream.connect_grpc(target[1], default_blueprint=blueprint()) if target[1] else \
+                self.stream.connect_grpc(default_blueprint=blueprint())
+        else:
+            raise ValueError(f"unknown Rerun target {kind!r}")
+        self.paths: dict[int, list] = {}
+        self._device(scenario, detection_window)
+
+    def _flip(self, points_um):
+        points = np.asarray(points_um, dtype=float).reshape(-1, 2)
+        return np.column_stack([points[:, 0], self.height_um - points[:, 1]])
+
+    def _device(self, scenario, detection_window):
+        rr, channel = self.rr, scenario.channel
+        length, height = channel.length / UM, channel.height / UM
+        outline = [[0, 0], [length, 0], [length, height], [0, height], [0, 0]]
+        self.stream.log("device/outline", rr.LineStrips2D([self._flip(outline)], colors=[(200, 200, 200)]), static=True)
+        inlets = [self._flip([[0, i.span[0] / UM], [0, i.span[1] / UM]]) for i in channel.inlets]
+        self.stream.log("device/inlets", rr.LineStrips2D(inlets, colors=[(0, 190, 255)], radii=1.5,
+                                                         labels=[i.name for i in channel.inlets]), static=True)
+        outlets = [self._flip([[length, o.span[0] / UM], [length, o.span[1] / UM]]) for o in channel.outlets]
+        self.stream.log("device/outlets", rr.LineStrips2D(outlets, colors=[(255, 140, 0)], radii=1.5,
+                                                          labels=[o.name for o in channel.outlets]), static=True)
+        window = np.array(channel.saw_window.span) / UM
+        self.stream.log("device/saw_window", rr.LineStrips2D([self._flip([[window[0], 0], [window[1], 0]])],
+                                                             colors=[(255, 0, 0)], radii=2.0, labels=["SAW"]), static=True)
+        if detection_window is not None:
+            x0, x1 = np.array(detection_window) / UM
+            box = [[x0, 0], [x1, 0], [x1, height], [x0, height], [x0, 0]]
+            self.stream.log("device/detection_window", rr.LineStrips2D([self._flip(box)], colors=[(120, 255, 120)]),
+                            static=True)
+
+    def time(self, time_s: float, step: int | None = None):
+        self.stream.set_time("sim_time", duration=time_s)
+        if step is not None:
+            self.stream.set_time("step", sequence=step)
+
+    def idt(self, drive: float):
+        self.stream.log("idt", self.rr.Scalars(drive))
+
+    def cells(self, cells: list[dict]):
+        """Cells as in the MCAP ``/cells`` payload (um)."""
+        rr = self.rr
+        for cell in cells:
+            key = cell["key"]
+            entity = f"device/cells/{key}"
+            if cell["fate"] != "in_channel":
+                self.stream.log(entity, rr.Clear(recursive=False))
+                continue
+            colour = TYPE_COLOURS.get(cell["type"], (255, 255, 255))
+            membrane = cell["membrane_um"] or [[cell["x_um"], cell["y_um"]]]
+            closed = np.vstack([membrane, membrane[:1]])
+            self.stream.log(entity, rr.LineStrips2D([self._flip(closed)], colors=[colour], radii=0.4))
+            path = self.paths.setdefault(key, [])
+            path.append((cell["x_um"], cell["y_um"]))
+            if len(path) % 10 == 1:
+                self.stream.log(f"device/paths/{key}", rr.LineStrips2D([self._flip(path)], colors=[colour], radii=0.3))
+
+    def text(self, message: str, level: str = "INFO"):
+        self.stream.log("log", self.rr.TextLog(message, level=level))
+
+    def field(self, payload: dict):
+        """The speed image from an MCAP ``/flow/velocity`` payload."""
+        rows, columns = payload["shape"]
+        vx = np.frombuffer(base64.b64decode(payload["vx_f32_b64"]), dtype=np.float32).reshape(rows, columns)
+        vy = np.frombuffer(base64.b64decode(payload["vy_f32_b64"]), dtype=np.float32).reshape(rows, columns)
+        speed = np.hypot(vx, vy)[::-1]                      # first row at the top: y = height
+        image = _resample_uniform(speed, np.asarray(payload["x_um"]), np.asarray(payload["y_um"])[::-1])
+        from matplotlib import colormaps
+        rgb = (colormaps["viridis"](image / max(float(image.max()), 1e-12))[:, :, :3] * 255).astype(np.uint8)
+        self.stream.log("device/flow", self.rr.Image(rgb))     # 1 pixel = 1 um, top row at y = height
+
+    def close(self):
+        self.stream.flush()
+        self.stream.disconnect()
+
+
+def _resample_uniform(speed, x, y):
+    """Nearest resampling of a tensor-grid image onto a uniform 1 um pixel grid (the mesh may be graded)."""
+    columns = np.clip(np.searchsorted(x, np.arange(x[0], x[-1] + 1e-9, 1.0)), 0, len(x) - 1)
+    rows_desc = np.arange(y[0], y[-1] - 1e-9, -1.0)
+    rows = np.clip(np.searchsorted(-y, -rows_desc), 0, len(y) - 1)
+    return speed[np.ix_(rows, columns)]
+
+
+class RerunSink:
+    """A sink of the closed loop that shows every step in Rerun."""
+
+    def __init__(self, scenario: Scenario, detection_window, target, field_every: int = 200):
+        from .recording import McapRecorder
+        self._cell_payload = McapRecorder._cell
+        self.logger = RerunLogger(scenario, detection_window, target)
+        self.field_every = field_every
+        self._settled = set()
+
+    def on_step(self, step, observation, truth, actuation, events, decisions, fields=None):
+        logger = self.logger
+        logger.time(observation.time, step)
+        logger.idt(actuation)
+        cells = [self._cell_payload(cell) for cell in truth.cells if cell.fate == "in_channel" or cell.key not in self._settled]
+        logger.cells(cells)
+        for event in events:
+            logger.text(f"cell {event.key}: detected type {event.classification} (fluorescence {event.fluorescence:.2f}, "
+                        f"{event.velocity * 1e3:.1f} mm/s)")
+        for decision in decisions:
+            logger.text(f"event {decision.event_id}: {decision.action}" + (f" ({decision.reason})" if decision.reason else ""),
+                        level="WARN" if decision.action == "abort" else "INFO")
+        for cell in truth.cells:
+            if cell.fate != "in_channel" and cell.key not in self._settled:
+                self._settled.add(cell.key)
+                logger.text(f"cell {cell.key} ({cell.type}) left by: {cell.fate}")
+        if fields is not None and self.field_every and step % self.field_every == 0:
+            logger.field(fields())
+
+    def close(self):
+        self.logger.close()

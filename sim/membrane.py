@@ -40,6 +40,7 @@ def _second_derivative_operator(points: int) -> np.ndarray:
     return 6 * np.linalg.solve(tridiagonal, shift_up - 2 * identity + shift_down)
 
 
+@lru_cache(maxsize=256)
 def _segment_basis(t, points, derivative):
     """Matrix (R, R) giving the ``derivative``-th q-derivative at parameter t in [0, 1] of each interval,
     times dq^derivative, as a linear map of the points (interval r runs from point r to point r + 1)."""

@@ -137,9 +137,16 @@ class FeibPlant:
         return self.schedule.waiting == 0 and not any(cell.in_channel for cell in self.state.cells)
 
     def fields(self):
-        """The current velocity at the mesh vertices and the vertex grid (for recordings)."""
+        """The current velocity and pressure at the mesh vertices and the vertex grid (for recordings)."""
         cmesh = self.ib.fluid.space.cmesh
-        return cmesh.mesh.p, self.state.flow.velocity, cmesh.x, cmesh.y
+        return cmesh.mesh.p, self.state.flow.velocity, self.state.flow.pressure, cmesh.x, cmesh.y
+
+    def diagnostics(self) -> dict:
+        """Solver figures for logging: dt, steps so far, cumulative wall time per part (s)."""
+        timings, fluid = self.ib.timings, self.ib.fluid.timings
+        return {"dt": self.scenario.numerics.dt, "physics_steps": timings.steps, "fluid_solve_s": fluid.solve,
+                "fluid_load_s": fluid.load, "membrane_s": timings.membrane, "health_checks_s": timings.health,
+                "health": "ok"}
 
 
 @dataclass

@@ -223,3 +223,48 @@ def controller_lines(result: dict) -> list[str]:
         lines.append(f"  {key:<10} median {row['median_us']:6.2f} us, p99 {row['p99_us']:6.2f} us, "
                      f"max {row['max_us']:7.1f} us ({row['samples']:,} calls; target p99 <= 50 us)")
     return lines
+
+
+def bench_recording(scenario: Scenario, cells=("RBC", "melanoma"), progress=None) -> dict:
+    """The same FE-IB stream with the default recording (MCAP + Rerun .rrd) and without: the overhead."""
+    import tempfile
+    from pathlib import Path
+
+    from controller.detector import DetectorSettings
+    from sim.arrivals import Arrivals
+    from sim.plant import FeibPlant
+
+    from .recording import McapRecorder
+    from .stream import StreamSettings, run_stream
+    from .viewer import RerunSink
+
+    settings = StreamSettings(Arrivals(cells=tuple(cells)))
+    plant = FeibPlant(scenario)
+    walls = {}
+    with tempfile.TemporaryDirectory() as directory:
+        for mode in ("without", "with", "without again"):
+            if progress:
+                progress.note(f"stream {mode} recording")
+            sinks = []
+            if mode == "with":
+                sinks = [McapRecorder(Path(directory) / "run.mcap", {"benchmark": "recording"}),
+                         RerunSink(scenario, DetectorSettings().window, ("save", Path(directory) / "run.rrd"))]
+            started = time.perf_counter()
+            result = run_stream(scenario, settings, plant=plant, sinks=sinks)
+            for sink in sinks:
+                sink.close()
+            walls[mode] = time.perf_counter() - started
+            if mode == "with":
+                sizes = {name: (Path(directory) / name).stat().st_size for name in ("run.mcap", "run.rrd")}
+                steps = round(result["simulated_time_ms"] * 1e-3 / scenario.numerics.dt)
+    baseline = min(walls["without"], walls["without again"])
+    return {"cells": list(cells), "steps": steps, "wall_s": walls, "overhead": walls["with"] / baseline - 1,
+            "file_bytes": sizes}
+
+
+def recording_lines(result: dict) -> list[str]:
+    walls = result["wall_s"]
+    return [f"recording overhead: stream {','.join(result['cells'])}, {result['steps']} steps (FE-IB)",
+            f"  without recording {walls['without']:.1f} s and {walls['without again']:.1f} s, with MCAP + Rerun "
+            f"{walls['with']:.1f} s: overhead {100 * result['overhead']:.1f} % of the faster run (target <= 10 %)",
+            f"  files: MCAP {result['file_bytes']['run.mcap'] / 1e6:.2f} MB, Rerun {result['file_bytes']['run.rrd'] / 1e6:.2f} MB"]

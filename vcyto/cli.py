@@ -6,6 +6,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import shutil
 import sys
 import time
 from pathlib import Path
@@ -19,6 +20,7 @@ from .config import load_scenario
 EXIT_INPUT = 2
 EXIT_NUMERICAL = 1
 EXIT_INTERNAL = 3
+MIN_FREE_BYTES = 100e6
 
 
 class UsageError(ValueError):
@@ -116,6 +118,11 @@ def command_bench(args):
         _emit(args, result, bench.controller_lines(result))
         return
     scenario = _scenario(args)
+    if args.target == "recording":
+        from .progress import Progress
+        result = bench.bench_recording(scenario, progress=Progress(quiet=args.quiet or args.json))
+        _emit(args, result, bench.recording_lines(result))
+        return
     if args.target == "paper":
         from .progress import Progress
         result = bench.bench_paper_treatments(args.number, scenario, progress=Progress(quiet=args.quiet or args.json))
@@ -313,7 +320,7 @@ def command_replay(args):
     elif args.spawn and _has_display():
         target = ("spawn",)
     else:
-        target = ("save", path.with_suffix(".rrd"))
+        target = ("save", path.with_suffix(".replay.rrd"))
         if args.spawn:
             print("vcyto: no display for --spawn; saving the Rerun view to a file instead", file=sys.stderr)
     try:
@@ -378,6 +385,10 @@ def _output_directory(path: str | None) -> Path | None:
         raise UsageError(f"cannot create output directory {path}: {error.strerror}") from None
     if not os.access(directory, os.W_OK):
         raise UsageError(f"output directory {path} is not writable")
+    free = shutil.disk_usage(directory).free
+    if free < MIN_FREE_BYTES:
+        raise UsageError(f"only {free / 1e6:.0f} MB free in {path}: recordings need at least "
+                         f"{MIN_FREE_BYTES / 1e6:.0f} MB; free some space or choose another --output")
     return directory
 
 
@@ -488,6 +499,10 @@ def build_parser() -> argparse.ArgumentParser:
     _scenario_options(paper_bench)
     _output_options(paper_bench)
     paper_bench.set_defaults(handler=command_bench)
+    recording_bench = targets.add_parser("recording", help="wall-time overhead of recording (MCAP + Rerun) an FE-IB stream")
+    _scenario_options(recording_bench)
+    _output_options(recording_bench)
+    recording_bench.set_defaults(handler=command_bench)
     controller_bench = targets.add_parser("controller", help="decision latency of the sorting controller")
     controller_bench.add_argument("--events", type=int, default=20_000, help="synthetic events (default 20000)")
     _output_options(controller_bench)

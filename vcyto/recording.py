@@ -1,14 +1,15 @@
 """MCAP recording of a closed-loop run: typed JSON channels, log time = simulated time, crash safety.
 
 Topics (JSON, each with a JSON Schema):
-- ``/loop/step``         every control period: time, step, IDT drive, cells in the channel, wall time;
+- ``/loop/step``         every control period: time, step, IDT drive, cells in the channel, wall time,
+                         plant diagnostics (dt, physics steps, cumulative solver times: wall-clock);
 - ``/cells``             every control period: each cell's key, type, centroid, area ratio, fate and
                          membrane points (um, rounded to 1 nm);
 - ``/detector/event``    each detector event (fluorescence, scatter, velocity, class);
 - ``/controller/decision`` each decision (sort / pass / abort, predicted arrival, pulse);
 - ``/outcome``           each cell when it leaves (outlet, exit time and ordinate);
-- ``/flow/velocity``     every ``field_every`` control periods (0: never): the velocity at the mesh vertices
-                         (float32, base64, m/s) with the grid shape, for replay as an image.
+- ``/flow/velocity``     every ``field_every`` control periods (0: never): velocity (m/s) and pressure (Pa) at
+                         the mesh vertices (float32, base64) with the grid, for replay as an image.
 Run metadata (scenario TOML, seed, command line, versions) is an MCAP metadata record named ``run``.
 
 The writer flushes every ``flush_every`` control periods, so a killed process loses at most that many
@@ -28,7 +29,9 @@ from mcap.writer import CompressionType, Writer
 SCHEMAS = {
     "/loop/step": {"type": "object", "properties": {
         "time": {"type": "number"}, "step": {"type": "integer"}, "idt": {"type": "number"},
-        "cells_in_channel": {"type": "integer"}, "wall_time": {"type": "number"}}},
+        "cells_in_channel": {"type": "integer"}, "wall_time": {"type": "number"},
+        "diagnostics": {"type": "object", "description": "plant figures: dt, physics steps, cumulative solver "
+                                                          "wall times (s, wall-clock), health"}}},
     "/cells": {"type": "object", "properties": {"time": {"type": "number"}, "cells": {"type": "array", "items": {
         "type": "object", "properties": {
             "key": {"type": "integer"}, "type": {"type": "string"}, "x_um": {"type": "number"},
@@ -48,7 +51,7 @@ SCHEMAS = {
     "/flow/velocity": {"type": "object", "properties": {
         "time": {"type": "number"}, "shape": {"type": "array", "items": {"type": "integer"}},
         "x_um": {"type": "array"}, "y_um": {"type": "array"}, "vx_f32_b64": {"type": "string"},
-        "vy_f32_b64": {"type": "string"}}},
+        "vy_f32_b64": {"type": "string"}, "p_f32_b64": {"type": "string"}}},
 }
 PER_STEP = ("/loop/step", "/cells")
 
@@ -90,10 +93,12 @@ class McapRecorder:
         self._writer.add_message(self._channels[topic], log_time=stamp, publish_time=stamp,
                                  data=json.dumps(payload, separators=(",", ":")).encode(), sequence=self._sequence)
 
-    def on_step(self, step: int, observation, truth, actuation: float, events, decisions, fields=None):
+    def on_step(self, step: int, observation, truth, actuation: float, events, decisions, fields=None,
+                diagnostics=None):
         now = observation.time
         self._write("/loop/step", now, {"time": now, "step": step, "idt": actuation,
-                                        "cells_in_channel": len(observation.cells), "wall_time": time.time()})
+                                        "cells_in_channel": len(observation.cells), "wall_time": time.time(),
+                                        "diagnostics": diagnostics or {}})
         self._write("/cells", now, {"time": now, "cells": [self._cell(cell) for cell in truth.cells
                                                            if cell.fate == "in_channel" or cell.key not in self._settled]})
         for event in events:
@@ -127,12 +132,15 @@ class McapRecorder:
             self._file.close()
 
 
-def velocity_field(vertices: np.ndarray, velocity: np.ndarray, grid_x, grid_y, time_s: float) -> dict:
-    """The velocity at the mesh vertices as a compact JSON payload (float32, base64)."""
+def velocity_field(vertices: np.ndarray, velocity: np.ndarray, pressure: np.ndarray, grid_x, grid_y,
+                   time_s: float) -> dict:
+    """Velocity (m/s) and pressure (Pa) at the mesh vertices as a compact JSON payload (float32, base64)."""
     count = vertices.shape[1]
     order = np.lexsort((vertices[0], vertices[1]))          # rows of constant y, x increasing
-    vx = velocity[0, :count][order].astype(np.float32)
-    vy = velocity[1, :count][order].astype(np.float32)
+
+    def encoded(values):
+        return base64.b64encode(np.asarray(values)[:count][order].astype(np.float32).tobytes()).decode()
+
     return {"time": time_s, "shape": [len(grid_y), len(grid_x)],
             "x_um": np.round(np.asarray(grid_x) * 1e6, 4).tolist(), "y_um": np.round(np.asarray(grid_y) * 1e6, 4).tolist(),
-            "vx_f32_b64": base64.b64encode(vx.tobytes()).decode(), "vy_f32_b64": base64.b64encode(vy.tobytes()).decode()}
+            "vx_f32_b64": encoded(velocity[0]), "vy_f32_b64": encoded(velocity[1]), "p_f32_b64": encoded(pressure)}

@@ -80,8 +80,9 @@ def run_stream(scenario: Scenario, settings: StreamSettings, progress=None, plan
         if sinks:
             truth = plant.truth()
             decisions = controller.take_changes()
+            diagnostics = plant.diagnostics() if hasattr(plant, "diagnostics") else None
             for sink in sinks:
-                sink.on_step(step, observation, truth, actuation, new_events, decisions, fields)
+                sink.on_step(step, observation, truth, actuation, new_events, decisions, fields, diagnostics)
         if progress:
             _report_exits(plant.truth(), reported, progress)
             progress.update(f"t = {observation.time * 1e3:.3f} ms, {len(observation.cells)} cells in the channel, "
@@ -94,8 +95,8 @@ def _field_payload(plant):
     from .recording import velocity_field
 
     def payload():
-        vertices, velocity, grid_x, grid_y = plant.fields()
-        return velocity_field(vertices, velocity, grid_x, grid_y, plant.truth().time)
+        vertices, velocity, pressure, grid_x, grid_y = plant.fields()
+        return velocity_field(vertices, velocity, pressure, grid_x, grid_y, plant.truth().time)
     return payload
 
 

@@ -143,7 +143,7 @@ class RerunSink:
         self.field_every = field_every
         self._settled = set()
 
-    def on_step(self, step, observation, truth, actuation, events, decisions, fields=None):
+    def on_step(self, step, observation, truth, actuation, events, decisions, fields=None, diagnostics=None):
         logger = self.logger
         logger.time(observation.time, step)
         logger.idt(actuation)

@@ -244,7 +244,7 @@ def command_stream(args):
         from .recording import McapRecorder
         sinks.append(McapRecorder(output / f"{run_id}.mcap", _run_metadata(scenario, settings),
                                   flush_every=args.flush_every, field_every=args.field_every))
-    target = _viewer_target(args, output, run_id)
+    target = _viewer_target(args, output / f"{run_id}.rrd" if output is not None else None, spawn_by_default=True)
     if target is not None:
         from .viewer import RerunSink
         sinks.append(RerunSink(scenario, detector.window, target, field_every=args.field_every))
@@ -282,21 +282,21 @@ def command_stream(args):
     _emit(args, result, lines)
 
 
-def _viewer_target(args, output: Path | None, run_id: str):
-    """Where the Rerun view goes: --spawn, --connect, --save, or by default a viewer when there is a display
-    and an .rrd file in the output directory when there is none (spawning without a display would block)."""
+def _viewer_target(args, default_save: Path | None, spawn_by_default: bool):
+    """Where a Rerun view goes: --save, --connect, --spawn, else a viewer (if ``spawn_by_default`` and there is a
+    display) or ``default_save``. Spawning without a display would block, so it falls back to the file."""
     from .viewer import has_display
-    if args.no_viewer:
+    if getattr(args, "no_viewer", False):
         return None
     if args.save:
         return ("save", _output_path(args.save))
     if args.connect is not None:
         return ("connect", args.connect)
-    if args.spawn or has_display():
-        if has_display():
-            return ("spawn",)
+    if (args.spawn or spawn_by_default) and has_display():
+        return ("spawn",)
+    if args.spawn:
         print("vcyto: no display for --spawn; saving the Rerun view to a file instead", file=sys.stderr)
-    return ("save", output / f"{run_id}.rrd") if output is not None else None
+    return ("save", default_save) if default_save is not None else None
 
 
 def _viewer_options(parser: argparse.ArgumentParser):
@@ -313,16 +313,7 @@ def command_replay(args):
     path = Path(args.file)
     if not path.is_file():
         raise UsageError(f"recording {args.file} does not exist")
-    if args.save:
-        target = ("save", _output_path(args.save))
-    elif args.connect is not None:
-        target = ("connect", args.connect)
-    elif args.spawn and _has_display():
-        target = ("spawn",)
-    else:
-        target = ("save", path.with_suffix(".replay.rrd"))
-        if args.spawn:
-            print("vcyto: no display for --spawn; saving the Rerun view to a file instead", file=sys.stderr)
+    target = _viewer_target(args, path.with_suffix(".replay.rrd"), spawn_by_default=False)
     try:
         result = replay(path, target)
     except ReplayError as error:
@@ -335,11 +326,6 @@ def command_replay(args):
     lines.append(f"  Rerun: {'saved to ' + str(target[1]) if target[0] == 'save' else target[0]}")
     result["target"] = str(target[1]) if target[0] == "save" else target[0]
     _emit(args, result, lines)
-
-
-def _has_display():
-    from .viewer import has_display
-    return has_display()
 
 
 def _run_metadata(scenario, settings) -> dict:

@@ -4,8 +4,12 @@ One step from (v^m, X^m):
   1. f_r = -dE_h/dX_r at X^m for every cell (``Membrane.forces``) and spread: <F_h, w> = sum_r f_r . w(X_r);
   2. backward-Euler Navier-Stokes for v^{m+1} with that load (``NavierStokes.step``);
   3. X_r^{m+1} = X_r^m + dt v^{m+1}(X_r^m), the velocity interpolated at the points located in step 1.
-Then each cell's fate is settled (the outlet its centroid crosses x = length through) and the health
-checks run (``sim.health``). Membrane points that have passed x = length through an outlet are outside the
+With an area constraint (``numerics.area_constraint``, README "Cells that keep their size") step 1 adds
+the interior pressure that balances the force's area-changing part (``pressure``) and step 3 moves the
+membrane along its normal to restore the cell's area (``projection``); with ``numerics.redistribute`` the
+points are re-spaced along the spline whenever a spacing leaves ``numerics.spacing_band``.
+Then each cell's fate is settled (the outlet its centroid crosses x = length through), its shape figures
+are updated (``Measures``) and the health checks run (``sim.health``). Membrane points that have passed x = length through an outlet are outside the
 mesh: they move with the outlet's velocity at x = length (the outflow continued straight) and exert no
 force on the fluid.
 """
@@ -28,6 +32,38 @@ IN_CHANNEL = "in_channel"
 
 
 @dataclass(frozen=True)
+class Measures:
+    """A cell's shape figures now and their extremes since birth: area / initial area, point spacing / h.
+
+    Updated while the whole membrane is inside the channel (points past the outlet move by a made-up rule);
+    ``area_corrected`` sums the area the projection restored (|dA| / A0 per step): what leaked before it.
+    """
+
+    area_ratio: float = 1.0
+    perimeter: float = float("nan")
+    spacing_min: float = float("nan")
+    spacing_max: float = float("nan")
+    area_ratio_min: float = 1.0
+    area_ratio_max: float = 1.0
+    spacing_lowest: float = float("inf")
+    spacing_highest: float = 0.0
+    area_corrected: float = 0.0
+
+    @classmethod
+    def of(cls, membrane: Membrane, mesh_h: float, before: "Measures | None" = None, corrected: float = 0.0):
+        ratio = membrane.area() / membrane.initial_area
+        spacing = membrane.spacing() / mesh_h
+        low, high = float(spacing.min()), float(spacing.max())
+        before = before or cls()
+        return cls(ratio, membrane.perimeter(), low, high, min(before.area_ratio_min, ratio),
+                   max(before.area_ratio_max, ratio), min(before.spacing_lowest, low), max(before.spacing_highest, high),
+                   before.area_corrected + corrected)
+
+    def as_dict(self) -> dict:
+        return {name: getattr(self, name) for name in self.__dataclass_fields__}
+
+
+@dataclass(frozen=True)
 class Cell:
     """A cell in the device: its membrane and, once settled, its fate ('lower'/'upper'/... , 'wall', 'lost')."""
 
@@ -37,6 +73,7 @@ class Cell:
     exit_time: float = float("nan")
     exit_y: float = float("nan")
     born: float = 0.0
+    measures: Measures = Measures()
 
     @property
     def in_channel(self) -> bool:
@@ -77,6 +114,10 @@ class ImmersedBoundary:
         self.locator = PointLocator(space.cmesh, space.velocity_basis.element_dofs)
         self.limits = HealthLimits.of(scenario)
         self.timings = Timings()
+        numerics = scenario.numerics
+        self._pressure = "pressure" in numerics.area_constraint
+        self._projection = "projection" in numerics.area_constraint
+        self._band = np.array(numerics.spacing_band) * numerics.mesh_h if numerics.redistribute else None
 
     # ------------------------------------------------------------------ cells
     def injection_point(self, cell_type: CellType, gap: float = 1e-6) -> tuple[float, float]:
@@ -85,9 +126,10 @@ class ImmersedBoundary:
         return cell_type.semi_axes[0] + gap, 0.5 * (inlet.span[0] + inlet.span[1])
 
     def new_cell(self, cell_type: CellType, cell_id: int, time: float, centre=None) -> Cell:
-        spacing = self.scenario.numerics.membrane_spacing * self.scenario.numerics.mesh_h
+        numerics = self.scenario.numerics
         centre = self.injection_point(cell_type) if centre is None else centre
-        return Cell(cell_id, Membrane.of(cell_type, centre, spacing), born=time)
+        membrane = Membrane.of(cell_type, centre, numerics.membrane_spacing * numerics.mesh_h)
+        return Cell(cell_id, membrane, born=time, measures=Measures.of(membrane, numerics.mesh_h))
 
     def start(self, actuation: float = 0.0, cells=()) -> State:
         """The initial flow of the scenario (steady at ``actuation`` by default) with ``cells``."""
@@ -104,7 +146,10 @@ class ImmersedBoundary:
             points = cell.membrane.points
             elements, reference = self.locator.locate(self._inside(points))
             inside = points[:, 0] < self.scenario.channel.length
-            forces = cell.membrane.forces() * inside[:, None]
+            forces = cell.membrane.forces()
+            if self._pressure:
+                forces, _ = cell.membrane.pressure_balanced(forces)
+            forces = forces * inside[:, None]
             self.locator.spread_located(forces, elements, reference, load)
             located.append((elements, reference))
         fluid_started = clock.perf_counter()
@@ -129,15 +174,33 @@ class ImmersedBoundary:
         length = self.scenario.channel.length
         return np.column_stack([np.minimum(points[:, 0], length * (1 - 1e-12)), points[:, 1]])
 
+    def _reshape(self, membrane: Membrane) -> tuple[Membrane, float]:
+        """The redistribution of points and the area constraint's projection, as the scenario asks; and the
+        relative area the projection restored (redistribution included)."""
+        if self._band is not None:
+            spacing = membrane.spacing()
+            if spacing.min() < self._band[0] or spacing.max() > self._band[1]:
+                numerics = self.scenario.numerics
+                membrane = membrane.resampled(numerics.membrane_spacing * numerics.mesh_h)
+        corrected = 0.0
+        if self._projection:
+            corrected = abs(membrane.area() / membrane.initial_area - 1)
+            membrane = membrane.with_area(membrane.initial_area)
+        return membrane, corrected
+
     def _settle(self, cell: Cell, points: np.ndarray, time: float) -> Cell:
         """The cell with its new points; its fate once its centroid crosses x = length."""
         membrane = cell.membrane.with_points(points)
+        measures = cell.measures
+        if (points[:, 0] < self.scenario.channel.length).all():
+            membrane, corrected = self._reshape(membrane)
+            measures = Measures.of(membrane, self.scenario.numerics.mesh_h, measures, corrected)
         length = self.scenario.channel.length
         before, after = cell.membrane.centroid(), membrane.centroid()
         if after[0] < length:
-            return replace(cell, membrane=membrane)
+            return replace(cell, membrane=membrane, measures=measures)
         weight = (length - before[0]) / (after[0] - before[0])
         exit_y = before[1] + weight * (after[1] - before[1])
         exit_time = time - self.scenario.numerics.dt * (1 - weight)
         return replace(cell, membrane=membrane, fate=outlet_at(self.scenario.channel, exit_y),
-                       exit_time=exit_time, exit_y=exit_y)
+                       exit_time=exit_time, exit_y=exit_y, measures=measures)

@@ -83,8 +83,37 @@ def ellipse_by_arc_length(a: float, b: float, points: int, centre=(0.0, 0.0)) ->
     return np.column_stack([centre[0] + a * np.cos(angles), centre[1] + b * np.sin(angles)])
 
 
+@lru_cache(maxsize=64)
+def _area_matrix(points: int) -> np.ndarray:
+    """A (R x R, antisymmetric) with area = x^T A y for the spline through (x, y): 1/2 closed integral of
+    x y_q - y x_q, exact by Gauss quadrature (the integrand is a degree-5 polynomial per interval)."""
+    pair = np.zeros((points, points))
+    for t, w in zip(_GAUSS_T, _GAUSS_W):
+        pair += w * _segment_basis(t, points, 0).T @ _segment_basis(t, points, 1)
+    return 0.5 * (pair - pair.T)
+
+
+@lru_cache(maxsize=64)
+def _perimeter_rows(points: int):
+    return tuple((w, _segment_basis(t, points, 1)) for t, w in zip(_GAUSS_T, _GAUSS_W))
+
+
+def spline_at(points: np.ndarray, interval: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """The periodic cubic spline through ``points`` (uniform knots) at parameter t in [0, 1] of ``interval``."""
+    count = len(points)
+    second = _second_derivative_operator(count) @ points          # M dq^2
+    nxt = (interval + 1) % count
+    s, u = t[:, None], 1 - t[:, None]
+    return (u * points[interval] + s * points[nxt]
+            + ((u**3 - u) * second[interval] + (s**3 - s) * second[nxt]) / 6)
+
+
 class Membrane:
-    """A closed membrane: material points (R, 2), reference length L and the moduli of its cell type."""
+    """A closed membrane: material points (R, 2), reference length L and the moduli of its cell type.
+
+    ``initial_area`` is the area the cell was born with (the target of the area constraints, kept
+    through redistribution); ``redistributions`` counts how often its points were redistributed.
+    """
 
     def __init__(self, points: np.ndarray, cell_type: CellType, reference_length: float | None = None):
         points = np.asarray(points, dtype=float)
@@ -96,17 +125,17 @@ class Membrane:
         self.dq = self.reference_length / self.count
         k1, k2 = _energy_matrices(self.count)
         self.stiffness = cell_type.kappa_e * k1 / self.dq + cell_type.kappa_b * k2 / self.dq**3
-        self.initial_area = polygon_area(points)
+        self._area_matrix = _area_matrix(self.count)
         self.points = points
+        self.initial_area = self.area()
+        self.redistributions = 0
 
     @classmethod
     def of(cls, cell_type: CellType, centre, spacing: float, minimum_points: int = 16) -> "Membrane":
         """The initial shape of ``cell_type`` at ``centre`` with material points about ``spacing`` apart."""
         count = max(minimum_points, math.ceil(cell_type.perimeter / spacing))
         points = ellipse_by_arc_length(*cell_type.semi_axes, count, centre)
-        membrane = cls(points, cell_type, reference_length=cell_type.perimeter)
-        membrane.initial_area = membrane.area()
-        return membrane
+        return cls(points, cell_type, reference_length=cell_type.perimeter)
 
     def forces(self, points: np.ndarray | None = None) -> np.ndarray:
         """f_r = -dE_h/dX_r (R, 2) in newtons."""
@@ -123,20 +152,28 @@ class Membrane:
             rows.append(_segment_basis(t, self.count, derivative) @ self.points / self.dq**derivative)
         return np.stack(rows, axis=1).reshape(-1, 2)
 
-    def area(self) -> float:
-        """Area enclosed by the spline (1/2 closed integral of x y_q - y x_q), exact by Gauss quadrature."""
-        total = 0.0
-        for t, w in zip(_GAUSS_T, _GAUSS_W):
-            x = _segment_basis(t, self.count, 0) @ self.points
-            xq = _segment_basis(t, self.count, 1) @ self.points
-            total += w * np.sum(x[:, 0] * xq[:, 1] - x[:, 1] * xq[:, 0])
-        return 0.5 * total
+    def area(self, points: np.ndarray | None = None) -> float:
+        """Area enclosed by the spline (1/2 closed integral of x y_q - y x_q), exact."""
+        x = self.points if points is None else points
+        return float(x[:, 0] @ self._area_matrix @ x[:, 1])
+
+    def area_gradient(self) -> np.ndarray:
+        """dA/dX_r (R, 2): the outward normal times the arc length each point carries."""
+        return np.column_stack([self._area_matrix @ self.points[:, 1], -self._area_matrix @ self.points[:, 0]])
 
     def perimeter(self) -> float:
-        total = 0.0
-        for t, w in zip(_GAUSS_T, _GAUSS_W):
-            xq = _segment_basis(t, self.count, 1) @ self.points
-            total += w * np.sum(np.hypot(xq[:, 0], xq[:, 1]))
+        return float(self.spacing().sum())
+
+    def spacing(self) -> np.ndarray:
+        """Arc length of the spline between neighbouring material points (R,), by 3-point Gauss quadrature.
+
+        Measured along the membrane, not as chords: across the tip of a stretched filament thinner than the
+        spacing, neighbouring points are closer as the crow flies than along the membrane.
+        """
+        total = np.zeros(self.count)
+        for w, first in _perimeter_rows(self.count):
+            xq = first @ self.points
+            total += w * np.hypot(xq[:, 0], xq[:, 1])
         return total
 
     def centroid(self) -> np.ndarray:
@@ -149,10 +186,66 @@ class Membrane:
         clone.points = points
         return clone
 
+    # ------------------------------------------------------------------ area conservation (issue 4)
+    def pressure_balanced(self, forces: np.ndarray) -> tuple[np.ndarray, float]:
+        """The forces plus an interior pressure p dA/dX that removes their component along dA/dX.
+
+        p = -(f . g) / (g . g) with g = dA/dX: the Lagrange multiplier of the area constraint for forces
+        that act through a mobility proportional to the identity. The balanced forces do no work on the
+        enclosed area (their power on a uniform dilation is zero); the returned p (Pa) is the pressure
+        jump the membrane itself carries, which a continuous pressure space cannot represent.
+        """
+        gradient = self.area_gradient()
+        pressure = -float(np.sum(forces * gradient)) / float(np.sum(gradient * gradient))
+        return forces + pressure * gradient, pressure
+
+    def with_area(self, target: float) -> "Membrane":
+        """The membrane moved along dA/dX (the normal) by the one displacement that restores ``target``.
+
+        The area is a quadratic form, so A(X + s g) = A + s g.g' + s^2 A(g) and s is a root of a quadratic.
+        """
+        gradient = self.area_gradient()
+        a, b, c = self.area(gradient), float(np.sum(gradient * gradient)), self.area() - target
+        step = -2 * c / (b + math.sqrt(max(b * b - 4 * a * c, 0.0)))      # the root nearest zero, stably
+        return self.with_points(self.points + step * gradient)
+
+    def resampled(self, spacing: float, minimum_points: int = 16, passes: int = 4) -> "Membrane":
+        """The same spline carried by points equally spaced in arc length about ``spacing`` apart.
+
+        The reference length L (the material) is kept and shared equally: dq = L / R'. The stretching
+        energy of a given shape is least when |X_q| is uniform, so the redistribution releases tangential
+        stretch imbalance (the membrane material slides along itself) and never adds energy. Where the
+        spline has a feature finer than ``spacing`` (the tip of a filament thinner than it), the new spline
+        cannot follow it and its arc lengths differ from the old ones: then the resampling is repeated on
+        the new spline (at most ``passes`` times) until every spacing is within 10 % of the mean.
+        """
+        membrane = self
+        for _ in range(passes):
+            membrane = membrane._resampled_once(spacing, minimum_points)
+            lengths = membrane.spacing()
+            if lengths.max() < 1.1 * lengths.mean() and lengths.min() > 0.9 * lengths.mean():
+                break
+        membrane.initial_area = self.initial_area
+        membrane.redistributions = self.redistributions + 1
+        return membrane
+
+    def _resampled_once(self, spacing: float, minimum_points: int) -> "Membrane":
+        samples = 32
+        interval = np.repeat(np.arange(self.count), samples)
+        t = np.tile(np.arange(samples) / samples, self.count)
+        dense = spline_at(self.points, interval, t)
+        chords = np.hypot(*(np.roll(dense, -1, axis=0) - dense).T)
+        arc = np.concatenate([[0.0], np.cumsum(chords)])
+        count = max(minimum_points, math.ceil(arc[-1] / spacing))
+        parameter = np.interp(np.arange(count) * arc[-1] / count, arc, np.arange(len(arc)) / samples)
+        parameter = np.minimum(parameter, self.count - 1e-12)
+        whole = np.floor(parameter).astype(int)
+        return Membrane(spline_at(self.points, whole, parameter - whole), self.cell_type, self.reference_length)
+
 
 def polygon_area(points: np.ndarray) -> float:
     x, y = points[:, 0], points[:, 1]
-    return 0.5 * float(np.sum(x * np.roll(y, -1) - np.roll(x, -1) * y))
+    return 0.5 * float(x[:-1] @ y[1:] - x[1:] @ y[:-1] + x[-1] * y[0] - x[0] * y[-1])
 
 
 def polygon_perimeter(points: np.ndarray) -> float:
@@ -160,9 +253,9 @@ def polygon_perimeter(points: np.ndarray) -> float:
 
 
 def polygon_centroid(points: np.ndarray) -> np.ndarray:
-    x, y = points[:, 0], points[:, 1]
-    cross = x * np.roll(y, -1) - np.roll(x, -1) * y
-    area = 0.5 * np.sum(cross)
+    following = np.concatenate([points[1:], points[:1]])
+    cross = points[:, 0] * following[:, 1] - following[:, 0] * points[:, 1]
+    area = 0.5 * cross.sum()
     if abs(area) < 1e-300:
         return points.mean(axis=0)
-    return np.array([np.sum((x + np.roll(x, -1)) * cross), np.sum((y + np.roll(y, -1)) * cross)]) / (6 * area)
+    return (cross @ (points + following)) / (6 * area)

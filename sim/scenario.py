@@ -18,6 +18,12 @@ SAW_MODELS = ("paper", "envelope", "streaming")
 PROFILE_READINGS = ("paper", "peak")
 INITIAL_FLOWS = ("steady", "rest")
 LINEAR_SOLVERS = ("auto", "pardiso", "superlu")
+AREA_CONSTRAINTS = ("none", "pressure", "projection", "pressure+projection")
+# the two membrane methods a user picks between (``--membrane``): field values each one sets
+MEMBRANE_METHODS = {
+    "paper": {"area_constraint": "none", "redistribute": False},
+    "conserving": {"area_constraint": "pressure+projection", "redistribute": True},
+}
 
 
 class ScenarioError(ValueError):
@@ -227,6 +233,13 @@ class Numerics:
     area at which the health checks stop a run. ``reproducible`` keeps runs bit-for-bit identical (the
     back-solve's substitutions run sequentially); False lets them run in parallel: faster, but the last
     bits of the results then vary from run to run.
+
+    Cells keeping their size (README, "Cells that keep their size"): ``area_constraint`` is ``none`` (the
+    paper's literal method, which leaks area), ``pressure`` (an interior pressure, the Lagrange multiplier
+    of the area constraint, balances the membrane force's area-changing part), ``projection`` (after each
+    step the membrane moves along its normal to restore the area) or both. ``redistribute`` re-spaces a
+    membrane's points equally along its spline, ``membrane_spacing`` apart, whenever a spacing leaves
+    ``spacing_band`` (both in units of ``mesh_h``).
     """
 
     mesh_h: float = 10e-6 / 3
@@ -239,9 +252,20 @@ class Numerics:
     membrane_spacing: float = 0.5
     max_area_change: float = 0.75
     reproducible: bool = True
+    area_constraint: str = "pressure+projection"
+    redistribute: bool = True
+    spacing_band: tuple[float, float] = (0.3, 0.7)
 
     def __post_init__(self):
         _positive(self, "mesh_h", "dt", "nonlinear_tolerance", "membrane_spacing", "max_area_change")
+        _choice(self, "area_constraint", AREA_CONSTRAINTS)
+        if not isinstance(self.redistribute, bool):
+            raise ScenarioError("redistribute", f"must be true or false (got {self.redistribute!r})")
+        object.__setattr__(self, "spacing_band", tuple(float(v) for v in self.spacing_band))
+        low, high = self.spacing_band if len(self.spacing_band) == 2 else (math.nan, math.nan)
+        if not (0 < low < self.membrane_spacing < high):
+            raise ScenarioError("spacing_band", f"must be two numbers low < membrane_spacing ({self.membrane_spacing}) "
+                                                f"< high, in units of mesh_h (got {self.spacing_band!r})")
         _choice(self, "convection", CONVECTIONS)
         _choice(self, "linear_solver", LINEAR_SOLVERS)
         _choice(self, "initial_flow", INITIAL_FLOWS)
@@ -331,6 +355,17 @@ class Scenario:
 
     def with_numerics(self, **changes) -> "Scenario":
         return replace(self, numerics=replace(self.numerics, **changes))
+
+    def with_membrane(self, method: str) -> "Scenario":
+        """The scenario with the membrane method ``paper`` (literal, leaks) or ``conserving`` (keeps area)."""
+        if method not in MEMBRANE_METHODS:
+            raise ScenarioError("membrane", f"must be one of {', '.join(MEMBRANE_METHODS)} (got {method!r})")
+        return self.with_numerics(**MEMBRANE_METHODS[method])
+
+    def membrane_method(self) -> str:
+        """``paper``, ``conserving`` or ``custom`` (any other combination of the fields)."""
+        chosen = {"area_constraint": self.numerics.area_constraint, "redistribute": self.numerics.redistribute}
+        return next((name for name, fields in MEMBRANE_METHODS.items() if fields == chosen), "custom")
 
     def with_saw(self, **changes) -> "Scenario":
         return replace(self, saw=replace(self.saw, **changes))

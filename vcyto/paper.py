@@ -53,25 +53,28 @@ def run_paper(number: int, scenario: Scenario, max_time: float = 20e-3, progress
     cell = plant.new_cell(scenario.cell_type(spec.cell), 0, state.time)
     state = type(state)(state.flow, (cell,), 0)
     steady = time.perf_counter() - started - setup
-    path, outlines, areas = [cell.membrane.centroid()], [(0.0, cell.membrane.points)], [1.0]
+    path, outlines = [cell.membrane.centroid()], [(0.0, cell.membrane.points)]
     stepping = time.perf_counter()
     while state.cells[0].in_channel and state.time < max_time:
         state = plant.step(state, spec.actuation)
         membrane = state.cells[0].membrane
         path.append(membrane.centroid())
-        areas.append(membrane.area() / membrane.initial_area)
         update(f"step {state.step}, t = {state.time * 1e3:.3f} ms, centroid x = {path[-1][0] / UM:.1f} um")
     step_wall = time.perf_counter() - stepping
     final = state.cells[0]
     fate = final.fate if not final.in_channel else "lost"
     timings = plant.timings
     fluid = plant.fluid.timings
+    measures = final.measures
     return {
         "scenario": number,
-        "method": "paper (literal FE-IB: the paper's energy, no area conservation)",
+        "method": method_description(scenario),
+        "membrane_method": scenario.membrane_method(),
         "cells": [{"type": spec.cell, "outlet": fate, "exit_time_ms": final.exit_time * 1e3,
-                   "exit_y_um": final.exit_y / UM, "area_ratio_final": areas[-1], "area_ratio_min": min(areas),
-                   "membrane_points": final.membrane.count}],
+                   "exit_y_um": final.exit_y / UM, "area_ratio_final": measures.area_ratio,
+                   "area_ratio_min": measures.area_ratio_min, "area_ratio_max": measures.area_ratio_max,
+                   "spacing_over_h": [measures.spacing_lowest, measures.spacing_highest],
+                   "membrane_points": final.membrane.count, "redistributions": final.membrane.redistributions}],
         "paper_outlet": spec.paper_outlet,
         "paper_wall_time": spec.paper_wall_time,
         "dt_us": scenario.numerics.dt * 1e6,
@@ -95,7 +98,19 @@ def run_paper(number: int, scenario: Scenario, max_time: float = 20e-3, progress
         "_outlines": _pick(outlines + [(state.time, final.membrane.points)], snapshots),
         "_flow": state.flow,
         "_plant": plant,
+        "_final": final,
     }
+
+
+def method_description(scenario: Scenario) -> str:
+    numerics = scenario.numerics
+    method = scenario.membrane_method()
+    if method == "paper":
+        return "paper (the paper's literal FE-IB method: no area constraint, no redistribution; it leaks area)"
+    detail = (f"area constraint {numerics.area_constraint}, "
+              + ("points redistributed outside " + "-".join(f"{v:g}" for v in numerics.spacing_band) + " h"
+                 if numerics.redistribute else "no redistribution"))
+    return f"{method} ({detail})"
 
 
 def _pick(items, count):
@@ -114,8 +129,10 @@ def report_lines(result: dict) -> list[str]:
         f"convection {result['convection']}, SAW model {result['saw_model']}",
         f"  outlet: {cell['outlet']} (paper: {result['paper_outlet']}), exit at t = {cell['exit_time_ms']:.3f} ms, "
         f"y = {cell['exit_y_um']:.1f} um, after {result['steps']} steps",
-        f"  enclosed area at exit: {100 * cell['area_ratio_final']:.1f} % of the initial area "
-        f"(minimum {100 * cell['area_ratio_min']:.1f} %)",
+        f"  enclosed area at exit: {100 * cell['area_ratio_final']:.2f} % of the initial area "
+        f"(range {100 * cell['area_ratio_min']:.2f}-{100 * cell['area_ratio_max']:.2f} %); point spacing "
+        f"{cell['spacing_over_h'][0]:.2f}-{cell['spacing_over_h'][1]:.2f} h, {cell['membrane_points']} points at exit, "
+        f"{cell['redistributions']} redistributions",
         f"  wall time {wall['process']:.1f} s for the whole process (paper: {result['paper_wall_time']}): "
         f"set-up {wall['setup']:.2f} s, steady start {wall['steady_start']:.2f} s, {result['steps']} steps "
         f"{wall['stepping']:.2f} s ({wall['per_step_ms']:.2f} ms/step)",

@@ -53,8 +53,9 @@ class CellTruth:
     exit_y: float
     x: float
     y: float
-    area_ratio: float
+    area_ratio: float                     # FE-IB: measured while the whole membrane is in the channel
     membrane: np.ndarray | None = None    # (R, 2) material points, for logging
+    measures: dict | None = None          # shape figures and their extremes (sim.feib.Measures), FE-IB only
 
 
 @dataclass(frozen=True)
@@ -128,8 +129,8 @@ class FeibPlant:
         for cell in self.state.cells:
             x, y = cell.membrane.centroid()
             cells.append(CellTruth(cell.id, cell.membrane.cell_type.name, cell.born, cell.fate, cell.exit_time,
-                                   cell.exit_y, float(x), float(y), cell.membrane.area() / cell.membrane.initial_area,
-                                   cell.membrane.points))
+                                   cell.exit_y, float(x), float(y), cell.measures.area_ratio, cell.membrane.points,
+                                   cell.measures.as_dict()))
         return Truth(self.state.time, tuple(cells), self.schedule.waiting)
 
     @property

@@ -356,6 +356,10 @@ class Scenario:
     def with_numerics(self, **changes) -> "Scenario":
         return replace(self, numerics=replace(self.numerics, **changes))
 
+    def with_inlets_shut(self) -> "Scenario":
+        """The device with every inlet's speed set to zero: fluid at rest unless a membrane moves it."""
+        return replace(self, channel=replace(self.channel, inlets=tuple(replace(i, v_hat=0.0) for i in self.channel.inlets)))
+
     def with_membrane(self, method: str) -> "Scenario":
         """The scenario with the membrane method ``paper`` (literal, leaks) or ``conserving`` (keeps area)."""
         if method not in MEMBRANE_METHODS:

@@ -13,9 +13,7 @@ from sim.scenario import UM, CellType, Scenario
 
 def quiescent(h, dt, convection="stokes", membrane="paper"):
     """The device with every inlet shut: fluid at rest unless a membrane moves it."""
-    scenario = Scenario().with_numerics(mesh_h=h, dt=dt, convection=convection).with_membrane(membrane)
-    channel = replace(scenario.channel, inlets=tuple(replace(i, v_hat=0.0) for i in scenario.channel.inlets))
-    return replace(scenario, channel=channel)
+    return Scenario().with_numerics(mesh_h=h, dt=dt, convection=convection).with_membrane(membrane).with_inlets_shut()
 
 
 @pytest.fixture(scope="module")

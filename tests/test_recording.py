@@ -17,6 +17,7 @@ from sim.arrivals import Arrivals
 from sim.plant import StreamlinePlant
 from sim.scenario import Scenario
 from vcyto.recording import PER_STEP, McapRecorder
+from vcyto.sinks import BackgroundSinks
 from vcyto.stream import StreamSettings, run_stream
 
 
@@ -25,13 +26,14 @@ def plant():
     return StreamlinePlant(Scenario())
 
 
-def record(plant, path, seed=0, cells=("melanoma", "RBC", "melanoma")):
+def record(plant, path, seed=0, cells=("melanoma", "RBC", "melanoma"), background=False):
     recorder = McapRecorder(path, {"seed": seed}, flush_every=10, field_every=0)
+    sink = BackgroundSinks([recorder]) if background else recorder
     settings = StreamSettings(Arrivals(cells=cells), model="streamline", seed=seed)
     try:
-        result = run_stream(Scenario(), settings, plant=plant, sinks=[recorder])
+        result = run_stream(Scenario(), settings, plant=plant, sinks=[sink])
     finally:
-        recorder.close()
+        sink.close()
     return result
 
 
@@ -61,12 +63,42 @@ def test_round_trip_one_message_per_step_monotonic_times_and_outcomes(plant, tmp
 
 
 def test_same_seed_same_messages_apart_from_wall_clock(plant, tmp_path):
-    def content(path):
-        return [(topic, stamp, {k: v for k, v in data.items() if k not in ("wall_time", "diagnostics")})
-                for topic, stamp, data in messages(path)]
     record(plant, tmp_path / "a.mcap", seed=4)
     record(plant, tmp_path / "b.mcap", seed=4)
     assert content(tmp_path / "a.mcap") == content(tmp_path / "b.mcap")
+
+
+def content(path):
+    return [(topic, stamp, {k: v for k, v in data.items() if k not in ("wall_time", "diagnostics")})
+            for topic, stamp, data in messages(path)]
+
+
+def test_sinks_on_the_background_thread_write_the_same_messages_as_inline(plant, tmp_path):
+    record(plant, tmp_path / "inline.mcap", seed=2)
+    record(plant, tmp_path / "background.mcap", seed=2, background=True)
+    assert content(tmp_path / "inline.mcap") == content(tmp_path / "background.mcap")
+
+
+def test_a_failing_sink_stops_the_run_with_its_error(plant):
+    class FullDisk:
+        field_every = 0
+
+        def on_step(self, step, *rest):
+            if step == 5:
+                raise OSError(28, "No space left on device")
+
+        def close(self):
+            self.closed = True
+
+    failing = FullDisk()
+    settings = StreamSettings(Arrivals(cells=("RBC",)), model="streamline")
+    with pytest.raises(OSError, match="No space left"):
+        sink = BackgroundSinks([failing])
+        try:
+            run_stream(Scenario(), settings, plant=plant, sinks=[sink])
+        finally:
+            sink.close()
+    assert failing.closed
 
 
 def test_a_killed_run_keeps_every_step_up_to_the_last_flush(tmp_path):

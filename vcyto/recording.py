@@ -3,8 +3,9 @@
 Topics (JSON, each with a JSON Schema):
 - ``/loop/step``         every control period: time, step, IDT drive, cells in the channel, wall time,
                          plant diagnostics (dt, physics steps, cumulative solver times: wall-clock);
-- ``/cells``             every control period: each cell's key, type, centroid, area ratio, fate and
-                         membrane points (um, rounded to 1 nm);
+- ``/cells``             every control period: each cell's key, type, centroid, area ratio, fate, membrane
+                         points (um, rounded to 1 nm), perimeter and smallest/largest point spacing / h
+                         (null for models without membranes);
 - ``/detector/event``    each detector event (fluorescence, scatter, velocity, class);
 - ``/controller/decision`` each decision (sort / pass / abort, predicted arrival, pulse);
 - ``/outcome``           each cell when it leaves (outlet, exit time and ordinate);
@@ -36,6 +37,9 @@ SCHEMAS = {
         "type": "object", "properties": {
             "key": {"type": "integer"}, "type": {"type": "string"}, "x_um": {"type": "number"},
             "y_um": {"type": "number"}, "area_ratio": {"type": "number"}, "fate": {"type": "string"},
+            "perimeter_um": {"type": ["number", "null"]},
+            "spacing_min_h": {"type": ["number", "null"], "description": "smallest point spacing / mesh h"},
+            "spacing_max_h": {"type": ["number", "null"], "description": "largest point spacing / mesh h"},
             "membrane_um": {"type": "array", "items": {"type": "array", "items": {"type": "number"}}}}}}}},
     "/detector/event": {"type": "object", "properties": {
         "event_id": {"type": "integer"}, "time": {"type": "number"}, "fluorescence": {"type": "number"},
@@ -58,6 +62,10 @@ PER_STEP = ("/loop/step", "/cells")
 
 def _nanoseconds(seconds: float) -> int:
     return int(round(seconds * 1e9))
+
+
+def _rounded(value: float, digits: int):
+    return round(value, digits) if np.isfinite(value) else None
 
 
 def _finite(value):
@@ -122,8 +130,12 @@ class McapRecorder:
     @staticmethod
     def _cell(cell) -> dict:
         membrane = np.round(np.asarray(cell.membrane) * 1e6, 3).tolist() if cell.membrane is not None else []
+        shape = cell.measures or {}
         return {"key": cell.key, "type": cell.type, "x_um": round(cell.x * 1e6, 4), "y_um": round(cell.y * 1e6, 4),
-                "area_ratio": round(cell.area_ratio, 6), "fate": cell.fate, "membrane_um": membrane}
+                "area_ratio": round(cell.area_ratio, 6), "fate": cell.fate, "membrane_um": membrane,
+                "perimeter_um": _rounded(shape.get("perimeter", float("nan")) * 1e6, 4),
+                "spacing_min_h": _rounded(shape.get("spacing_min", float("nan")), 4),
+                "spacing_max_h": _rounded(shape.get("spacing_max", float("nan")), 4)}
 
     def close(self):
         if not self.closed:

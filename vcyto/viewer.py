@@ -4,7 +4,7 @@ Entities (2D, micrometres, y up as in the paper: logged as (x, height - y) becau
 points down): ``device/outline``, ``device/inlets``, ``device/outlets``, ``device/saw_window``,
 ``device/detection_window`` (static); ``device/flow`` (the speed as an image, at the field cadence);
 ``device/cells/<key>`` (membrane line strips), ``device/paths/<key>`` (centroid paths); ``idt`` (the IDT
-drive, a time series); ``log`` (detector events, decisions and outcomes as text). Timeline: ``sim_time``
+drive, a time series); ``area/<key>`` (each membrane's area / initial area, a time series); ``log`` (detector events, decisions and outcomes as text). Timeline: ``sim_time``
 (simulated seconds) and ``step``. A blueprint lays out the channel, the IDT plot and the log.
 """
 
@@ -30,7 +30,9 @@ def blueprint():
     return rrb.Blueprint(
         rrb.Horizontal(
             rrb.Spatial2DView(origin="device", name="channel"),
-            rrb.Vertical(rrb.TimeSeriesView(origin="idt", name="IDT drive"), rrb.TextLogView(origin="log", name="events")),
+            rrb.Vertical(rrb.TimeSeriesView(origin="idt", name="IDT drive"),
+                         rrb.TimeSeriesView(origin="area", name="area / initial area"),
+                         rrb.TextLogView(origin="log", name="events")),
             column_shares=[3, 2]),
         collapse_panels=True)
 
@@ -101,6 +103,8 @@ class RerunLogger:
             membrane = cell["membrane_um"] or [[cell["x_um"], cell["y_um"]]]
             closed = np.vstack([membrane, membrane[:1]])
             self.stream.log(entity, rr.LineStrips2D([self._flip(closed)], colors=[colour], radii=0.4))
+            if cell.get("perimeter_um") is not None:            # a membrane model: how much area it keeps
+                self.stream.log(f"area/{key}", rr.Scalars(cell["area_ratio"]))
             path = self.paths.setdefault(key, [])
             path.append((cell["x_um"], cell["y_um"]))
             if len(path) % 10 == 1:

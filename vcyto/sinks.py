@@ -1,0 +1,78 @@
+"""Sinks of the closed loop (MCAP, Rerun) run on one background thread, in step order.
+
+The loop hands each control period's snapshot (observation, truth, decisions: immutable) to a bounded
+queue and goes on with the plant; one worker thread turns them into JSON and Rerun archetypes while the
+main thread is in the linear solver (which releases the GIL). The recording is the same, message for
+message, as with the sinks called inline; what changes is that their cost overlaps the physics.
+
+- Order: one worker, FIFO: the sinks see the steps in order, as inline.
+- Fields: the flow field payload is computed on the loop's thread at the step it belongs to (the plant
+  moves on), and only at steps where a sink's ``field_every`` asks for it.
+- Bounded: at most ``depth`` steps wait in the queue (the loop blocks when the sinks fall behind), so a
+  killed process loses at most ``depth`` steps beyond the MCAP writer's own flush interval.
+- Failures: an exception in a sink (a full disk) stops the loop at its next step with that exception.
+- ``close`` waits until every queued step has been written, then closes the sinks (the caller calls it
+  on normal exit, Ctrl-C and SIGTERM, as for a single sink).
+"""
+
+from __future__ import annotations
+
+import queue
+import threading
+
+_STOP = object()
+
+
+class BackgroundSinks:
+    def __init__(self, sinks, depth: int = 16):
+        self.sinks = list(sinks)
+        self._queue: queue.Queue = queue.Queue(maxsize=depth)
+        self._failure: BaseException | None = None
+        self._thread = threading.Thread(target=self._work, name="vcyto-sinks", daemon=True)
+        self._thread.start()
+
+    def _work(self):
+        while True:
+            item = self._queue.get()
+            try:
+                if item is _STOP:
+                    return
+                if self._failure is None:
+                    for sink in self.sinks:
+                        sink.on_step(*item)
+            except BaseException as error:     # reported to the loop's thread at its next step
+                self._failure = error
+            finally:
+                self._queue.task_done()
+
+    def _fields_due(self, step: int) -> bool:
+        return any(getattr(sink, "field_every", 0) and step % sink.field_every == 0 for sink in self.sinks)
+
+    def on_step(self, step, observation, truth, actuation, events, decisions, fields=None, diagnostics=None):
+        self._raise_failure()
+        if fields is not None and self._fields_due(step):
+            payload = fields()
+            fields = lambda: payload                       # noqa: E731 - a snapshot of this step's field
+        else:
+            fields = None
+        self._queue.put((step, observation, truth, actuation, list(events), list(decisions), fields, diagnostics))
+
+    def drain(self):
+        """Wait until every queued step is written; re-raise a sink's failure."""
+        if self._thread.is_alive():
+            self._queue.put(_STOP)
+            self._thread.join()
+        self._raise_failure()
+
+    def close(self):
+        """Write what is queued, then close every sink (even after a failure); re-raise a sink's failure."""
+        try:
+            self.drain()
+        finally:
+            for sink in self.sinks:
+                sink.close()
+
+    def _raise_failure(self):
+        if self._failure is not None:
+            failure, self._failure = self._failure, None
+            raise failure

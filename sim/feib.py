@@ -114,10 +114,6 @@ class ImmersedBoundary:
         self.locator = PointLocator(space.cmesh, space.velocity_basis.element_dofs)
         self.limits = HealthLimits.of(scenario)
         self.timings = Timings()
-        numerics = scenario.numerics
-        self._pressure = "pressure" in numerics.area_constraint
-        self._projection = "projection" in numerics.area_constraint
-        self._band = np.array(numerics.spacing_band) * numerics.mesh_h if numerics.redistribute else None
 
     # ------------------------------------------------------------------ cells
     def injection_point(self, cell_type: CellType, gap: float = 1e-6) -> tuple[float, float]:
@@ -146,10 +142,7 @@ class ImmersedBoundary:
             points = cell.membrane.points
             elements, reference = self.locator.locate(self._inside(points))
             inside = points[:, 0] < self.scenario.channel.length
-            forces = cell.membrane.forces()
-            if self._pressure:
-                forces, _ = cell.membrane.pressure_balanced(forces)
-            forces = forces * inside[:, None]
+            forces = membrane_forces(cell.membrane, self.scenario.numerics) * inside[:, None]
             self.locator.spread_located(forces, elements, reference, load)
             located.append((elements, reference))
         fluid_started = clock.perf_counter()
@@ -175,32 +168,49 @@ class ImmersedBoundary:
         return np.column_stack([np.minimum(points[:, 0], length * (1 - 1e-12)), points[:, 1]])
 
     def _reshape(self, membrane: Membrane) -> tuple[Membrane, float]:
-        """The redistribution of points and the area constraint's projection, as the scenario asks; and the
-        relative area the projection restored (redistribution included)."""
-        if self._band is not None:
-            spacing = membrane.spacing()
-            if spacing.min() < self._band[0] or spacing.max() > self._band[1]:
-                numerics = self.scenario.numerics
-                membrane = membrane.resampled(numerics.membrane_spacing * numerics.mesh_h)
-        corrected = 0.0
-        if self._projection:
-            corrected = abs(membrane.area() / membrane.initial_area - 1)
-            membrane = membrane.with_area(membrane.initial_area)
-        return membrane, corrected
+        return reshape(membrane, self.scenario.numerics)
 
     def _settle(self, cell: Cell, points: np.ndarray, time: float) -> Cell:
-        """The cell with its new points; its fate once its centroid crosses x = length."""
-        membrane = cell.membrane.with_points(points)
-        measures = cell.measures
-        if (points[:, 0] < self.scenario.channel.length).all():
-            membrane, corrected = self._reshape(membrane)
-            measures = Measures.of(membrane, self.scenario.numerics.mesh_h, measures, corrected)
-        length = self.scenario.channel.length
-        before, after = cell.membrane.centroid(), membrane.centroid()
-        if after[0] < length:
-            return replace(cell, membrane=membrane, measures=measures)
-        weight = (length - before[0]) / (after[0] - before[0])
-        exit_y = before[1] + weight * (after[1] - before[1])
-        exit_time = time - self.scenario.numerics.dt * (1 - weight)
-        return replace(cell, membrane=membrane, fate=outlet_at(self.scenario.channel, exit_y),
-                       exit_time=exit_time, exit_y=exit_y, measures=measures)
+        return settle(cell, points, time, self.scenario)
+
+
+def reshape(membrane: Membrane, numerics) -> tuple[Membrane, float]:
+    """The redistribution of points and the area constraint's projection, as ``numerics`` asks; and the
+    relative area the projection restored (redistribution included)."""
+    if numerics.redistribute:
+        spacing = membrane.spacing() / numerics.mesh_h
+        low, high = numerics.spacing_band
+        if spacing.min() < low or spacing.max() > high:
+            membrane = membrane.resampled(numerics.membrane_spacing * numerics.mesh_h)
+    corrected = 0.0
+    if "projection" in numerics.area_constraint:
+        corrected = abs(membrane.area() / membrane.initial_area - 1)
+        membrane = membrane.with_area(membrane.initial_area)
+    return membrane, corrected
+
+
+def settle(cell: Cell, points: np.ndarray, time: float, scenario: Scenario) -> Cell:
+    """The cell with its new points (reshaped while wholly inside, with its measures); its fate once its
+    centroid crosses x = length (the outlet at the crossing ordinate)."""
+    membrane = cell.membrane.with_points(points)
+    measures = cell.measures
+    length = scenario.channel.length
+    if (points[:, 0] < length).all():
+        membrane, corrected = reshape(membrane, scenario.numerics)
+        measures = Measures.of(membrane, scenario.numerics.mesh_h, measures, corrected)
+    before, after = cell.membrane.centroid(), membrane.centroid()
+    if after[0] < length:
+        return replace(cell, membrane=membrane, measures=measures)
+    weight = (length - before[0]) / (after[0] - before[0])
+    exit_y = before[1] + weight * (after[1] - before[1])
+    exit_time = time - scenario.numerics.dt * (1 - weight)
+    return replace(cell, membrane=membrane, fate=outlet_at(scenario.channel, exit_y),
+                   exit_time=exit_time, exit_y=exit_y, measures=measures)
+
+
+def membrane_forces(membrane: Membrane, numerics) -> np.ndarray:
+    """f = -dE/dX, with the interior pressure of the area constraint when ``numerics`` asks for it."""
+    forces = membrane.forces()
+    if "pressure" in numerics.area_constraint:
+        forces, _ = membrane.pressure_balanced(forces)
+    return forces

@@ -105,6 +105,11 @@ class SortController:
                 self._pulses.pop(event_id, None)
                 self._decide(Decision(event_id, "abort", other, reason="type-I cell in coincidence"))
 
+    def next_change(self, time: float) -> float:
+        """The earliest pulse start or end after ``time`` (inf if none): until then, and until the next
+        event, ``actuation`` keeps its value at ``time``. Lets a loop skip periods in which nothing happens."""
+        return min((edge for pulse in self._pulses.values() for edge in pulse if edge > time), default=float("inf"))
+
     def actuation(self, time: float) -> float:
         """IDT drive at ``time``: 1 while any scheduled pulse is on, else 0."""
         started = clock.perf_counter()

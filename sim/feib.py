@@ -16,19 +16,22 @@ force on the fluid.
 
 from __future__ import annotations
 
+import logging
 import time as clock
 from dataclasses import dataclass, field, replace
 
 import numpy as np
 
 from .fluid import Flow, NavierStokes
-from .health import HealthLimits, check_cells
+from .health import HealthLimits, check_cells, under_resolved
 from .membrane import Membrane
 from .scenario import CellType, Scenario
 from .streamline import outlet_at
 from .transfer import PointLocator
 
 IN_CHANNEL = "in_channel"
+LOG = logging.getLogger(__name__)
+LOG.addHandler(logging.NullHandler())       # sim prints nothing: warnings reach only handlers the application adds
 
 
 @dataclass(frozen=True)
@@ -125,6 +128,8 @@ class ImmersedBoundary:
         numerics = self.scenario.numerics
         centre = self.injection_point(cell_type) if centre is None else centre
         membrane = Membrane.of(cell_type, centre, numerics.membrane_spacing * numerics.mesh_h)
+        if (warning := under_resolved(cell_type, numerics.mesh_h)) is not None:
+            LOG.warning("cell %d: %s", cell_id, warning)
         return Cell(cell_id, membrane, born=time, measures=Measures.of(membrane, numerics.mesh_h))
 
     def start(self, actuation: float = 0.0, cells=()) -> State:

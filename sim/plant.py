@@ -115,6 +115,11 @@ class FeibPlant:
             self._inject()
         return self.observe()
 
+    def adopt(self, state: State, injected: int):
+        """Continue from ``state`` (built from another plant's) with the first ``injected`` arrivals injected."""
+        self.schedule.position = injected
+        self.state = state
+
     def observe(self) -> Observation:
         views = []
         for cell in self.state.cells:

@@ -13,7 +13,7 @@ import time
 
 import numpy as np
 
-from sim.fluid import NavierStokes, TaylorHood
+from sim.fluid import NavierStokes, NumericalBlowUp, TaylorHood
 from sim.linalg import Pardiso, SuperLU, pardiso_available
 from sim.mesh import channel_mesh
 from sim.scenario import UM, Scenario
@@ -225,8 +225,9 @@ def controller_lines(result: dict) -> list[str]:
     return lines
 
 
-def bench_recording(scenario: Scenario, cells=("RBC", "melanoma"), progress=None) -> dict:
-    """The same FE-IB stream with the default recording (MCAP + Rerun .rrd) and without: the overhead."""
+def bench_recording(scenario: Scenario, cells=("RBC", "melanoma"), repeats: int = 3, progress=None) -> dict:
+    """The same FE-IB stream without and with the default recording (MCAP + Rerun .rrd, written on the
+    background thread of ``vcyto.sinks``), in ``repeats`` interleaved pairs: the median overhead."""
     import tempfile
     from pathlib import Path
 
@@ -235,36 +236,271 @@ def bench_recording(scenario: Scenario, cells=("RBC", "melanoma"), progress=None
     from sim.plant import FeibPlant
 
     from .recording import McapRecorder
+    from .sinks import BackgroundSinks
     from .stream import StreamSettings, run_stream
     from .viewer import RerunSink
 
     settings = StreamSettings(Arrivals(cells=tuple(cells)))
     plant = FeibPlant(scenario)
-    walls = {}
+    run_stream(scenario, settings.__class__(Arrivals(cells=tuple(cells[:1])), max_time=50e-6), plant=plant)  # warm-up
+    pairs = []
     with tempfile.TemporaryDirectory() as directory:
-        for mode in ("without", "with", "without again"):
-            if progress:
-                progress.note(f"stream {mode} recording")
-            sinks = []
-            if mode == "with":
-                sinks = [McapRecorder(Path(directory) / "run.mcap", {"benchmark": "recording"}),
-                         RerunSink(scenario, DetectorSettings().window, ("save", Path(directory) / "run.rrd"))]
-            started = time.perf_counter()
-            result = run_stream(scenario, settings, plant=plant, sinks=sinks)
-            for sink in sinks:
-                sink.close()
-            walls[mode] = time.perf_counter() - started
-            if mode == "with":
-                sizes = {name: (Path(directory) / name).stat().st_size for name in ("run.mcap", "run.rrd")}
-                steps = round(result["simulated_time_ms"] * 1e-3 / scenario.numerics.dt)
-    baseline = min(walls["without"], walls["without again"])
-    return {"cells": list(cells), "steps": steps, "wall_s": walls, "overhead": walls["with"] / baseline - 1,
-            "file_bytes": sizes}
+        for repeat in range(repeats):
+            walls = {}
+            for mode in ("without", "with"):
+                if progress:
+                    progress.note(f"pair {repeat + 1}/{repeats}: stream {mode} recording")
+                sinks = []
+                if mode == "with":
+                    sinks = [BackgroundSinks([McapRecorder(Path(directory) / "run.mcap", {"benchmark": "recording"}),
+                                              RerunSink(scenario, DetectorSettings().window,
+                                                        ("save", Path(directory) / "run.rrd"))])]
+                started = time.perf_counter()
+                result = run_stream(scenario, settings, plant=plant, sinks=sinks)
+                for sink in sinks:
+                    sink.close()
+                walls[mode] = time.perf_counter() - started
+            pairs.append(walls)
+        sizes = {name: (Path(directory) / name).stat().st_size for name in ("run.mcap", "run.rrd")}
+    steps = round(result["simulated_time_ms"] * 1e-3 / scenario.numerics.dt)
+    overheads = [pair["with"] / pair["without"] - 1 for pair in pairs]
+    return {"cells": list(cells), "steps": steps, "pairs_s": pairs, "overheads": overheads,
+            "overhead": float(np.median(overheads)), "file_bytes": sizes}
 
 
 def recording_lines(result: dict) -> list[str]:
-    walls = result["wall_s"]
+    pairs = "; ".join(f"{p['without']:.1f} s / {p['with']:.1f} s" for p in result["pairs_s"])
     return [f"recording overhead: stream {','.join(result['cells'])}, {result['steps']} steps (FE-IB)",
-            f"  without recording {walls['without']:.1f} s and {walls['without again']:.1f} s, with MCAP + Rerun "
-            f"{walls['with']:.1f} s: overhead {100 * result['overhead']:.1f} % of the faster run (target <= 10 %)",
+            f"  without / with MCAP + Rerun, interleaved pairs: {pairs}",
+            f"  overhead per pair {', '.join(f'{100 * o:.1f} %' for o in result['overheads'])}: "
+            f"median {100 * result['overhead']:.1f} % (target <= 10 %)",
             f"  files: MCAP {result['file_bytes']['run.mcap'] / 1e6:.2f} MB, Rerun {result['file_bytes']['run.rrd'] / 1e6:.2f} MB"]
+
+def bench_membrane(scenario: Scenario, repeats: int = 2, progress=None) -> dict:
+    """The paper's literal membrane method against the conserving one (README, "Cells that keep their size"):
+    a melanoma at rest in the shut device for 5 ms, and the paper's scenarios I and II, in interleaved runs;
+    area kept, point spacing, outlets and the cost per step (median of ``repeats``)."""
+    from sim.feib import ImmersedBoundary, State
+
+    from .paper import paper_scenario, run_paper
+
+    note = progress.note if progress else (lambda message: None)
+    methods = ("paper", "conserving")
+    rows = []
+    for method in ("paper",) + methods:             # the first run warms the kernels up and is not kept
+        note(f"melanoma at rest, 5 ms, {method}")
+        shut = scenario.with_membrane(method).with_inlets_shut().with_numerics(dt=25e-6, convection="stokes")
+        plant = ImmersedBoundary(shut)
+        state = State(plant.fluid.rest(), (plant.new_cell(shut.cell_type("melanoma"), 0, 0.0, (150 * UM, 110 * UM)),))
+        while state.time < 5e-3 - 1e-9:
+            state = plant.step(state)
+        measures = state.cells[0].measures
+        rows.append({"case": "melanoma at rest, 5 ms", "method": method, "outlet": "-",
+                     "area_ratio": [measures.area_ratio_min, measures.area_ratio_max],
+                     "area_corrected": measures.area_corrected,
+                     "spacing_over_h": [measures.spacing_lowest, measures.spacing_highest],
+                     "per_step_ms": [1e3 * (plant.timings.fluid + plant.timings.membrane + plant.timings.health)
+                                         / plant.timings.steps],
+                     "membrane_ms": [1e3 * (plant.timings.membrane + plant.timings.health) / plant.timings.steps]})
+    del rows[0]
+    for number in (2, 1):
+        runs = {method: [] for method in methods}
+        for repeat in range(repeats):
+            for method in methods:
+                note(f"scenario {number}, {method} ({repeat + 1}/{repeats})")
+                runs[method].append(run_paper(number, paper_scenario(number, scenario.with_membrane(method), False)))
+        for method in methods:
+            cell = runs[method][-1]["cells"][0]
+            final = runs[method][-1]["_final"].measures
+            walls = [run["wall_time_s"] for run in runs[method]]
+            rows.append({"case": f"scenario {number}", "method": method, "outlet": cell["outlet"],
+                         "exit_time_ms": cell["exit_time_ms"], "exit_y_um": cell["exit_y_um"],
+                         "area_ratio": [cell["area_ratio_min"], cell["area_ratio_max"]],
+                         "area_corrected": final.area_corrected, "spacing_over_h": cell["spacing_over_h"],
+                         "membrane_points": cell["membrane_points"], "redistributions": cell["redistributions"],
+                         "per_step_ms": [w["per_step_ms"] for w in walls],
+                         "membrane_ms": [1e3 * (w["membrane"] + w["health_checks"]) / run["steps"]
+                                         for w, run in zip(walls, runs[method])]})
+        paper, conserving = rows[-2], rows[-1]
+        conserving["cost_ratio"] = [c / p for c, p in zip(conserving["per_step_ms"], paper["per_step_ms"])]
+        conserving["membrane_extra"] = ((statistics.median(conserving["membrane_ms"])
+                                         - statistics.median(paper["membrane_ms"])) / statistics.median(paper["per_step_ms"]))
+    return {"rows": rows, "repeats": repeats}
+
+
+def membrane_lines(result: dict) -> list[str]:
+    lines = ["| case | method | outlet | area / initial (min-max) | restored by projection | spacing / h | "
+             "ms per step (median) | membrane + checks ms/step | conserving / paper cost per step (runs) | "
+             "extra membrane work / paper step |",
+             "|---|---|---|---|---|---|---|---|---|---|"]
+    for row in result["rows"]:
+        ratio = row.get("cost_ratio")
+        lines.append(
+            f"| {row['case']} | {row['method']} | {row['outlet']} | {100 * row['area_ratio'][0]:.2f}-"
+            f"{100 * row['area_ratio'][1]:.2f} % | {100 * row['area_corrected']:.2f} % | "
+            f"{row['spacing_over_h'][0]:.2f}-{row['spacing_over_h'][1]:.2f} | {statistics.median(row['per_step_ms']):.2f} | "
+            f"{statistics.median(row['membrane_ms']):.3f} | "
+            + (f"{', '.join(f'{r:.3f}' for r in ratio)} (median {statistics.median(ratio):.3f})" if ratio else "")
+            + (f" | {100 * row['membrane_extra']:+.1f} %" if "membrane_extra" in row else " |") + " |")
+    return lines
+
+
+def bench_sweep(spec_path, worker_counts=(1, 2), repeats: int = 1, progress=None) -> dict:
+    """The same sweep on a local pool of each size in ``worker_counts``, ``repeats`` times (sizes interleaved, so
+    machine load falls on all alike); whole-sweep wall times (pool start, imports and plant builds included) and
+    the speed-up over the first size. Each run starts from an empty table in a temporary directory."""
+    import os
+    import tempfile
+    from pathlib import Path
+
+    from . import sweep
+    plan = sweep.load_sweep(spec_path)
+    walls = {workers: [] for workers in worker_counts}
+    point_seconds = {workers: [] for workers in worker_counts}
+    for repeat in range(repeats):
+        for workers in worker_counts:
+            if progress:
+                progress.note(f"{len(plan.points)} points on {workers} worker(s) ({repeat + 1}/{repeats})")
+            with tempfile.TemporaryDirectory() as directory:
+                started = time.perf_counter()
+                with sweep.executor(None, workers) as (pool, slots, _):
+                    result = sweep.run_sweep(plan, Path(directory), pool, slots)
+                walls[workers].append(time.perf_counter() - started)
+            if result["failed"]:
+                raise RuntimeError(f"{result['failed']} point(s) of the benchmark sweep failed")
+            point_seconds[workers].append(sum(row["wall_time_s"] for row in result["rows"]))
+    medians = {workers: statistics.median(times) for workers, times in walls.items()}
+    first = worker_counts[0]
+    return {"spec": str(spec_path), "points": len(plan.points), "models": sorted({p.settings.model for p in plan.points}),
+            "repeats": repeats, "wall_s": walls, "median_wall_s": medians, "point_work_s": point_seconds,
+            "speed_up": {workers: medians[first] / medians[workers] for workers in worker_counts},
+            "cpus": len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()}
+
+
+def sweep_lines(result: dict) -> list[str]:
+    first = next(iter(result["median_wall_s"]))
+    lines = [f"{result['points']} points of {result['spec']} (model {', '.join(result['models'])}), "
+             f"{result['repeats']} run(s) per pool size, {result['cpus']} CPUs; whole sweep, pool start included:"]
+    for workers, median in result["median_wall_s"].items():
+        runs = ", ".join(f"{t:.1f}" for t in result["wall_s"][workers])
+        work = statistics.median(result["point_work_s"][workers])
+        lines.append(f"  {workers} worker(s): median {median:.1f} s (runs {runs} s; points' own time {work:.1f} s), "
+                     f"speed-up {result['speed_up'][workers]:.2f}x over {first}")
+    return lines
+
+
+def bench_realtime(scenario: Scenario, rate: float = 1000.0, duration: float = 1.0,
+                   mix=(("RBC", 0.9), ("melanoma", 0.1)), repeats: int = 3, control_period: float | None = None,
+                   seed: int = 0, progress=lambda message: None) -> dict:
+    """Real-time factor of the closed loop with the ``rom`` plant: a Poisson stream of ``rate`` x ``duration``
+    cells (no dead time), detector and controller in the loop, no recording.
+
+    Set-up (the two steady FE solves, sampling the grid, loading the kernels) is timed once; then the same
+    stream runs ``repeats`` times on that plant. Loop wall = the run's wall time minus its own set-up
+    (schedule, reset); real-time factor = device time simulated / loop wall; the median over repeats.
+    """
+    from sim.arrivals import Arrivals
+
+    from .stream import StreamSettings, make_plant, run_stream
+
+    arrivals = Arrivals(count=max(1, round(rate * duration)), mix=tuple(mix), rate=rate, process="poisson",
+                        min_spacing=0.0)
+    settings = StreamSettings(arrivals, model="rom", seed=seed, control_period=control_period,
+                              max_time=2 * duration + 20e-3)
+    progress("set-up: steady flows with the IDT off and on, sampled on the grid")
+    started = time.perf_counter()
+    plant = make_plant(scenario, settings)
+    setup = time.perf_counter() - started
+    runs = []
+    for repeat in range(repeats):
+        progress(f"run {repeat + 1} of {repeats}")
+        result = run_stream(scenario, settings, plant=plant)
+        loop = result["wall_time_s"] - result["setup_time_s"]
+        runs.append({"loop_wall_s": loop, "device_time_s": result["simulated_time_ms"] * 1e-3,
+                     "real_time_factor": result["simulated_time_ms"] * 1e-3 / loop})
+    stats = result["statistics"]
+    return {
+        "model": "rom", "rate_per_s": rate, "duration_s": duration, "cells": arrivals.count,
+        "mix": [list(pair) for pair in mix], "seed": seed, "control_period_us": plant.control_period * 1e6,
+        "substep_us": plant.control_period / plant.substeps * 1e6, "response_time_us": plant.response_time * 1e6,
+        "grid_spacing_um": [s / UM for s in plant.flows.spacing],
+        "setup_s": setup, "setup_parts_s": dict(plant.timings),
+        "runs": runs, "loop_wall_s": statistics.median(r["loop_wall_s"] for r in runs),
+        "device_time_s": runs[-1]["device_time_s"],
+        "real_time_factor": statistics.median(r["real_time_factor"] for r in runs),
+        "purity": stats["purity"], "yield": stats["yield"], "abort_rate": stats["abort_rate"],
+        "outlets": stats["outlets"], "misclassified": stats["misclassified"],
+    }
+
+
+def realtime_lines(result: dict) -> list[str]:
+    def percent(value):
+        return "n/a" if value is None else f"{100 * value:.1f} %"
+
+    parts = ", ".join(f"{name.removesuffix('_s').replace('_', ' ')} {value:.2f} s"
+                      for name, value in result["setup_parts_s"].items())
+    factors = ", ".join(f"{run['real_time_factor']:.1f}" for run in result["runs"])
+    return [
+        f"real time: rom plant, {result['cells']:,} cells at {result['rate_per_s']:g}/s (Poisson, "
+        f"{', '.join(f'{name}:{weight:g}' for name, weight in result['mix'])}), control period "
+        f"{result['control_period_us']:g} us, detector and controller in the loop, no recording",
+        f"  set-up {result['setup_s']:.2f} s ({parts})",
+        f"  loop: {result['device_time_s'] * 1e3:.1f} ms of device time in {result['loop_wall_s'] * 1e3:.1f} ms wall "
+        f"(median of {len(result['runs'])})",
+        f"  real-time factor {result['real_time_factor']:.1f} (runs: {factors}; target >= 10)",
+        f"  purity {percent(result['purity'])}, yield {percent(result['yield'])}, abort rate "
+        f"{percent(result['abort_rate'])}, outlets {result['outlets']}",
+    ]
+
+
+def bench_auto(scenario: Scenario, count: int = 100, rate: float = 500.0, mix=(("RBC", 0.8), ("melanoma", 0.2)),
+               seed: int = 0, progress=None) -> dict:
+    """The same mixed Poisson stream with ``--model auto`` and ``--model feib``: outcomes cell by cell, and
+    the wall time of each (set-up apart)."""
+    from sim.arrivals import Arrivals
+
+    from .stream import StreamSettings, run_stream
+
+    arrivals = Arrivals(count=count, mix=tuple(mix), rate=rate, process="poisson")
+    results = {}
+    for model in ("auto", "feib"):
+        if progress:
+            progress.note(f"{count}-cell stream with the {model} model")
+        try:
+            results[model] = run_stream(scenario, StreamSettings(arrivals, model=model, seed=seed, max_time=1.0))
+        except NumericalBlowUp as error:         # reported, not hidden: the comparison cannot be made
+            return {"cells": count, "rate": rate, "failed": model, "error": str(error)}
+    auto, feib = results["auto"], results["feib"]
+    pairs = list(zip(auto["cells"], feib["cells"]))
+    differ = [{"key": a["key"], "type": a["type"], "auto": a["outlet"], "feib": f["outlet"]}
+              for a, f in pairs if a["outlet"] != f["outlet"]]
+    exit_errors = [abs(a["exit_time_ms"] - f["exit_time_ms"]) for a, f in pairs
+                   if a["exit_time_ms"] is not None and f["exit_time_ms"] is not None]
+    run = {model: r["wall_time_s"] - r["setup_time_s"] for model, r in results.items()}
+    return {"cells": count, "rate": rate, "mix": [list(m) for m in mix], "seed": seed,
+            "simulated_ms": feib["simulated_time_ms"], "outlets_differ": differ,
+            "exit_time_error_ms": {"max": max(exit_errors), "median": float(np.median(exit_errors))},
+            "statistics": {model: r["statistics"] for model, r in results.items()},
+            "wall_s": {model: r["wall_time_s"] for model, r in results.items()},
+            "setup_s": {model: r["setup_time_s"] for model, r in results.items()},
+            "run_s": run, "speedup_run": run["feib"] / run["auto"],
+            "speedup_total": results["feib"]["wall_time_s"] / results["auto"]["wall_time_s"],
+            "feib_fraction": auto.get("auto", {}).get("feib_fraction"),
+            "switches": len(auto.get("auto", {}).get("switches", [])) - 1}
+
+
+def auto_lines(result: dict) -> list[str]:
+    if "failed" in result:
+        return [f"{result['cells']}-cell stream: the {result['failed']} run stopped: {result['error']}"]
+    stats = result["statistics"]
+    return [f"{result['cells']}-cell Poisson stream at {result['rate']:g}/s ({result['simulated_ms']:.1f} ms of device "
+            f"time), seed {result['seed']}: auto against feib",
+            f"  outlets that differ: {len(result['outlets_differ'])} of {result['cells']} {result['outlets_differ'] or ''}",
+            f"  exit time difference: median {result['exit_time_error_ms']['median'] * 1e3:.1f} us, "
+            f"max {result['exit_time_error_ms']['max'] * 1e3:.1f} us",
+            f"  purity / yield: auto {stats['auto']['purity']} / {stats['auto']['yield']}, "
+            f"feib {stats['feib']['purity']} / {stats['feib']['yield']}",
+            f"  wall: auto {result['wall_s']['auto']:.1f} s (set-up {result['setup_s']['auto']:.1f} s), feib "
+            f"{result['wall_s']['feib']:.1f} s (set-up {result['setup_s']['feib']:.1f} s): {result['speedup_run']:.1f}x "
+            f"faster without set-up, {result['speedup_total']:.1f}x with",
+            f"  auto ran feib for {100 * result['feib_fraction']:.1f} % of the periods ({result['switches']} switches)"]

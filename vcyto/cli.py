@@ -13,7 +13,7 @@ from pathlib import Path
 
 from sim.fluid import NumericalBlowUp
 from sim.linalg import SolverError
-from sim.scenario import CONVECTIONS, SAW_MODELS, ScenarioError
+from sim.scenario import CONVECTIONS, MEMBRANE_METHODS, SAW_MODELS, ScenarioError
 
 from .config import load_scenario
 
@@ -44,6 +44,9 @@ def _scenario_options(parser: argparse.ArgumentParser):
     group.add_argument("--convection", choices=CONVECTIONS, help="convection treatment (default imex)")
     group.add_argument("--saw-model", choices=SAW_MODELS, help="SAW model (default paper)")
     group.add_argument("--solver", choices=("auto", "pardiso", "superlu"), help="linear solver (default auto)")
+    group.add_argument("--membrane", choices=tuple(MEMBRANE_METHODS),
+                       help="membrane method: conserving (area constraint + point redistribution; the default) or "
+                            "paper (the paper's literal method, which leaks area; the default of vcyto paper)")
 
 
 def _output_options(parser: argparse.ArgumentParser):
@@ -51,8 +54,13 @@ def _output_options(parser: argparse.ArgumentParser):
     parser.add_argument("--quiet", action="store_true", help="no progress messages on stderr")
 
 
-def _scenario(args):
-    overrides = list(args.overrides)
+def _scenario(args, membrane: str | None = None):
+    """The scenario of the options; ``membrane`` is the command's default membrane method (--membrane wins,
+    and --set of single fields refines either)."""
+    method = getattr(args, "membrane", None) or membrane
+    overrides = [f"numerics.{field}={str(value).lower()}" for field, value in MEMBRANE_METHODS[method].items()] \
+        if method else []
+    overrides += list(args.overrides)
     for option, field in (("mesh_h", "numerics.mesh_h"), ("dt", "numerics.dt"), ("convection", "numerics.convection"),
                           ("saw_model", "saw.model"), ("solver", "numerics.linear_solver")):
         value = getattr(args, option, None)
@@ -117,11 +125,34 @@ def command_bench(args):
         result = bench.bench_controller(args.events)
         _emit(args, result, bench.controller_lines(result))
         return
+    if args.target == "sweep":
+        _bench_sweep(args, bench)
+        return
     scenario = _scenario(args)
+    if args.target == "realtime":
+        _bench_realtime(args, bench, scenario, progress)
+        return
     if args.target == "recording":
         from .progress import Progress
-        result = bench.bench_recording(scenario, progress=Progress(quiet=args.quiet or args.json))
+        if args.repeats < 1:
+            raise UsageError(f"--repeats must be at least 1 (got {args.repeats})")
+        result = bench.bench_recording(scenario, repeats=args.repeats, progress=Progress(quiet=args.quiet or args.json))
         _emit(args, result, bench.recording_lines(result))
+        return
+    if args.target == "auto":
+        from .progress import Progress
+        if args.count < 1:
+            raise UsageError(f"--count must be at least 1 (got {args.count})")
+        result = bench.bench_auto(scenario, args.count, args.rate, _mix(args.mix), args.seed,
+                                  progress=Progress(quiet=args.quiet or args.json))
+        _emit(args, result, bench.auto_lines(result))
+        return
+    if args.target == "membrane":
+        from .progress import Progress
+        if args.repeats < 1:
+            raise UsageError(f"--repeats must be at least 1 (got {args.repeats})")
+        result = bench.bench_membrane(scenario, args.repeats, progress=Progress(quiet=args.quiet or args.json))
+        _emit(args, result, bench.membrane_lines(result))
         return
     if args.target == "paper":
         from .progress import Progress
@@ -140,10 +171,50 @@ def command_bench(args):
     _emit(args, result, bench.report_lines(result))
 
 
+def _bench_realtime(args, bench, scenario, progress):
+    from .config import parse_quantity
+    if args.repeats < 1 or args.rate <= 0:
+        raise UsageError("--repeats must be at least 1 and --rate positive")
+    try:
+        duration = parse_quantity(args.duration)
+        period = parse_quantity(args.control_period) if args.control_period else None
+    except ValueError as error:
+        raise UsageError(f"--duration/--control-period: {error}") from None
+    if not duration > 0 or (period is not None and not period > 0):
+        raise UsageError("--duration and --control-period must be positive times such as 1s or 10us")
+    mix = _mix(args.mix)
+    for name, _ in mix:
+        scenario.cell_type(name)
+    if any(weight < 0 for _, weight in mix) or sum(weight for _, weight in mix) <= 0:
+        raise UsageError(f"--mix weights must be >= 0 with a positive sum (got {args.mix!r})")
+    result = bench.bench_realtime(scenario, args.rate, duration, mix, args.repeats, period, args.seed, progress)
+    _emit(args, result, bench.realtime_lines(result))
+
+
+def _bench_sweep(args, bench):
+    from . import sweep
+    from .progress import Progress
+    try:
+        counts = tuple(int(part) for part in args.workers.split(","))
+    except ValueError:
+        raise UsageError(f"--workers wants pool sizes such as 1,2 (got {args.workers!r})") from None
+    if args.repeats < 1 or not counts or min(counts) < 1:
+        raise UsageError("--repeats and every pool size in --workers must be at least 1")
+    spec = args.spec or str(Path(__file__).resolve().parent.parent / "examples" / "sweeps" / "bench-rom.toml")
+    progress = Progress(quiet=args.quiet or args.json)
+    try:
+        result = bench.bench_sweep(spec, counts, args.repeats, progress)
+    except sweep.SweepError as error:
+        raise UsageError(str(error)) from None
+    finally:
+        progress.close()
+    _emit(args, result, bench.sweep_lines(result))
+
+
 def command_paper(args):
     from . import paper
     from .progress import Progress
-    scenario = paper.paper_scenario(args.number, _scenario(args), dt_given=args.dt is not None)
+    scenario = paper.paper_scenario(args.number, _scenario(args, membrane="paper"), dt_given=args.dt is not None)
     png = _output_path(args.png if args.png else f"recordings/paper{args.number}.png") if not args.no_png else None
     if args.max_time <= 0:
         raise UsageError(f"--max-time must be positive (got {args.max_time} ms)")
@@ -191,6 +262,44 @@ def command_stability(args):
     _emit(args, result, stabilitymap.report_lines(result))
 
 
+def command_tradeoff(args):
+    from . import tradeoff
+    from .progress import Progress
+    scenario = _scenario(args)
+    output = _output_directory(args.output)
+    progress = Progress(quiet=args.quiet or args.json)
+    try:
+        result = tradeoff.tradeoff(scenario, tradeoff.FAST_LADDER if args.fast else tradeoff.LADDER,
+                                   progress=progress)
+    finally:
+        progress.close()
+    lines = tradeoff.table_lines(result)
+    if output is not None:
+        result["files"] = tradeoff.save(result, output)
+        lines.append(f"saved {', '.join(result['files'].values())}")
+    _emit(args, result, lines)
+
+
+def command_extremes(args):
+    from . import extremes
+    from .progress import Progress
+    base = _scenario(args)
+    names = [name.strip() for name in args.case.split(",") if name.strip()] if args.case else None
+    known = [case.name for case in extremes.CASES]
+    unknown = [name for name in names or () if name not in known]
+    if unknown or names == []:
+        raise UsageError(f"--case: unknown case {', '.join(unknown) or repr(args.case)}; known: {', '.join(known)}")
+    progress = Progress(quiet=args.quiet or args.json)
+    try:
+        result = extremes.run_cases(base, fast=args.fast, names=names, progress=progress)
+    finally:
+        progress.close()
+    _emit(args, result, extremes.report_lines(result))
+    if not result["passed"]:
+        raise extremes.UnexpectedOutcome(f"{sum(not row['passed'] for row in result['rows'])} case(s) did not "
+                                         "end as expected (see the table)")
+
+
 def _cell_list(text: str) -> tuple[str, ...]:
     names = tuple(name.strip() for name in text.split(",") if name.strip())
     if not names:
@@ -209,13 +318,12 @@ def _mix(text: str) -> tuple[tuple[str, float], ...]:
     return tuple(pairs)
 
 
-def command_stream(args):
+def stream_settings(args, scenario):
+    """The ``StreamSettings`` of the stream options in ``args`` (vcyto stream, and each point of vcyto sweep)."""
     from controller.detector import DetectorSettings
     from controller.sorter import ControllerSettings
     from sim.arrivals import Arrivals
     from . import stream
-    from .progress import Progress
-    scenario = _scenario(args)
     try:
         cells = args.cells if args.cells is not None else ("" if args.count else "RBC,melanoma")
         arrivals = Arrivals(cells=_cell_list(cells) if cells else (), count=args.count or 0,
@@ -231,12 +339,34 @@ def command_stream(args):
         controller = ControllerSettings(delay=args.delay * 1e-3, lead=args.lead * 1e-3, pulse=args.pulse * 1e-3,
                                         mode=args.mode, coincidence_window=args.coincidence * 1e-3,
                                         enabled=not args.no_controller)
-        settings = stream.StreamSettings(arrivals, detector, controller, args.model, args.seed,
-                                         max_time=args.max_time * 1e-3)
+        return stream.StreamSettings(arrivals, detector, controller, args.model, args.seed,
+                                     max_time=args.max_time * 1e-3)
     except ValueError as error:
         if isinstance(error, (UsageError, ScenarioError)):
             raise
         raise UsageError(str(error)) from None
+
+
+
+def stream_run_options() -> argparse.ArgumentParser:
+    """A parser of the scenario and stream options alone: their names, types and defaults are vcyto sweep's."""
+    parser = argparse.ArgumentParser(prog="vcyto stream", add_help=False)
+    _scenario_options(parser)
+    _stream_options(parser)
+    return parser
+
+
+def stream_run(args):
+    """The scenario and the ``StreamSettings`` that the scenario and stream options in ``args`` describe."""
+    scenario = _scenario(args)
+    return scenario, stream_settings(args, scenario)
+
+
+def command_stream(args):
+    from . import stream
+    from .progress import Progress
+    scenario = _scenario(args)
+    settings = stream_settings(args, scenario)
     output = _output_directory(args.output)
     run_id = time.strftime("stream-%Y%m%d-%H%M%S")
     sinks = []
@@ -247,22 +377,25 @@ def command_stream(args):
     target = _viewer_target(args, output / f"{run_id}.rrd" if output is not None else None, spawn_by_default=True)
     if target is not None:
         from .viewer import RerunSink
-        sinks.append(RerunSink(scenario, detector.window, target, field_every=args.field_every))
+        sinks.append(RerunSink(scenario, settings.detector.window, target, field_every=args.field_every))
     progress = Progress(quiet=args.quiet or args.json)
+    from .sinks import BackgroundSinks
+    background = BackgroundSinks(sinks) if sinks else None      # their work overlaps the plant's solve
     try:
         with _sigterm_as_interrupt():
-            result = stream.run_stream(scenario, settings, progress, sinks=sinks)
+            result = stream.run_stream(scenario, settings, progress, sinks=[background] if background else [])
     except KeyboardInterrupt:
         progress.close()
+        if background:
+            background.close()
         for sink in sinks:
-            sink.close()
             if hasattr(sink, "path"):
                 print(f"vcyto: interrupted; the recording up to now is in {sink.path}", file=sys.stderr)
         raise
     finally:
         progress.close()
-        for sink in sinks:
-            sink.close()
+        if background:
+            background.close()
     lines = stream.report_lines(result)
     result["files"] = {}
     for sink in sinks:
@@ -378,9 +511,81 @@ def _output_directory(path: str | None) -> Path | None:
     return directory
 
 
+def command_sweep(args):
+    from . import sweep
+    from .progress import Progress
+    if args.workers is not None and args.workers < 1:
+        raise UsageError(f"--workers must be at least 1 (got {args.workers})")
+    if args.chunk < 1:
+        raise UsageError(f"--chunk must be at least 1 (got {args.chunk})")
+    try:
+        spec = sweep.load_sweep(args.spec)
+    except sweep.SweepError as error:
+        raise UsageError(str(error)) from None
+    output = _output_directory(args.output or str(Path("recordings") / "sweeps" / Path(args.spec).stem))
+    workers = args.workers or (len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count())
+    progress = Progress(quiet=args.quiet or args.json)
+    try:
+        with _sigterm_as_interrupt(), sweep.executor(args.scheduler, workers) as (pool, slots, where):
+            progress.note(f"{len(spec.points)} points on {where}; results in {output / sweep.RESULTS}")
+            result = sweep.run_sweep(spec, output, pool, slots, progress, retry_failed=args.retry_failed,
+                                     chunk=args.chunk)
+    except sweep.SweepError as error:
+        raise UsageError(str(error)) from None
+    except KeyboardInterrupt:
+        progress.close()
+        print(f"vcyto: interrupted; finished points are in {output / sweep.RESULTS}; the same command completes "
+              "the sweep", file=sys.stderr)
+        raise
+    finally:
+        progress.close()
+    result["executor"] = where
+    if result["ok"]:
+        sweep.save_plot(output / sweep.FIGURE, spec, result["rows"])
+        result["files"]["figure"] = str(output / sweep.FIGURE)
+    result["files"]["summary"] = str(output / sweep.SUMMARY)
+    (output / sweep.SUMMARY).write_text(json.dumps(result, indent=2, default=_plain))
+    _emit(args, result, sweep.report_lines(result))
+
+
 def command_scenario(args):
     from .config import scenario_to_toml
     print(scenario_to_toml(_scenario(args)), end="")
+
+
+def _stream_options(parser: argparse.ArgumentParser):
+    """The options of one closed-loop run: arrivals, detector, controller, plant model, seed, duration."""
+    arrivals = parser.add_argument_group("cell arrivals (through the injection inlet)")
+    arrivals.add_argument("--cells", help="explicit ordered list, e.g. RBC,melanoma,RBC (default RBC,melanoma "
+                                          "unless --count is given)")
+    arrivals.add_argument("--count", type=int, help="number of cells drawn from --mix")
+    arrivals.add_argument("--mix", help="type mix for --count, e.g. RBC:0.9,melanoma:0.1")
+    arrivals.add_argument("--rate", type=float, default=500.0, help="arrival rate in cells/s (default 500)")
+    arrivals.add_argument("--arrivals", choices=("regular", "poisson"), default="regular",
+                          help="arrival process (default regular)")
+    arrivals.add_argument("--min-spacing", type=float, default=0.5, metavar="MS",
+                          help="minimum time between arrivals in ms (default 0.5)")
+    optics = parser.add_argument_group("detector and controller")
+    optics.add_argument("--detection-window", default="30,60", metavar="X0,X1",
+                        help="detection window along the channel in um (default 30,60)")
+    optics.add_argument("--gate", type=float, default=0.5, help="fluorescence gate for type II (default 0.5)")
+    optics.add_argument("--noise", type=float, default=0.2, help="fluorescence noise CV (default 0.2)")
+    optics.add_argument("--delay", type=float, default=0.56, metavar="MS",
+                        help="calibrated delay from the detector to the SAW window at 0.095 m/s (default 0.56)")
+    optics.add_argument("--lead", type=float, default=0.5, metavar="MS",
+                        help="IDT on this long before the predicted arrival (default 0.5)")
+    optics.add_argument("--pulse", type=float, default=1.2, metavar="MS", help="IDT pulse length (default 1.2)")
+    optics.add_argument("--mode", choices=("purity", "yield"), default="purity", help="sort mode (default purity)")
+    optics.add_argument("--coincidence", type=float, default=1.2, metavar="MS",
+                        help="purity mode aborts a sort with a type-I cell predicted within half this (default 1.2)")
+    optics.add_argument("--no-controller", action="store_true", help="never switch the IDT on")
+    parser.add_argument("--model", choices=("feib", "auto", "oneway", "rom", "streamline"), default="feib",
+                        help="plant: full FE-IB (default); auto (rom, switching to feib while cells are close "
+                             "together); oneway (membranes deforming in the blended steady flows, no feedback); "
+                             "rom (cells as finite-size bodies in the blended steady flows, >10x faster than real "
+                             "time without recording); or the streamline stand-in")
+    parser.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+    parser.add_argument("--max-time", type=float, default=50.0, metavar="MS", help="stop after this simulated time")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -407,33 +612,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     stream = commands.add_parser("stream", help="run cells through the closed sorting loop (detector, controller, plant)")
     _scenario_options(stream)
-    arrivals = stream.add_argument_group("cell arrivals (through the injection inlet)")
-    arrivals.add_argument("--cells", help="explicit ordered list, e.g. RBC,melanoma,RBC (default RBC,melanoma "
-                                          "unless --count is given)")
-    arrivals.add_argument("--count", type=int, help="number of cells drawn from --mix")
-    arrivals.add_argument("--mix", help="type mix for --count, e.g. RBC:0.9,melanoma:0.1")
-    arrivals.add_argument("--rate", type=float, default=500.0, help="arrival rate in cells/s (default 500)")
-    arrivals.add_argument("--arrivals", choices=("regular", "poisson"), default="regular",
-                          help="arrival process (default regular)")
-    arrivals.add_argument("--min-spacing", type=float, default=0.5, metavar="MS",
-                          help="minimum time between arrivals in ms (default 0.5)")
-    optics = stream.add_argument_group("detector and controller")
-    optics.add_argument("--detection-window", default="30,60", metavar="X0,X1",
-                        help="detection window along the channel in um (default 30,60)")
-    optics.add_argument("--gate", type=float, default=0.5, help="fluorescence gate for type II (default 0.5)")
-    optics.add_argument("--noise", type=float, default=0.2, help="fluorescence noise CV (default 0.2)")
-    optics.add_argument("--delay", type=float, default=0.56, metavar="MS",
-                        help="calibrated delay from the detector to the SAW window at 0.095 m/s (default 0.56)")
-    optics.add_argument("--lead", type=float, default=0.5, metavar="MS",
-                        help="IDT on this long before the predicted arrival (default 0.5)")
-    optics.add_argument("--pulse", type=float, default=1.2, metavar="MS", help="IDT pulse length (default 1.2)")
-    optics.add_argument("--mode", choices=("purity", "yield"), default="purity", help="sort mode (default purity)")
-    optics.add_argument("--coincidence", type=float, default=1.2, metavar="MS",
-                        help="purity mode aborts a sort with a type-I cell predicted within half this (default 1.2)")
-    optics.add_argument("--no-controller", action="store_true", help="never switch the IDT on")
-    stream.add_argument("--model", choices=("feib", "streamline"), default="feib",
-                        help="plant: full FE-IB (default) or cheap streamline stand-in")
-    stream.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+    _stream_options(stream)
     stream.add_argument("--output", default="recordings", metavar="DIR",
                         help="where the run's files go: the MCAP recording, FCS 3.1 detector events and a JSON "
                              "summary (default recordings/; --output '' writes nothing)")
@@ -442,7 +621,6 @@ def build_parser() -> argparse.ArgumentParser:
                         help="flush the recording every N control periods: a crash loses at most N (default 50)")
     stream.add_argument("--field-every", type=int, default=200, metavar="N",
                         help="record the velocity field every N control periods, 0 = never (default 200)")
-    stream.add_argument("--max-time", type=float, default=50.0, metavar="MS", help="stop after this simulated time")
     _viewer_options(stream)
     _output_options(stream)
     stream.set_defaults(handler=command_stream)
@@ -463,6 +641,36 @@ def build_parser() -> argparse.ArgumentParser:
     _output_options(stability)
     stability.set_defaults(handler=command_stability)
 
+    extremes = commands.add_parser("extremes", help="the FE-IB plant at extreme settings: each case runs correctly "
+                                                    "or stops with a specific diagnosis")
+    _scenario_options(extremes)
+    extremes.add_argument("--fast", action="store_true", help="the test suite's variants: coarse meshes, short runs")
+    extremes.add_argument("--case", metavar="NAMES", help="only these cases, e.g. a1,c2 (default: all)")
+    _output_options(extremes)
+    extremes.set_defaults(handler=command_extremes)
+
+    sweep = commands.add_parser("sweep", help="a parameter sweep of the closed loop, locally or on a Dask cluster")
+    sweep.add_argument("spec", metavar="SPEC", help="sweep spec (TOML): [base] run, [parameters], [sweep] metrics")
+    sweep.add_argument("--output", metavar="DIR", help="where results.csv, summary.png and sweep.json go; a re-run "
+                                                       "skips the points already there (default recordings/sweeps/SPEC)")
+    sweep.add_argument("--workers", type=int, metavar="N", help="worker processes (default: the CPU count)")
+    sweep.add_argument("--scheduler", metavar="ADDRESS", help="run on the Dask scheduler at ADDRESS (e.g. "
+                                                              "tcp://host:8786), or 'local' to start a LocalCluster")
+    sweep.add_argument("--retry-failed", action="store_true", help="run the points recorded as failed again")
+    sweep.add_argument("--chunk", type=int, default=8, metavar="N",
+                       help="points sharing a plant go to one worker N at a time (default 8)")
+    _output_options(sweep)
+    sweep.set_defaults(handler=command_sweep)
+
+    tradeoff_parser = commands.add_parser("tradeoff", help="speed against accuracy of the plant models on fixed scenes "
+                                                           "(table, CSV, Pareto plot)")
+    tradeoff_parser.add_argument("--fast", action="store_true",
+                                 help="the reduced set (coarse mesh, reference FE-IB at h = 6.67 um; a few minutes)")
+    tradeoff_parser.add_argument("--output", default="recordings/tradeoff", metavar="DIR",
+                                 help="where tradeoff.md, tradeoff.csv and tradeoff.png go (default recordings/tradeoff)")
+    _scenario_options(tradeoff_parser)
+    _output_options(tradeoff_parser)
+    tradeoff_parser.set_defaults(handler=command_tradeoff)
     scenario = commands.add_parser("scenario", help="print the effective scenario (defaults + file + overrides) as TOML")
     _scenario_options(scenario)
     scenario.set_defaults(handler=command_scenario)
@@ -485,10 +693,44 @@ def build_parser() -> argparse.ArgumentParser:
     _scenario_options(paper_bench)
     _output_options(paper_bench)
     paper_bench.set_defaults(handler=command_bench)
+    auto_bench = targets.add_parser("auto", help="a mixed stream with --model auto and with feib: outcomes and wall time")
+    auto_bench.add_argument("--count", type=int, default=100, help="cells (default 100)")
+    auto_bench.add_argument("--rate", type=float, default=500.0, help="Poisson arrival rate, cells/s (default 500)")
+    auto_bench.add_argument("--mix", default="RBC:0.8,melanoma:0.2", help="type mix (default RBC:0.8,melanoma:0.2)")
+    auto_bench.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+    _scenario_options(auto_bench)
+    _output_options(auto_bench)
+    auto_bench.set_defaults(handler=command_bench)
+    membrane_bench = targets.add_parser("membrane", help="the paper's literal membrane method against the conserving "
+                                                         "one: area kept, point spacing, outlets, cost per step")
+    membrane_bench.add_argument("--repeats", type=int, default=2, help="interleaved runs per scenario (default 2)")
+    _scenario_options(membrane_bench)
+    _output_options(membrane_bench)
+    membrane_bench.set_defaults(handler=command_bench)
     recording_bench = targets.add_parser("recording", help="wall-time overhead of recording (MCAP + Rerun) an FE-IB stream")
+    recording_bench.add_argument("--repeats", type=int, default=3, help="interleaved pairs without/with (default 3)")
     _scenario_options(recording_bench)
     _output_options(recording_bench)
     recording_bench.set_defaults(handler=command_bench)
+    sweep_bench = targets.add_parser("sweep", help="one sweep on 1 and on 2 local workers: the speed-up")
+    sweep_bench.add_argument("spec", nargs="?", metavar="SPEC",
+                             help="sweep spec (default examples/sweeps/bench-rom.toml: 8 rom plants, 200 cells each)")
+    sweep_bench.add_argument("--workers", default="1,2", metavar="N,M", help="pool sizes to compare (default 1,2)")
+    sweep_bench.add_argument("--repeats", type=int, default=1, help="runs per pool size; medians (default 1)")
+    _output_options(sweep_bench)
+    sweep_bench.set_defaults(handler=command_bench)
+    realtime_bench = targets.add_parser("realtime", help="real-time factor of the closed loop with the rom plant: "
+                                                         "a Poisson stream, detector and controller, no recording")
+    _scenario_options(realtime_bench)
+    realtime_bench.add_argument("--rate", type=float, default=1000.0, help="arrival rate in cells/s (default 1000)")
+    realtime_bench.add_argument("--duration", default="1s", metavar="TIME",
+                                help="device time of arrivals; count = rate x duration (default 1s)")
+    realtime_bench.add_argument("--mix", default="RBC:0.9,melanoma:0.1", help="type mix (default RBC:0.9,melanoma:0.1)")
+    realtime_bench.add_argument("--repeats", type=int, default=3, help="runs of the same stream (default 3)")
+    realtime_bench.add_argument("--control-period", metavar="TIME", help="control period (default: the plant's, 10us)")
+    realtime_bench.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+    _output_options(realtime_bench)
+    realtime_bench.set_defaults(handler=command_bench)
     controller_bench = targets.add_parser("controller", help="decision latency of the sorting controller")
     controller_bench.add_argument("--events", type=int, default=20_000, help="synthetic events (default 20000)")
     _output_options(controller_bench)

@@ -1,0 +1,148 @@
+"""The plant ``auto``: the cheapest model whose error stays within tolerance, chosen per time window.
+
+The ladder measured by ``vcyto tradeoff`` (README, "Speed against accuracy") says where the reduced model
+``rom`` is good enough: an isolated cell, deformable or not, with the IDT off, on or switching, leaves by
+the FE-IB outlet with a mean centroid path error of 1-4 um; two cells close together are not (their
+hydrodynamic interaction, absent from ``rom``, moves them by 10-50 um). The rule, evaluated every control
+period on the cells in the channel:
+
+- ``feib`` while two cells are closer than ``coupling`` x (r_i + r_j) (r = a cell type's largest semi-axis;
+  default coupling 2: 23.5 um for a melanoma and an RBC; chosen with ``vcyto tradeoff``, README);
+- back to ``rom`` once every pair has been further apart than ``release`` x that distance (hysteresis,
+  default 1.25) for ``dwell`` (default 50 us);
+- ``rom`` otherwise.
+
+Hand-overs: rom -> feib builds the FE state from the rom state: the flow is the blend (1 - s) v_off + s v_on of
+the steady flows at the drive level s (Navier-Stokes at Re ~ 1-3 is nearly linear in the boundary data), and
+each cell gets its undeformed membrane at its centroid; feib -> rom hands the centroids and the drive level
+back. Deformation is not carried from one feib window to the next. Every switch is logged (time, model,
+reason) in ``switches`` and the current model and reason are in ``diagnostics()`` (so in recordings).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from .feib import State
+from .fluid import Flow
+from .plant import FeibPlant, Observation, Truth
+from .rom import RomFlows, RomPlant
+from .scenario import Scenario
+
+
+class AutoPlant:
+    def __init__(self, scenario: Scenario, control_period: float | None = None, coupling: float = 2.0,
+                 release: float = 1.25, dwell: float = 50e-6, grid_spacing: float = 1e-6):
+        self.scenario = scenario
+        self.control_period = scenario.numerics.dt
+        if control_period is not None and abs(control_period - self.control_period) > 1e-12:
+            raise ValueError(f"the auto plant's control period is the time step dt = {self.control_period * 1e6:g} us")
+        self.coupling, self.release, self.dwell = coupling, release, dwell
+        self.feib = FeibPlant(scenario)
+        fluid = self.feib.ib.fluid
+        self._steady = (fluid.steady(0.0), fluid.steady(1.0))
+        off, on = (flow.velocity for flow in self._steady)
+        flows = RomFlows.sample(scenario, fluid, np.concatenate([off, on - off]), grid_spacing, {})
+        self.rom = RomPlant(scenario, control_period=self.control_period, flows=flows)
+        self._radius = {c.name: max(c.semi_axes) for c in scenario.cell_types}
+        self.reset([])
+
+    # ------------------------------------------------------------------ the contract
+    def reset(self, arrivals, seed: int | None = None) -> Observation:
+        self.arrivals = sorted(arrivals)
+        self._types = [name for _, name in self.arrivals]
+        self.rom.reset(self.arrivals, seed)
+        self.feib.reset(self.arrivals, seed)
+        self.model, self.reason, self.level, self._apart_since = "rom", "start: no cells close together", 0.0, None
+        self.switches = [(0.0, "rom", self.reason)]
+        self.settled = {}
+        self.feib_steps = self.steps = 0
+        self._observation = self.rom.observe()
+        return self._observation
+
+    def step(self, actuation: float) -> Observation:
+        dt = self.control_period
+        decay = math.exp(-dt / self.rom.response_time) if self.rom.response_time > 0 else 0.0
+        self.level = actuation + (self.level - actuation) * decay
+        active = self.rom if self.model == "rom" else self.feib
+        self._observation = active.step(actuation)
+        self.steps += 1
+        self.feib_steps += self.model == "feib"
+        self._choose()
+        return self._observation
+
+    def _closest_pair(self, observation):
+        worst, pair = math.inf, None
+        cells = observation.cells
+        for i in range(len(cells)):
+            for j in range(i + 1, len(cells)):
+                a, b = cells[i], cells[j]
+                reach = self._radius[self._types[a.key]] + self._radius[self._types[b.key]]
+                ratio = math.hypot(a.x - b.x, a.y - b.y) / reach
+                if ratio < worst:
+                    worst, pair = ratio, (a.key, b.key)
+        return worst, pair
+
+    def _choose(self):
+        ratio, pair = self._closest_pair(self._observation)
+        now = self._observation.time
+        if self.model == "rom" and ratio < self.coupling:
+            self._to_feib(f"cells {pair[0]} and {pair[1]} within {ratio:.2f} x (r1 + r2) < {self.coupling:g}")
+        elif self.model == "feib":
+            if ratio < self.coupling * self.release:
+                self._apart_since = None
+            elif self._apart_since is None:
+                self._apart_since = now
+            elif now - self._apart_since >= self.dwell - 1e-12:
+                self._to_rom(f"no two cells within {self.coupling * self.release:g} x (r1 + r2) for "
+                             f"{self.dwell * 1e6:g} us")
+
+    def _keep_settled(self, truth: Truth):
+        for cell in truth.cells:
+            if cell.fate != "in_channel" and cell.key not in self.settled:
+                self.settled[cell.key] = cell
+
+    def _to_feib(self, reason: str):
+        truth = self.rom.truth()
+        self._keep_settled(truth)
+        off, on = self._steady
+        s = self.level
+        flow = Flow(truth.time, (1 - s) * off.velocity + s * on.velocity, (1 - s) * off.pressure + s * on.pressure,
+                    streaming_level=s)
+        ib = self.feib.ib
+        cells = tuple(ib.new_cell(self.scenario.cell_type(c.type), c.key, c.born, centre=(c.x, c.y))
+                      for c in truth.cells if c.fate == "in_channel")
+        self.feib.adopt(State(flow, cells, round(truth.time / self.control_period)), injected=len(truth.cells))
+        self._switch("feib", reason, truth.time)
+
+    def _to_rom(self, reason: str):
+        truth = self.feib.truth()
+        self._keep_settled(truth)
+        inside = {c.key: (c.x, c.y, c.born) for c in truth.cells if c.fate == "in_channel"}
+        self.rom.adopt(truth.time, self.level, inside, injected=len(self.arrivals) - truth.waiting)
+        self._switch("rom", reason, truth.time)
+
+    def _switch(self, model: str, reason: str, time_s: float):
+        self.model, self.reason, self._apart_since = model, reason, None
+        self.switches.append((time_s, model, reason))
+
+    @property
+    def done(self) -> bool:
+        return (self.rom if self.model == "rom" else self.feib).done
+
+    def observe(self) -> Observation:
+        return self._observation
+
+    def truth(self) -> Truth:
+        active = (self.rom if self.model == "rom" else self.feib).truth()
+        self._keep_settled(active)
+        current = {c.key: c for c in active.cells if c.fate == "in_channel"}
+        cells = tuple(self.settled.get(key) or current[key] for key in sorted(set(self.settled) | set(current)))
+        return Truth(active.time, cells, active.waiting)
+
+    def diagnostics(self) -> dict:
+        return {"dt": self.control_period, "model": self.model, "reason": self.reason,
+                "feib_fraction": self.feib_steps / max(self.steps, 1), "switches": len(self.switches) - 1,
+                "health": "ok"}

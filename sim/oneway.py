@@ -1,0 +1,129 @@
+"""The reduced plant ``oneway``: membranes that deform in the precomputed flow but do not push back on it.
+
+Each membrane point moves (forward Euler, as in the FE-IB plant's (27)) with
+
+    V_r = v(X_r) + sum_s G_eps(X_r - X_s) f_s,
+
+- v = (1 - s) v_off + s v_on, the steady IDT-off and IDT-on flows of the ``rom`` plant (``sim.rom.RomFlows``,
+  sampled on a grid from the exact P2 solutions) blended by the lagged drive level s;
+- f = -dE/dX the membrane forces of the paper's energy (with the interior pressure of the area constraint,
+  as the scenario's ``numerics.area_constraint`` asks), and G_eps the regularised Stokeslet of free space
+  in 2D (Cortez 2001, blob 3 eps^3 / (2 pi (r^2 + eps^2)^(5/2)), eps = mesh_h): the membrane's own
+  forces move it through the fluid as they would in an unbounded fluid, so a cell relaxes, and resists
+  being deformed, on about the right time scale. A membrane's forces sum to zero, so the logarithm's
+  arbitrary length scale (Stokes' paradox) drops out.
+Ignored: the cells' effect on the flow and on each other, the walls' effect on the membrane's own
+motion (no image system), the flow's transient shape (one lag). Kept from the FE-IB plant: the spline
+membranes and their energy, the area constraint's projection and point redistribution, fates, the
+health checks. No linear solve per step: the cost is O(R^2) per cell.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from .feib import Cell, Measures, membrane_forces, settle
+from .health import HealthLimits, check_cells
+from .membrane import Membrane
+from .plant import CellTruth, CellView, Observation, Truth, _Schedule
+from .rom import RomFlows, default_response_time
+from .scenario import Scenario
+
+
+def stokeslet_velocities(points: np.ndarray, forces: np.ndarray, viscosity: float, epsilon: float) -> np.ndarray:
+    """Velocities (R, 2) at ``points`` induced by point forces (N/m) at the same points: regularised Stokeslets."""
+    offset = points[:, None, :] - points[None, :, :]
+    r2 = np.sum(offset**2, axis=-1)
+    big_r = np.sqrt(r2 + epsilon**2)
+    a = -np.log(big_r + epsilon) + epsilon * (big_r + 2 * epsilon) / ((big_r + epsilon) * big_r)
+    b = (big_r + 2 * epsilon) / ((big_r + epsilon) ** 2 * big_r)
+    projected = np.einsum("rsk,sk->rs", offset, forces)
+    return (a @ forces + np.einsum("rs,rsk->rk", b * projected, offset)) / (4 * math.pi * viscosity)
+
+
+class OneWayPlant:
+    """Deforming membranes in the blended steady flows (module docstring), behind the plant contract."""
+
+    def __init__(self, scenario: Scenario, control_period: float | None = None, flows: RomFlows | None = None,
+                 response_time: float | None = None, epsilon: float | None = None):
+        self.scenario = scenario
+        dt = scenario.numerics.dt
+        self.control_period = control_period or dt
+        self.substeps = max(1, round(self.control_period / dt))
+        self.flows = flows or RomFlows.of(scenario)
+        self.response_time = default_response_time(scenario) if response_time is None else response_time
+        self.epsilon = scenario.numerics.mesh_h if epsilon is None else epsilon
+        self.limits = HealthLimits.of(scenario)
+        inlet = scenario.channel.inlet(scenario.channel.injection_inlet)
+        self._inlet_centre = 0.5 * (inlet.span[0] + inlet.span[1])
+        self.reset([])
+
+    # ------------------------------------------------------------------ the contract
+    def reset(self, arrivals, seed: int | None = None) -> Observation:
+        self.schedule = _Schedule(arrivals)
+        self.time, self.level, self.steps = 0.0, 0.0, 0
+        self.cells: list[Cell] = []
+        self._inject()
+        return self.observe()
+
+    def _inject(self):
+        numerics = self.scenario.numerics
+        for key, (_, name) in self.schedule.due(self.time, 0.5 * numerics.dt):
+            cell_type = self.scenario.cell_type(name)
+            centre = (cell_type.semi_axes[0] + 1e-6, self._inlet_centre)
+            membrane = Membrane.of(cell_type, centre, numerics.membrane_spacing * numerics.mesh_h)
+            self.cells.append(Cell(key, membrane, born=self.time, measures=Measures.of(membrane, numerics.mesh_h)))
+
+    def step(self, actuation: float) -> Observation:
+        for _ in range(self.substeps):
+            self._step(actuation)
+            self._inject()
+        return self.observe()
+
+    def _step(self, actuation: float):
+        numerics, channel = self.scenario.numerics, self.scenario.channel
+        dt = numerics.dt
+        self.level = actuation + (self.level - actuation) * (math.exp(-dt / self.response_time)
+                                                              if self.response_time > 0 else 0.0)
+        self.time += dt
+        self.steps += 1
+        moved = []
+        for index, cell in enumerate(self.cells):
+            if not cell.in_channel:
+                continue
+            points = cell.membrane.points
+            inside = points[:, 0] < channel.length
+            forces = membrane_forces(cell.membrane, numerics) * inside[:, None]
+            clipped = np.column_stack([np.minimum(points[:, 0], channel.length), points[:, 1]])
+            velocity = self.flows.velocity(clipped, self.level)
+            velocity += stokeslet_velocities(points, forces, self.scenario.fluid.viscosity, self.epsilon)
+            self.cells[index] = settle(cell, points + dt * velocity, self.time, self.scenario)
+            moved.append(self.cells[index])
+        check_cells(moved, self.limits, self.steps, self.time)
+
+    @property
+    def done(self) -> bool:
+        return self.schedule.waiting == 0 and not any(cell.in_channel for cell in self.cells)
+
+    def observe(self) -> Observation:
+        views = []
+        for cell in self.cells:
+            if cell.in_channel:
+                x, y = cell.membrane.centroid()
+                views.append(CellView(cell.id, float(x), float(y), cell.membrane.area(),
+                                      cell.membrane.cell_type.fluorescence))
+        return Observation(self.time, tuple(views))
+
+    def truth(self) -> Truth:
+        cells = []
+        for cell in self.cells:
+            x, y = cell.membrane.centroid()
+            cells.append(CellTruth(cell.id, cell.membrane.cell_type.name, cell.born, cell.fate, cell.exit_time,
+                                   cell.exit_y, float(x), float(y), cell.measures.area_ratio, cell.membrane.points,
+                                   cell.measures.as_dict()))
+        return Truth(self.time, tuple(cells), self.schedule.waiting)
+
+    def diagnostics(self) -> dict:
+        return {"dt": self.scenario.numerics.dt, "physics_steps": self.steps, "level": self.level, "health": "ok"}

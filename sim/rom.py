@@ -1,0 +1,355 @@
+"""The reduced plant ``rom``: cells as finite-size passive bodies carried by two precomputed steady flows.
+
+Physics kept:
+- the flow is linear in the drive: v = (1 - s) v_off + s v_on, with v_off and v_on the steady Navier-Stokes
+  flows of the scenario with the IDT off and on (the FE-IB plant's initial flow, from ``NavierStokes.steady``),
+  and s the drive level following the actuation through a first-order lag (``response_time``);
+- a cell is an ellipse of its type's semi-axes whose centroid moves with the flow averaged over its area.
+  For a cell whose interior is fluid that is exact (d/dt of the area centroid = area mean of v, by Reynolds'
+  transport theorem and div v = 0), and it is what the FE-IB plant's centroid does in the undisturbed flow;
+- walls: the ellipse may touch a wall but not cross it (its centroid is held its semi-axis off the wall, or
+  its own extent off the end of a wall segment beside an inlet or outlet), so a cell pushed against a wall
+  slides along it. A cell held against a wall that moves less than ``stall_speed`` for ``stall_time`` is
+  stuck: its fate is ``wall``. A centroid crossing x = length leaves by the outlet at that ordinate.
+Physics ignored: deformation, the cells' effect on the fluid and on each other (cells may overlap), rotation,
+inertia of the cell, and the shape of the flow's transient (one lag, not the FE's fast jump plus viscous tail).
+
+The fields are sampled once on a uniform grid (``RomFlows``, 1 um by default) from the exact P2 solution and
+interpolated bilinearly; the area means are precomputed per cell type on the same grid, so moving a cell costs
+two bilinear look-ups per substep. ``RomPlant.step_until`` advances many control periods in one numba call and
+returns when the caller must look (a cell crosses a watched line, a time is reached, every cell has settled):
+the closed loop then calls the detector and controller only when something can happen, with the same result
+as calling them every period.
+"""
+
+from __future__ import annotations
+
+import math
+import time as clock
+from dataclasses import dataclass
+
+import numpy as np
+
+from . import rom_kernels as kernels
+from .fluid import NavierStokes
+from .plant import CellTruth, CellView, Observation, Truth
+from .scenario import Channel, Scenario
+from .transfer import PointLocator
+
+# Mean delay  int (1 - s(t)) dt  of the FE flow at (150, 115) um, where cells are deflected, after the IDT
+# switches (``measure_response_time``; the same within 1 us at dt = 2.5 and 10 us): the Dirichlet jet of the
+# ``paper``/``envelope`` models moves 76 % of the way in the first step and the rest with a viscous tail.
+JET_RESPONSE_TIME = 41e-6
+# The same for the ``streaming`` body force, on top of its own lag (spin_up_time): 282 us in all at 0.2 ms.
+STREAMING_VISCOUS_DELAY = 82e-6
+RESPONSE_POINT = (150e-6, 115e-6)
+# The default control period: sorting outcomes of 5 x 1,000-cell streams differ from those at 2.5 us in
+# 9 cells at 10 us, 8 at 20 us, 25 at 50 us and 40 at 100 us; each period is one midpoint substep.
+CONTROL_PERIOD = 20e-6
+_NO_LINES = np.zeros(0)
+FATES = {kernels.WALL: "wall", kernels.LOST: "lost", kernels.IN_CHANNEL: "in_channel"}
+
+
+def default_response_time(scenario: Scenario) -> float:
+    """The lag of the flow behind the drive: measured mean delays of the FE flow (see the constants)."""
+    if scenario.saw.model == "streaming":
+        return scenario.saw.spin_up_time + STREAMING_VISCOUS_DELAY
+    return JET_RESPONSE_TIME
+
+
+def measure_response_time(fluid: NavierStokes, point=RESPONSE_POINT, duration: float = 1.2e-3) -> float:
+    """Mean delay of the FE flow at ``point`` after the IDT switches on in the steady IDT-off flow.
+
+    s(t) = (v(t) - v_off) . (v_on - v_off) / |v_on - v_off|^2 at the point (s = 1: the IDT-on flow); the
+    delay is the integral of 1 - s over ``duration``, which is the time constant of the first-order lag with
+    the same integral (the same mean lag of a cell's displacement).
+    """
+    space = fluid.space
+    locator = PointLocator(space.cmesh, space.velocity_basis.element_dofs)
+    off, on = fluid.steady(0.0), fluid.steady(1.0)
+    where = np.array([point], dtype=float)
+    v_off, v_on = locator.interpolate(off.velocity, where)[0], locator.interpolate(on.velocity, where)[0]
+    change = v_on - v_off
+    state, delay = off, 0.0
+    for _ in range(round(duration / fluid.scenario.numerics.dt)):
+        state = fluid.step(state, 1.0)
+        level = (locator.interpolate(state.velocity, where)[0] - v_off) @ change / (change @ change)
+        delay += (1.0 - level) * fluid.scenario.numerics.dt
+    return float(delay)
+
+
+def area_mean_rule(semi_axes, rings: int = 3, spokes: int = 8):
+    """Offsets (m, 2) and weights (m,) of the mean over an ellipse: Gauss-Legendre in r^2, equal angles.
+
+    Exact for polynomials up to degree 2 rings - 1 in r^2 and spokes - 1 in angle (tested against a finer rule).
+    """
+    nodes, weights = np.polynomial.legendre.leggauss(rings)
+    radii = np.sqrt(0.5 * (nodes + 1))                  # r^2 uniform in (0, 1): equal area
+    angles = 2 * np.pi * (np.arange(spokes) + 0.5) / spokes
+    r, theta = np.meshgrid(radii, angles, indexing="ij")
+    offsets = np.column_stack([(semi_axes[0] * r * np.cos(theta)).ravel(), (semi_axes[1] * r * np.sin(theta)).ravel()])
+    return offsets, np.repeat(0.5 * weights / spokes, spokes)
+
+
+@dataclass(frozen=True)
+class RomFlows:
+    """The IDT-off and IDT-on steady flows on a uniform grid: point values and per-cell-type area means.
+
+    Arrays are (nx, ny, 4) (``point``) and (types, nx, ny, 4) (``cells``) with channels
+    [u_off, v_off, u_on - u_off, v_on - v_off] at the nodes (i dx, j dy); ``cell_types`` names the types.
+    """
+
+    spacing: tuple[float, float]
+    size: tuple[float, float]
+    point: np.ndarray
+    cells: np.ndarray
+    cell_types: tuple[str, ...]
+    timings: dict
+
+    @classmethod
+    def of(cls, scenario: Scenario, spacing: float = 1e-6, fluid: NavierStokes | None = None) -> "RomFlows":
+        """Solve the two steady flows (``fluid``, default: the scenario's own) and sample them every ``spacing``."""
+        started = clock.perf_counter()
+        fluid = fluid or NavierStokes(scenario)
+        off, on = fluid.steady(0.0).velocity, fluid.steady(1.0).velocity
+        solved = clock.perf_counter()
+        values = np.concatenate([off, on - off])                       # (4, N)
+        return cls.sample(scenario, fluid, values, spacing, {"steady_flows_s": solved - started})
+
+    @classmethod
+    def sample(cls, scenario, fluid, values, spacing, timings) -> "RomFlows":
+        started = clock.perf_counter()
+        channel = scenario.channel
+        x = np.linspace(0.0, channel.length, math.ceil(channel.length / spacing - 1e-9) + 1)
+        y = np.linspace(0.0, channel.height, math.ceil(channel.height / spacing - 1e-9) + 1)
+        nodes = np.stack(np.meshgrid(x, y, indexing="ij"), axis=-1).reshape(-1, 2)
+        locator = PointLocator(fluid.space.cmesh, fluid.space.velocity_basis.element_dofs)
+        upper = np.array([channel.length, channel.height])
+
+        def at(points):
+            return locator.interpolate(values, np.clip(points, 0.0, upper))
+
+        point = at(nodes).reshape(len(x), len(y), 4)
+        cells = np.zeros((len(scenario.cell_types), len(x), len(y), 4))
+        for k, cell_type in enumerate(scenario.cell_types):
+            for offset, weight in zip(*area_mean_rule(cell_type.semi_axes)):
+                cells[k] += weight * at(nodes + offset).reshape(len(x), len(y), 4)
+        timings = dict(timings, sampling_s=clock.perf_counter() - started)
+        return cls((x[1] - x[0], y[1] - y[0]), (channel.length, channel.height), point, cells,
+                   tuple(c.name for c in scenario.cell_types), timings)
+
+    @classmethod
+    def uniform(cls, scenario: Scenario, off, on, spacing: float = 2e-6) -> "RomFlows":
+        """Constant flows ``off`` and ``on`` (u, v) everywhere: synthetic fields for tests."""
+        channel = scenario.channel
+        nx, ny = math.ceil(channel.length / spacing) + 1, math.ceil(channel.height / spacing) + 1
+        channels = np.array([off[0], off[1], on[0] - off[0], on[1] - off[1]], dtype=float)
+        point = np.broadcast_to(channels, (nx, ny, 4)).copy()
+        cells = np.broadcast_to(channels, (len(scenario.cell_types), nx, ny, 4)).copy()
+        return cls((channel.length / (nx - 1), channel.height / (ny - 1)), (channel.length, channel.height), point,
+                   cells, tuple(c.name for c in scenario.cell_types), {})
+
+    def velocity(self, points, level: float = 0.0, cell_type: str | None = None) -> np.ndarray:
+        """The gridded flow (n, 2) at ``points`` (n, 2): point values, or a cell type's area means."""
+        fields = self.point[None] if cell_type is None else self.cells[self.cell_types.index(cell_type)][None]
+        params = np.zeros(10)
+        params[[kernels.LENGTH, kernels.HEIGHT, kernels.SPACING_X, kernels.SPACING_Y]] = [*self.size, *self.spacing]
+        return np.array([kernels.bilinear(fields, 0, x, y, level, params) for x, y in np.asarray(points, float)])
+
+
+def wall_segments(channel: Channel) -> np.ndarray:
+    """The channel's walls as axis-aligned segments (x0, y0, x1, y1, inward normal x, y)."""
+    length, height = channel.length, channel.height
+    rows = [(0.0, 0.0, length, 0.0, 0.0, 1.0), (0.0, height, length, height, 0.0, -1.0)]
+    for x, openings, normal in ((0.0, channel.inlets, 1.0), (length, channel.outlets, -1.0)):
+        low = 0.0
+        for span in sorted(opening.span for opening in openings):
+            if span[0] > low:
+                rows.append((x, low, x, span[0], normal, 0.0))
+            low = span[1]
+        if low < height:
+            rows.append((x, low, x, height, normal, 0.0))
+    return np.array(rows)
+
+
+class RomPlant:
+    """Cells carried through the blended steady flows (module docstring) behind the plant contract.
+
+    ``control_period`` is the period of ``step``; each period is ``ceil(control_period / max_substep)``
+    midpoint substeps. ``step_until`` groups periods (the closed loop's fast path). Set-up (the two steady
+    solves and the sampling, a few seconds at the paper's mesh) happens once, in ``RomFlows.of``.
+    """
+
+    def __init__(self, scenario: Scenario, control_period: float | None = None, response_time: float | None = None,
+                 flows: RomFlows | None = None, grid_spacing: float = 1e-6, max_substep: float = 20e-6,
+                 stall_speed: float = 1e-4, stall_time: float = 1e-3):
+        control_period = CONTROL_PERIOD if control_period is None else control_period
+        if not control_period > 0 or not max_substep > 0:
+            raise ValueError("control_period and max_substep must be positive")
+        self.scenario = scenario
+        self.control_period = control_period
+        self.response_time = default_response_time(scenario) if response_time is None else response_time
+        if not self.response_time >= 0:
+            raise ValueError(f"response_time must be >= 0 s (got {self.response_time!r})")
+        self.flows = flows or RomFlows.of(scenario, grid_spacing)
+        if self.flows.cell_types != tuple(c.name for c in scenario.cell_types):
+            raise ValueError("the flows were sampled for other cell types than the scenario's")
+        self.substeps = max(1, math.ceil(control_period / max_substep - 1e-9))
+        step = control_period / self.substeps
+        decay = [math.exp(-fraction * step / self.response_time) if self.response_time > 0 else 0.0
+                 for fraction in (1.0, 0.5)]
+        channel = scenario.channel
+        self._params = np.array([control_period, self.substeps, *decay, channel.length, channel.height,
+                                 *self.flows.spacing, stall_speed, stall_time])
+        self._segments = wall_segments(channel)
+        self._outlets = np.array([outlet.span for outlet in channel.outlets])
+        self._outlet_names = {kernels.OUTLET + k: outlet.name for k, outlet in enumerate(channel.outlets)}
+        types = scenario.cell_types
+        self._semi_axes = np.array([c.semi_axes for c in types])
+        inlet = channel.inlet(channel.injection_inlet)
+        self._start = np.array([(c.semi_axes[0] + 1e-6, 0.5 * (inlet.span[0] + inlet.span[1])) for c in types])
+        self._area = [c.area for c in types]
+        self._brightness = [c.fluorescence for c in types]
+        self._names = [c.name for c in types]
+        self._lines = (((), ()), _NO_LINES, _NO_LINES)
+        started = clock.perf_counter()
+        self.reset([])
+        self.step(0.0)                      # compiles (or loads) the kernels now: part of the set-up
+        self.timings = dict(self.flows.timings, kernels_s=clock.perf_counter() - started)
+
+    # ------------------------------------------------------------------ the contract
+    def reset(self, arrivals, seed: int | None = None) -> Observation:
+        items = sorted(arrivals)
+        n = len(items)
+        index = {name: k for k, name in enumerate(self._names)}
+        for _, name in items:
+            self.scenario.cell_type(name)              # unknown names fail here, as in the other plants
+        self._arrival = np.array([t for t, _ in items], dtype=float)
+        self._kind = np.array([index[name] for _, name in items], dtype=np.int64)
+        self._area_of = [self._area[kind] for kind in self._kind.tolist()]              # by key
+        self._brightness_of = [self._brightness[kind] for kind in self._kind.tolist()]
+        self._born = np.full(n, np.nan)
+        self._position = np.full((n, 2), np.nan)
+        self._fate = np.full(n, kernels.WAITING, dtype=np.int64)
+        self._exit_time = np.full(n, np.nan)
+        self._exit_y = np.full(n, np.nan)
+        self._stalled = np.zeros(n)
+        self._before = np.zeros((n, 2))
+        self._touched = np.zeros(n, dtype=np.bool_)
+        self._log_step = np.zeros(2 * n + 64, dtype=np.int64)
+        self._log_key = np.zeros(2 * n + 64, dtype=np.int64)
+        self._log_positions = np.zeros((2 * n + 64, 4))
+        self._counters = np.zeros(7, dtype=np.int64)
+        self._level = np.zeros(1)
+        self._settled: dict[int, CellTruth] = {}
+        self._arrays = (self.flows.cells, self._params, self._segments, self._outlets, self._semi_axes, self._start,
+                        self._kind, self._arrival, self._born, self._position, self._fate, self._exit_time,
+                        self._exit_y, self._stalled, self._counters, self._level, self._before, self._touched,
+                        self._log_step, self._log_key, self._log_positions)   # the kernel's arguments, in order
+        kernels.inject(self._start, self._kind, self._arrival, self._born, self._position, self._fate,
+                       self._counters, 0.0, 0.5 * self.control_period, self._before)
+        return self.observe()
+
+    def step(self, actuation: float) -> Observation:
+        """One control period at the drive ``actuation``."""
+        self._advance(actuation, math.inf, 1)
+        return self.observe()
+
+    def step_until(self, actuation: float, until: float, stop_lines=(), record_lines=(), max_periods: int = 10**7):
+        """Whole control periods at ``actuation`` until time ``until``, every cell settled, or a stop line.
+
+        Returns (periods, seen). It stops after the period in which a cell in the channel crosses a line
+        x = w of ``stop_lines`` forwards. ``seen`` lists, in time order, partial observations of the cells
+        that crossed a stop or a record line: for each period in which some did, those cells one period
+        before and at its end. A detector that reacts only to cells crossing these lines, fed ``seen``, does
+        what it would do if fed every period's observation (seeing a cell twice at one time changes nothing).
+        """
+        lines = (stop_lines, record_lines)
+        if lines != self._lines[0]:
+            self._lines = (lines, *(np.asarray(group, dtype=float).reshape(-1) for group in lines))
+        periods, _ = self._advance(actuation, until, max_periods, *self._lines[1:])
+        return periods, self._crossings()
+
+    def _crossings(self) -> list[Observation]:
+        """The partial observations of the cells whose crossings the last ``step_until`` logged."""
+        logged = int(self._counters[kernels.LOGGED])
+        if not logged:
+            return []
+        seen = []                                   # (period, key, x, y): before and after each logged crossing
+        for step, key, (x0, y0, x1, y1) in zip(self._log_step[:logged].tolist(), self._log_key[:logged].tolist(),
+                                               self._log_positions[:logged].tolist()):
+            if x0 > -math.inf:                      # not injected in that period
+                seen.append((step - 1, key, x0, y0))
+            seen.append((step, key, x1, y1))
+        seen.sort()
+        snapshots, views, area, brightness = [], [], self._area_of, self._brightness_of
+        for n, (step, key, x, y) in enumerate(seen):
+            if not views or views[-1].key != key:   # a cell logged twice in one period is seen once
+                views.append(CellView(key, x, y, area[key], brightness[key]))
+            if n + 1 == len(seen) or seen[n + 1][0] != step:
+                snapshots.append(Observation(step * self.control_period, tuple(views)))
+                views = []
+        return snapshots
+
+    def _advance(self, actuation, until, max_periods, stop_lines=_NO_LINES, record_lines=_NO_LINES):
+        return kernels.advance(*self._arrays, float(actuation), float(until), int(max_periods), stop_lines,
+                               record_lines)
+
+    @property
+    def time(self) -> float:
+        return int(self._counters[kernels.STEP]) * self.control_period
+
+    @property
+    def done(self) -> bool:
+        return int(self._counters[kernels.NEXT]) == len(self._arrival) and int(self._counters[kernels.ACTIVE]) == 0
+
+    def observe(self) -> Observation:
+        step, _, first, *_ = counters = self._counters.tolist()
+        last = counters[kernels.NEXT]
+        area, brightness = self._area_of, self._brightness_of
+        views = tuple([CellView(key, x, y, area[key], brightness[key])
+                       for key, (x, y), fate in zip(range(first, last), self._position[first:last].tolist(),
+                                                    self._fate[first:last].tolist())
+                       if fate == kernels.IN_CHANNEL])
+        return Observation(step * self.control_period, views)
+
+    def truth(self) -> Truth:
+        """Ground truth of every injected cell; settled cells' records are built once and reused."""
+        cells = []
+        for i in range(int(self._counters[kernels.NEXT])):
+            record = self._settled.get(i)
+            if record is None:
+                code = int(self._fate[i])
+                record = CellTruth(i, self._names[self._kind[i]], float(self._born[i]),
+                                   self._outlet_names.get(code) or FATES[code], float(self._exit_time[i]),
+                                   float(self._exit_y[i]), float(self._position[i, 0]), float(self._position[i, 1]), 1.0)
+                if code != kernels.IN_CHANNEL:
+                    self._settled[i] = record
+            cells.append(record)
+        return Truth(self.time, tuple(cells), len(self._arrival) - int(self._counters[kernels.NEXT]))
+
+    def adopt(self, time_s: float, level: float, cells: dict, injected: int):
+        """Continue from another plant's state (the ``auto`` plant's hand-over): at ``time_s`` (a whole number
+        of control periods) and drive level ``level``, the first ``injected`` arrivals injected, ``cells``
+        {key: (x, y, born)} in the channel; the other injected cells count as settled elsewhere (``lost``
+        here: the caller keeps their records)."""
+        counters = self._counters
+        counters[kernels.STEP] = round(time_s / self.control_period)
+        counters[kernels.NEXT] = injected
+        counters[kernels.ACTIVE] = len(cells)
+        counters[kernels.FIRST] = min(cells, default=injected)
+        self._fate[:injected] = kernels.LOST
+        for key, (x, y, born) in cells.items():
+            self._fate[key] = kernels.IN_CHANNEL
+            self._position[key] = (x, y)
+            self._before[key] = (x, y)
+            self._born[key] = born
+            self._stalled[key] = 0.0
+        self._settled = {key: record for key, record in self._settled.items() if key not in cells}
+        self._level[0] = level
+
+    def diagnostics(self) -> dict:
+        """Figures for logging: substep, physics steps so far, drive level, wall contacts (cell-substeps)."""
+        return {"dt": self.control_period / self.substeps, "physics_steps": int(self._counters[kernels.PHYSICS_STEPS]),
+                "level": float(self._level[0]), "response_time": self.response_time,
+                "wall_contacts": int(self._counters[kernels.CONTACTS]), "health": "ok"}

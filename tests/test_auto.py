@@ -1,0 +1,71 @@
+"""The `auto` plant (rom, FE-IB while cells are close) and `vcyto tradeoff` (speed against accuracy)."""
+
+import csv
+import json
+import subprocess
+import sys
+
+import pytest
+
+from sim.auto import AutoPlant
+from sim.plant import FeibPlant, check_plant
+from sim.scenario import UM, Scenario
+from vcyto.tradeoff import SCENES, TOLERANCE_UM, Scene, compare, run_scene
+
+CLOSE_PAIR = SCENES[2]
+
+
+@pytest.fixture(scope="module")
+def coarse():
+    scenario = Scenario().with_numerics(mesh_h=20 * UM / 3, dt=10e-6)
+    return scenario, AutoPlant(scenario, grid_spacing=2 * UM), FeibPlant(scenario)
+
+
+def test_auto_plant_follows_the_contract(coarse):
+    scenario, auto, _ = coarse
+    assert check_plant(lambda: auto, [(0.0, "RBC"), (20e-6, "melanoma")], steps=30) == []
+
+
+def test_an_isolated_cell_never_needs_the_feib_model(coarse):
+    _, auto, _ = coarse
+    run = run_scene(auto, SCENES[0])
+    assert run["cells"][0]["fate"] == "lower"
+    assert auto.switches == [(0.0, "rom", "start: no cells close together")] and auto.feib_steps == 0
+
+
+def test_a_close_pair_runs_in_feib_while_close_and_is_within_tolerance_where_rom_is_not(coarse):
+    scenario, auto, feib = coarse
+    reference = run_scene(feib, CLOSE_PAIR)
+    result = compare(run_scene(auto, CLOSE_PAIR), reference)
+    models = [model for _, model, _ in auto.switches]
+    assert models[:3] == ["rom", "feib", "rom"]                  # switched to feib and back when apart
+    assert "within" in auto.switches[1][2] and "no two cells" in auto.switches[2][2]
+    assert 0 < auto.feib_steps < auto.steps
+    assert result["outlets_agree"] == 2 and result["path_mean_um"] < TOLERANCE_UM
+    from sim.rom import RomPlant
+    rom = compare(run_scene(RomPlant(scenario, control_period=20e-6, flows=auto.rom.flows), CLOSE_PAIR), reference)
+    assert rom["path_mean_um"] > 2 * result["path_mean_um"]
+
+
+def test_auto_reports_what_it_runs_in_its_diagnostics(coarse):
+    _, auto, _ = coarse
+    run_scene(auto, Scene("pair", ((0.0, "RBC"), (0.2e-3, "RBC")), max_time=0.5e-3))
+    assert auto.diagnostics()["model"] == "feib" and "within" in auto.diagnostics()["reason"]
+
+
+@pytest.mark.slow
+def test_tradeoff_fast_writes_table_csv_plot_and_auto_is_within_tolerance(tmp_path):
+    result = subprocess.run([sys.executable, "-m", "vcyto.cli", "tradeoff", "--fast", "--output", str(tmp_path), "--json"],
+                            capture_output=True, text=True, timeout=1200)
+    assert result.returncode == 0, result.stderr
+    rows = json.loads(result.stdout)["rows"]
+    assert {p.name for p in tmp_path.iterdir()} >= {"tradeoff.md", "tradeoff.csv", "tradeoff.png"}
+    with open(tmp_path / "tradeoff.csv") as handle:
+        assert len(list(csv.DictReader(handle))) == len(rows)
+    isolated = [r for r in rows if r["scene"].startswith("isolated")]
+    assert all(r["outlets_agree"] == r["cells"] for r in isolated if r["model"] in ("rom", "feib"))
+    for row in (r for r in rows if r["model"] == "auto"):
+        assert row["outlets_agree"] == row["cells"] and row["path_mean_um"] < TOLERANCE_UM
+    auto_wall = sum(r["run_s"] for r in rows if r["model"] == "auto")
+    reference_wall = sum(r["run_s"] for r in rows if r["level"] == rows[0]["level"])
+    assert auto_wall < reference_wall

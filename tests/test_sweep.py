@@ -1,0 +1,246 @@
+"""vcyto sweep: spec parsing, one-line errors, local pool == Dask LocalCluster, resume after a kill, failed points."""
+
+import csv
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+
+import pytest
+
+from vcyto import sweep
+from vcyto.cli import main
+
+# the cheap plant on a coarse mesh (1.5 s to build); a few cells per point so the metrics vary
+BASE = {"model": "streamline", "mesh_h": "5um"}
+
+
+def vcyto(*args, timeout=300):
+    return subprocess.run([sys.executable, "-m", "vcyto.cli", *args], capture_output=True, text=True, timeout=timeout)
+
+
+def write_spec(path, text):
+    path.write_text(text)
+    return str(path)
+
+
+def read_rows(path):
+    with open(path, newline="") as file:
+        return list(csv.DictReader(file))
+
+
+def values(spec):
+    return [dict(point.values) for point in sweep.parse_sweep(spec).points]
+
+
+# --- the spec -----------------------------------------------------------------------------------
+
+
+def test_grid_is_every_combination_of_lists_and_ranges_in_spec_order():
+    spec = {"base": BASE, "parameters": {"lead": [0.25, 0.5], "pulse": {"start": 0.4, "stop": 1.6, "num": 4},
+                                         "seed": {"start": 3, "stop": 9, "step": 3}}}
+    points = values(spec)
+    assert len(points) == 2 * 4 * 3
+    assert points[0] == {"lead": 0.25, "pulse": 0.4, "seed": 3}
+    assert points[1] == {"lead": 0.25, "pulse": 0.4, "seed": 6}
+    assert sorted({p["pulse"] for p in points}) == [0.4, 0.8, 1.2, 1.6]      # both ends, rounded: not 0.8000000001
+    assert sorted({p["seed"] for p in points}) == [3, 6, 9] and all(isinstance(p["seed"], int) for p in points)
+
+
+def test_ranges_take_units_for_scenario_fields_and_log_spacing():
+    spec = {"base": BASE, "parameters": {"saw.streaming_force": {"start": 1e6, "stop": 1e8, "num": 3, "log": True},
+                                         "channel": {"inlets": {"1": {"v_hat": {"start": "0.02", "stop": "0.03",
+                                                                                "step": "0.005"}}}}}}
+    built = sweep.parse_sweep(spec)
+    assert [p.name for p in built.parameters] == ["saw.streaming_force", "channel.inlets.1.v_hat"]
+    assert built.parameters[0].values == (1e6, 1e7, 1e8)
+    assert built.parameters[1].values == (0.02, 0.025, 0.03)
+    forces = sorted({point.scenario.saw.streaming_force for point in built.points})
+    assert forces == [1e6, 1e7, 1e8]
+    assert sorted({point.scenario.channel.inlets[1].v_hat for point in built.points}) == [0.02, 0.025, 0.03]
+
+
+def test_stream_options_reach_the_settings_in_their_command_line_units():
+    spec = {"base": {**BASE, "cells": ["melanoma", "RBC"], "mode": "yield"},
+            "parameters": {"lead": [0.3], "noise": [0.4], "rate": [800], "saw_model": ["streaming"]}}
+    point = sweep.parse_sweep(spec).points[0]
+    assert point.settings.controller.lead == pytest.approx(0.3e-3) and point.settings.controller.mode == "yield"
+    assert point.settings.detector.noise_cv == 0.4 and point.settings.arrivals.rate == 800.0
+    assert point.settings.arrivals.cells == ("melanoma", "RBC") and point.settings.model == "streamline"
+    assert point.scenario.saw.model == "streaming" and point.scenario.numerics.mesh_h == pytest.approx(5e-6)
+
+
+def test_random_sampling_is_determined_by_its_seed_and_stays_in_bounds():
+    def spec(seed):
+        return {"base": {**BASE, "mix": "RBC:0.5,melanoma:0.5"},
+                "sweep": {"sampling": "random", "samples": 12, "sampling_seed": seed},
+                "parameters": {"lead": {"uniform": [0.1, 0.9]}, "rate": {"log_uniform": [100, 10000]},
+                               "count": {"integers": [2, 4]}, "mode": ["purity", "yield"]}}
+    first, again, other = values(spec(7)), values(spec(7)), values(spec(8))
+    assert first == again and first != other and len(first) == 12
+    assert all(0.1 <= p["lead"] <= 0.9 and 100 <= p["rate"] <= 10000 for p in first)
+    assert {p["count"] for p in first + other} == {2, 3, 4} and {p["mode"] for p in first} == {"purity", "yield"}
+
+
+def test_a_point_is_identified_by_its_effective_inputs():
+    def ids(parameters, base=BASE):
+        return [point.id for point in sweep.parse_sweep({"base": base, "parameters": parameters}).points]
+    first = ids({"lead": [0.25, 0.5], "saw.streaming_force": [5.7e7]})
+    assert first == ids({"lead": [0.25, 0.5], "saw.streaming_force": [5.7e7]})     # stable
+    assert len(set(first)) == 2
+    assert ids({"lead": [0.25], "saw.streaming_force": ["57000000"]})[0] == first[0]  # same value, other spelling
+    assert ids({"lead": [0.25], "saw.streaming_force": [5.7e7]}, {**BASE, "seed": 1})[0] != first[0]
+
+
+def test_points_sharing_a_plant_are_chunked_at_most_an_even_share_per_worker():
+    built = sweep.parse_sweep({"base": BASE, "parameters": {"saw.streaming_force": [1e7, 2e7],
+                                                            "lead": [0.1, 0.2, 0.3, 0.4, 0.5]}})
+    chunks = sweep._chunks(list(built.points), slots=2, chunk=8)
+    assert [len(chunk) for chunk in chunks] == [3, 2, 3, 2]
+    assert all(len({point.plant_key for point in chunk}) == 1 for chunk in chunks)
+    assert [len(chunk) for chunk in sweep._chunks(list(built.points), slots=1, chunk=4)] == [4, 1, 4, 1]
+
+
+@pytest.mark.parametrize("text, words", [
+    ("[parameters]\nleed = [1, 2]", ["parameters.leed: unknown parameter", "lead", "saw.streaming_force"]),
+    ("[parameters]\nsaw.streaming_forc = [1, 2]", ["saw.streaming_forc: unknown field", "streaming_force"]),
+    ("[parameters]\nlead = {start = 1, stop = 0, step = 0.1}", ["parameters.lead: empty range"]),
+    ("[parameters]\nlead = {start = 0, stop = 1, num = 0}", ["parameters.lead.num: empty range"]),
+    ("[parameters]\nlead = []", ["parameters.lead: empty list"]),
+    ("[parameters]\nlead = [1]\n[sweep]\nmetrics = ['yeld']", ["unknown metric 'yeld'", "purity"]),
+    ("[parameters]\nrate = [100, -5]", ["rate=-5", "rate must be positive"]),
+    ("[parameters]\nlead = {uniform = [0, 1]}", ['needs sampling = "random"']),
+    ("[base]\nmodel = 'nonsense'\n[parameters]\nlead = [1]", ["base.model: must be one of", "streamline"]),
+    ("[parameters]\nlead = [", ["is not valid TOML"]),
+])
+def test_bad_specs_are_one_line_exit_2_no_traceback(tmp_path, text, words):
+    result = vcyto("sweep", write_spec(tmp_path / "spec.toml", text), "--output", str(tmp_path / "out"))
+    assert result.returncode == 2 and "Traceback" not in result.stderr
+    lines = result.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("vcyto: error: "), result.stderr
+    assert all(word in lines[0] for word in words), lines[0]
+
+
+def test_scheduler_without_dask_says_how_to_install_it(tmp_path, monkeypatch, capsys):
+    monkeypatch.setitem(sys.modules, "distributed", None)           # import distributed -> ImportError
+    spec = write_spec(tmp_path / "spec.toml", "[base]\nmodel = 'streamline'\n[parameters]\nlead = [0.5]")
+    assert main(["sweep", spec, "--scheduler", "local", "--output", str(tmp_path / "out")]) == 2
+    lines = capsys.readouterr().err.strip().splitlines()
+    assert len(lines) == 1 and "pip install 'vcyto[cluster]'" in lines[0]
+
+
+def test_a_table_of_another_sweep_is_refused(tmp_path):
+    table = tmp_path / "results.csv"
+    table.write_text("point,status,rate,seed,yield,wall_time_s,error\n")
+    with pytest.raises(sweep.SweepError, match="different sweep"):
+        sweep.ResultTable(table, ["point", "status", "lead", "seed", "yield", "wall_time_s", "error"]).load()
+
+
+# --- running ------------------------------------------------------------------------------------
+
+COMPARED_SPEC = """
+[base]
+model = "streamline"
+mesh_h = "5um"
+count = 6
+mix = {RBC = 0.5, melanoma = 0.5}
+arrivals = "poisson"
+rate = 2000
+min_spacing = 0.2
+
+[parameters]
+lead = [0.0, 0.5]
+seed = [1, 2, 3]
+
+[sweep]
+metrics = ["yield", "purity", "abort_rate", "melanoma.upper", "outlets", "simulated_time_ms"]
+"""
+
+
+def test_local_pool_and_dask_local_cluster_give_identical_results(tmp_path):
+    spec = write_spec(tmp_path / "compared.toml", COMPARED_SPEC)
+    local = vcyto("sweep", spec, "--output", str(tmp_path / "local"), "--workers", "2", "--json")
+    dask = vcyto("sweep", spec, "--output", str(tmp_path / "dask"), "--scheduler", "local", "--workers", "2", "--json")
+    assert local.returncode == 0 and dask.returncode == 0, local.stderr + dask.stderr
+    assert "cluster" in json.loads(dask.stdout)["executor"] and "local process" in json.loads(local.stdout)["executor"]
+
+    def table(name):
+        return [{key: value for key, value in row.items() if key != "wall_time_s"}
+                for row in read_rows(tmp_path / name / "results.csv")]
+    rows = table("local")
+    assert len(rows) == 6 and all(row["status"] == "ok" for row in rows)
+    assert len({(row["outlets"], row["simulated_time_ms"]) for row in rows}) > 1      # the points do differ
+    assert table("dask") == rows
+    assert (tmp_path / "local" / "summary.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+KILLED_SPEC = """
+[base]
+model = "streamline"
+mesh_h = "5um"
+count = 40
+mix = {RBC = 0.7, melanoma = 0.3}
+rate = 800
+
+[parameters]
+seed = {start = 0, stop = 9, step = 1}
+
+[sweep]
+metrics = ["yield", "outlet.upper"]
+"""
+
+
+def test_killing_a_sweep_and_rerunning_it_completes_only_the_missing_points(tmp_path):
+    spec, output = write_spec(tmp_path / "killed.toml", KILLED_SPEC), tmp_path / "out"
+    table = output / "results.csv"
+    command = [sys.executable, "-m", "vcyto.cli", "sweep", spec, "--output", str(output), "--workers", "1",
+               "--chunk", "1", "--quiet"]
+    process = subprocess.Popen(command, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
+    try:
+        deadline = time.monotonic() + 120
+        while time.monotonic() < deadline and (not table.exists() or len(read_rows(table)) < 3):
+            time.sleep(0.02)
+    finally:
+        os.killpg(process.pid, signal.SIGKILL)       # the sweep, its worker and their helpers: one session
+        process.wait()
+    before = read_rows(table)
+    assert 3 <= len(before) < 10, "the sweep was not killed half-way"
+    rerun = vcyto("sweep", spec, "--output", str(output), "--workers", "1", "--json")
+    assert rerun.returncode == 0, rerun.stderr
+    summary = json.loads(rerun.stdout)
+    assert summary["ran"] == 10 - len(before) and summary["done_before"] == len(before)
+    after = read_rows(table)
+    assert sorted(int(row["seed"]) for row in after) == list(range(10))
+    by_point = {row["point"]: row for row in after}
+    assert all(by_point[row["point"]] == row for row in before)      # same wall time: not run again
+
+    lines = table.read_text().splitlines(keepends=True)             # a row lost, the last one torn mid-write
+    table.write_text("".join(lines[:3] + lines[4:-1]) + lines[-1][:12])
+    again = json.loads(vcyto("sweep", spec, "--output", str(output), "--workers", "1", "--json").stdout)
+    assert again["ran"] == 2 and again["repaired_rows"] == 1 and again["ok"] == 10
+    assert len(read_rows(table)) == 10 and (output / "summary.png").exists()
+
+
+def fail_at_lead_0_75(scenario, settings):
+    """A closed loop that raises for one point (lead 0.75 ms), the real one for the others."""
+    if settings.controller.lead == pytest.approx(0.75e-3):
+        raise RuntimeError("the IDT driver\nbroke")
+    return sweep.simulate(scenario, settings)
+
+
+def test_a_point_that_raises_is_recorded_as_failed_and_the_others_finish(tmp_path):
+    built = sweep.parse_sweep({"base": {**BASE, "cells": "melanoma,RBC"},
+                               "parameters": {"lead": [0.25, 0.5, 0.75, 1.0]}, "sweep": {"metrics": ["yield"]}})
+    with sweep.executor(None, 2) as (pool, slots, _):
+        result = sweep.run_sweep(built, tmp_path, pool, slots, chunk=1, simulator=fail_at_lead_0_75)
+    rows = {float(row["lead"]): row for row in read_rows(tmp_path / "results.csv")}
+    assert result["failed"] == 1 and result["ok"] == 3
+    assert rows[0.75]["status"] == "failed" and rows[0.75]["error"] == "RuntimeError: the IDT driver broke"
+    assert all(rows[lead]["status"] == "ok" and rows[lead]["yield"] in ("0.0", "1.0") for lead in (0.25, 0.5, 1.0))
+    with sweep.executor(None, 1) as (pool, slots, _):
+        kept = sweep.run_sweep(built, tmp_path, pool, slots, simulator=fail_at_lead_0_75)
+        retried = sweep.run_sweep(built, tmp_path, pool, slots, simulator=fail_at_lead_0_75, retry_failed=True)
+    assert kept["ran"] == 0 and kept["failed"] == 1
+    assert retried["ran"] == 1 and retried["failed"] == 1 and len(read_rows(tmp_path / "results.csv")) == 4

@@ -1,0 +1,236 @@
+"""`vcyto tradeoff`: the speed-accuracy trade of the plant models, measured on fixed scenes.
+
+Each scene (a few cells and a fixed IDT schedule) runs on every level of the ladder (model + resolution);
+every level is compared with the reference (the first level: the finest FE-IB) cell by cell: outlet, exit
+time, centroid path (distance at the level's own times to the reference path interpolated there), area
+kept; and timed (set-up apart from the run). Results: a Markdown table, a CSV file and a Pareto plot of
+run wall time against path error.
+"""
+
+from __future__ import annotations
+
+import csv
+import math
+import time
+from collections import defaultdict
+from dataclasses import dataclass
+
+import numpy as np
+
+from sim.health import HealthError
+from sim.scenario import UM, Scenario
+
+
+@dataclass(frozen=True)
+class Scene:
+    """Cells injected at given times and an IDT drive that is on within any of ``pulses`` (s)."""
+
+    name: str
+    arrivals: tuple
+    pulses: tuple = ()
+    max_time: float = 8e-3
+
+    def actuation(self, time_s: float) -> float:
+        return 1.0 if any(on <= time_s < off for on, off in self.pulses) else 0.0
+
+
+SCENES = (
+    Scene("isolated RBC, IDT off", ((0.0, "RBC"),)),
+    Scene("isolated melanoma, IDT on", ((0.0, "melanoma"),), ((0.0, math.inf),)),
+    # the melanoma's pulse (from its detection to after its passage) catches the RBC 0.25 ms behind it
+    Scene("melanoma and RBC 0.25 ms apart, pulse 0.9-2.1 ms", ((0.0, "melanoma"), (0.25e-3, "RBC")), ((0.9e-3, 2.1e-3),)),
+)
+
+
+@dataclass(frozen=True)
+class Level:
+    """A plant model at a resolution: mesh h, time step (feib, oneway) or control period (rom), flow grid."""
+
+    model: str
+    mesh_h: float
+    dt: float
+    grid: float = 1e-6
+
+    @property
+    def label(self) -> str:
+        text = f"{self.model} h={self.mesh_h / UM:.3g}um {'dt' if self.model != 'rom' else 'period'}={self.dt * 1e6:g}us"
+        return text + (f" grid={self.grid / UM:g}um" if self.model in ("rom", "oneway", "auto") else "")
+
+
+PAPER_H = 10 * UM / 3
+LADDER = (
+    Level("feib", PAPER_H, 2.5e-6),                   # the reference: the paper's resolution and step
+    Level("feib", PAPER_H, 10e-6),
+    Level("feib", 2 * PAPER_H, 10e-6),
+    Level("oneway", PAPER_H, 2.5e-6),
+    Level("oneway", PAPER_H, 10e-6),
+    Level("rom", PAPER_H, 20e-6),
+    Level("rom", PAPER_H, 50e-6, grid=2e-6),
+    Level("auto", PAPER_H, 2.5e-6),
+)
+FAST_LADDER = (
+    Level("feib", 2 * PAPER_H, 10e-6),                # the reference of the reduced set (CI)
+    Level("feib", 2 * PAPER_H, 25e-6),
+    Level("oneway", 2 * PAPER_H, 10e-6, grid=2e-6),
+    Level("rom", 2 * PAPER_H, 20e-6, grid=2e-6),
+    Level("auto", 2 * PAPER_H, 10e-6, grid=2e-6),
+)
+TOLERANCE_UM = 5.0          # auto's target: outlets as the reference's, mean centroid path distance below this
+
+
+class _Flows:
+    """The steady flows of the reduced models, solved and sampled once per (mesh h, grid)."""
+
+    def __init__(self, scenario: Scenario):
+        self.scenario, self.cache = scenario, {}
+
+    def get(self, level: Level):
+        from sim.rom import RomFlows
+        key = (level.mesh_h, level.grid)
+        if key not in self.cache:
+            self.cache[key] = RomFlows.of(self.scenario.with_numerics(mesh_h=level.mesh_h), level.grid)
+        return self.cache[key]
+
+
+def make_plant(scenario: Scenario, level: Level, flows: _Flows):
+    if level.model == "feib":
+        from sim.plant import FeibPlant
+        return FeibPlant(scenario.with_numerics(mesh_h=level.mesh_h, dt=level.dt))
+    if level.model == "oneway":
+        from sim.oneway import OneWayPlant
+        return OneWayPlant(scenario.with_numerics(mesh_h=level.mesh_h, dt=level.dt), flows=flows.get(level))
+    if level.model == "rom":
+        from sim.rom import RomPlant
+        return RomPlant(scenario.with_numerics(mesh_h=level.mesh_h), control_period=level.dt, flows=flows.get(level))
+    if level.model == "auto":
+        from sim.auto import AutoPlant
+        return AutoPlant(scenario.with_numerics(mesh_h=level.mesh_h, dt=level.dt), grid_spacing=level.grid)
+    raise ValueError(f"unknown model {level.model!r}")
+
+
+def run_scene(plant, scene: Scene) -> dict:
+    """Step ``plant`` through ``scene``; per cell: fate, exit time and ordinate, area kept, centroid path."""
+    observation = plant.reset(list(scene.arrivals), seed=0)
+    paths = defaultdict(list)
+    started = time.perf_counter()
+    failure = None
+    try:
+        while not plant.done and observation.time < scene.max_time:
+            observation = plant.step(scene.actuation(observation.time))
+            for view in observation.cells:
+                paths[view.key].append((observation.time, view.x, view.y))
+    except HealthError as error:
+        failure = str(error)
+    wall = time.perf_counter() - started
+    cells = {}
+    for cell in plant.truth().cells:
+        measures = cell.measures or {}
+        cells[cell.key] = {"type": cell.type, "fate": cell.fate if cell.fate != "in_channel" else "lost",
+                           "exit_time": cell.exit_time, "exit_y": cell.exit_y,
+                           "area_ratio_min": measures.get("area_ratio_min"), "path": np.array(paths[cell.key])}
+    return {"wall_s": wall, "cells": cells, "failure": failure}
+
+
+def compare(run: dict, reference: dict) -> dict:
+    """Outlet agreement, path distance (max, mean), exit time error and area loss of a run against the reference."""
+    agree, distances, exit_errors, losses = 0, [], [], []
+    for key, cell in run["cells"].items():
+        ref = reference["cells"].get(key)
+        if ref is None:
+            continue
+        agree += cell["fate"] == ref["fate"]
+        path, ref_path = cell["path"], ref["path"]
+        if len(path) and len(ref_path) > 1:
+            inside = (path[:, 0] >= ref_path[0, 0]) & (path[:, 0] <= ref_path[-1, 0])
+            t = path[inside, 0]
+            if len(t):
+                gap = np.hypot(path[inside, 1] - np.interp(t, ref_path[:, 0], ref_path[:, 1]),
+                               path[inside, 2] - np.interp(t, ref_path[:, 0], ref_path[:, 2]))
+                distances.append(gap)
+        if math.isfinite(cell["exit_time"]) and math.isfinite(ref["exit_time"]):
+            exit_errors.append(abs(cell["exit_time"] - ref["exit_time"]))
+        if cell["area_ratio_min"] is not None:
+            losses.append(1 - cell["area_ratio_min"])
+    gaps = np.concatenate(distances) if distances else np.array([np.nan])
+    return {"outlets_agree": agree, "cells": len(reference["cells"]),
+            "path_max_um": float(np.max(gaps)) / UM, "path_mean_um": float(np.mean(gaps)) / UM,
+            "exit_error_us": (max(exit_errors) * 1e6) if exit_errors else None,
+            "area_loss_percent": (100 * max(losses)) if losses else None}
+
+
+def tradeoff(scenario: Scenario, ladder=LADDER, scenes=SCENES, progress=None) -> dict:
+    """Every scene on every level; rows compared with the first level (the reference)."""
+    note = progress.note if progress else (lambda message: None)
+    flows = _Flows(scenario)
+    rows, references = [], {}
+    for level in ladder:
+        started = time.perf_counter()
+        note(f"{level.label}: set-up")
+        plant = make_plant(scenario, level, flows)
+        setup = time.perf_counter() - started
+        for scene in scenes:
+            note(f"{level.label}: {scene.name}")
+            run = run_scene(plant, scene)
+            references.setdefault(scene.name, run)
+            row = {"scene": scene.name, "level": level.label, "model": level.model, "mesh_h_um": level.mesh_h / UM,
+                   "dt_us": level.dt * 1e6, "setup_s": setup, "run_s": run["wall_s"],
+                   "outlets": ",".join(c["fate"] for _, c in sorted(run["cells"].items())),
+                   "failure": run["failure"], **compare(run, references[scene.name])}
+            rows.append(row)
+    return {"reference": ladder[0].label, "rows": rows}
+
+
+COLUMNS = ("scene", "level", "outlets", "outlets_agree", "path_max_um", "path_mean_um", "exit_error_us",
+           "area_loss_percent", "setup_s", "run_s")
+
+
+def _cell(value, digits=3) -> str:
+    if value is None or (isinstance(value, float) and not math.isfinite(value)):
+        return "-"
+    return f"{value:.{digits}g}" if isinstance(value, float) else str(value)
+
+
+def table_lines(result: dict) -> list[str]:
+    lines = [f"reference: {result['reference']}", "",
+             "| scene | level | outlets | agree | path max (um) | path mean (um) | exit time error (us) | "
+             "area loss (%) | set-up (s) | run (s) |", "|" + "---|" * len(COLUMNS)]
+    for row in result["rows"]:
+        agree = f"{row['outlets_agree']}/{row['cells']}"
+        outlets = row["outlets"] + (f" (stopped: {row['failure']})" if row["failure"] else "")
+        values = [row["scene"], row["level"], outlets, agree] + [_cell(row[c]) for c in COLUMNS[4:]]
+        lines.append("| " + " | ".join(values) + " |")
+    return lines
+
+
+def save(result: dict, directory) -> dict:
+    """tradeoff.md, tradeoff.csv and tradeoff.png (run wall time against mean path error, per level)."""
+    from pathlib import Path
+
+    from .figures import pyplot
+    directory = Path(directory)
+    (directory / "tradeoff.md").write_text("\n".join(table_lines(result)) + "\n")
+    with open(directory / "tradeoff.csv", "w", newline="") as handle:
+        writer = csv.DictWriter(handle, fieldnames=list(result["rows"][0]))
+        writer.writeheader()
+        writer.writerows(result["rows"])
+    plt = pyplot()
+    figure, axis = plt.subplots(figsize=(7, 4.5), constrained_layout=True)
+    by_level = defaultdict(list)
+    for row in result["rows"]:
+        by_level[row["level"]].append(row)
+    for level, rows in by_level.items():
+        wall = sum(r["run_s"] for r in rows)
+        error = np.nanmean([r["path_mean_um"] for r in rows])
+        mismatch = sum(r["cells"] - r["outlets_agree"] for r in rows)
+        floor = max(error, 1e-3)
+        axis.scatter(wall, floor, marker="o" if not mismatch else "x", s=50)
+        axis.annotate(level + (f" ({mismatch} outlet(s) differ)" if mismatch else ""), (wall, floor), fontsize=7,
+                      xytext=(4, 4), textcoords="offset points")
+    axis.set_xscale("log")
+    axis.set_yscale("log")
+    axis.set_xlabel("run wall time, all scenes (s)")
+    axis.set_ylabel("mean centroid path distance to the reference (um)\n(reference drawn at 1e-3)")
+    axis.set_title("speed against accuracy (x: an outlet differs from the reference)")
+    figure.savefig(directory / "tradeoff.png", dpi=120)
+    plt.close(figure)
+    return {name: str(directory / name) for name in ("tradeoff.md", "tradeoff.csv", "tradeoff.png")}

@@ -486,7 +486,9 @@ def bench_auto(scenario: Scenario, count: int = 100, rate: float = 500.0, mix=((
             "run_s": run, "speedup_run": run["feib"] / run["auto"],
             "speedup_total": results["feib"]["wall_time_s"] / results["auto"]["wall_time_s"],
             "feib_fraction": auto.get("auto", {}).get("feib_fraction"),
-            "switches": len(auto.get("auto", {}).get("switches", [])) - 1}
+            "switches": len(auto.get("auto", {}).get("switches", [])) - 1,
+            "outcomes": [{"key": a["key"], "type": a["type"], "auto": a["outlet"], "feib": f["outlet"],
+                          "auto_exit_ms": a["exit_time_ms"], "feib_exit_ms": f["exit_time_ms"]} for a, f in pairs]}
 
 
 def auto_lines(result: dict) -> list[str]:

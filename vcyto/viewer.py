@@ -40,7 +40,8 @@ def blueprint():
 class RerunLogger:
     """Logs the pieces of a run to one Rerun recording stream."""
 
-    def __init__(self, scenario: Scenario, detection_window=None, target=("save", "run.rrd"), application_id="vcyto"):
+    def __init__(self, scenario: Scenario, detection_window=None, target=("save", "run.rrd"), application_id="vcyto",
+                 batch_rows: int = 200):
         import rerun as rr
         self.rr = rr
         self.height_um = scenario.channel.height / UM
@@ -56,6 +57,10 @@ class RerunLogger:
         else:
             raise ValueError(f"unknown Rerun target {kind!r}")
         self.paths: dict[int, list] = {}
+        self.batch_rows = batch_rows
+        self._pending: dict[str, tuple] = {}
+        self._rows = 0
+        self._now = (0.0, None)
         self._device(scenario, detection_window)
 
     def _flip(self, points_um):
@@ -86,29 +91,66 @@ class RerunLogger:
         self.stream.set_time("sim_time", duration=time_s)
         if step is not None:
             self.stream.set_time("step", sequence=step)
+        if self._rows >= self.batch_rows:             # a new step begins: send the batch of the ones before
+            self.send_pending()
+        self._now = (time_s, step)
 
     def idt(self, drive: float):
-        self.stream.log("idt", self.rr.Scalars(drive))
+        self._add("idt", drive)
 
     def cells(self, cells: list[dict]):
-        """Cells as in the MCAP ``/cells`` payload (um)."""
+        """Cells as in the MCAP ``/cells`` payload (um; the membrane as nested lists or an array)."""
         rr = self.rr
         for cell in cells:
             key = cell["key"]
             entity = f"device/cells/{key}"
             if cell["fate"] != "in_channel":
+                self._send(entity)
                 self.stream.log(entity, rr.Clear(recursive=False))
                 continue
-            colour = TYPE_COLOURS.get(cell["type"], (255, 255, 255))
-            membrane = cell["membrane_um"] or [[cell["x_um"], cell["y_um"]]]
-            closed = np.vstack([membrane, membrane[:1]])
-            self.stream.log(entity, rr.LineStrips2D([self._flip(closed)], colors=[colour], radii=0.4))
+            membrane = np.asarray(cell["membrane_um"], dtype=float).reshape(-1, 2)
+            if not len(membrane):
+                membrane = np.array([[cell["x_um"], cell["y_um"]]])
+            self._add(entity, self._flip(np.vstack([membrane, membrane[:1]])), cell["type"])
             if cell.get("perimeter_um") is not None:            # a membrane model: how much area it keeps
-                self.stream.log(f"area/{key}", rr.Scalars(cell["area_ratio"]))
+                self._add(f"area/{key}", cell["area_ratio"])
             path = self.paths.setdefault(key, [])
             path.append((cell["x_um"], cell["y_um"]))
             if len(path) % 10 == 1:
+                colour = TYPE_COLOURS.get(cell["type"], (255, 255, 255))
                 self.stream.log(f"device/paths/{key}", rr.LineStrips2D([self._flip(path)], colors=[colour], radii=0.3))
+
+    # Per-step values (IDT drive, area ratios, membranes) are sent in batches of ``batch`` steps through
+    # Rerun's columnar API (one call per entity per batch instead of one archetype per entity per step:
+    # about 5x cheaper); every step still becomes one row on the timelines.
+    def _add(self, entity: str, value, kind=None):
+        rows = self._pending.setdefault(entity, ([], [], [], kind))
+        rows[0].append(self._now[0])
+        rows[1].append(self._now[1])
+        rows[2].append(value)
+        self._rows += 1
+
+    def _send(self, entity: str):
+        rows = self._pending.pop(entity, None)
+        if not rows or not rows[0]:
+            return
+        rr = self.rr
+        times, steps, values, kind = rows
+        indexes = [rr.TimeColumn("sim_time", duration=np.array(times))]
+        if all(step is not None for step in steps):
+            indexes.append(rr.TimeColumn("step", sequence=np.array(steps)))
+        if entity.startswith("device/cells/"):
+            colour = TYPE_COLOURS.get(kind, (255, 255, 255))
+            columns = rr.LineStrips2D.columns(strips=values, colors=[colour] * len(values),
+                                              radii=[0.4] * len(values)).partition([1] * len(values))
+        else:
+            columns = rr.Scalars.columns(scalars=np.array(values, dtype=float))
+        self.stream.send_columns(entity, indexes=indexes, columns=columns)
+
+    def send_pending(self):
+        for entity in list(self._pending):
+            self._send(entity)
+        self._rows = 0
 
     def text(self, message: str, level: str = "INFO"):
         self.stream.log("log", self.rr.TextLog(message, level=level))
@@ -125,6 +167,7 @@ class RerunLogger:
         self.stream.log("device/flow", self.rr.Image(rgb))     # 1 pixel = 1 um, top row at y = height
 
     def close(self):
+        self.send_pending()
         self.stream.flush()
         self.stream.disconnect()
 
@@ -137,12 +180,18 @@ def _resample_uniform(speed, x, y):
     return speed[np.ix_(rows, columns)]
 
 
+def _cell_view(cell) -> dict:
+    """What the view needs of a cell's ground truth (as the MCAP payload, the membrane as an array in um)."""
+    membrane = np.asarray(cell.membrane) * 1e6 if cell.membrane is not None else np.zeros((0, 2))
+    return {"key": cell.key, "type": cell.type, "x_um": cell.x * 1e6, "y_um": cell.y * 1e6, "fate": cell.fate,
+            "area_ratio": cell.area_ratio, "membrane_um": membrane,
+            "perimeter_um": (cell.measures or {}).get("perimeter")}
+
+
 class RerunSink:
     """A sink of the closed loop that shows every step in Rerun."""
 
     def __init__(self, scenario: Scenario, detection_window, target, field_every: int = 200):
-        from .recording import McapRecorder
-        self._cell_payload = McapRecorder._cell
         self.logger = RerunLogger(scenario, detection_window, target)
         self.field_every = field_every
         self._settled = set()
@@ -151,8 +200,7 @@ class RerunSink:
         logger = self.logger
         logger.time(observation.time, step)
         logger.idt(actuation)
-        cells = [self._cell_payload(cell) for cell in truth.cells if cell.fate == "in_channel" or cell.key not in self._settled]
-        logger.cells(cells)
+        logger.cells([_cell_view(cell) for cell in truth.cells if cell.fate == "in_channel" or cell.key not in self._settled])
         for event in events:
             logger.text(f"cell {event.key}: detected type {event.classification} (fluorescence {event.fluorescence:.2f}, "
                         f"{event.velocity * 1e3:.1f} mm/s)")

@@ -7,7 +7,7 @@ hydrodynamic interaction, absent from ``rom``, moves them by 10-50 um). The rule
 period on the cells in the channel:
 
 - ``feib`` while two cells are closer than ``coupling`` x (r_i + r_j) (r = a cell type's largest semi-axis;
-  default coupling 3: 35 um for a melanoma and an RBC; chosen with ``vcyto tradeoff``, README);
+  default coupling 2.5: 29 um for a melanoma and an RBC; chosen with ``vcyto tradeoff``, README);
 - back to ``rom`` once every pair has been further apart than ``release`` x that distance (hysteresis,
   default 1.25) for ``dwell`` (default 50 us);
 - ``rom`` otherwise.
@@ -33,7 +33,7 @@ from .scenario import Scenario
 
 
 class AutoPlant:
-    def __init__(self, scenario: Scenario, control_period: float | None = None, coupling: float = 3.0,
+    def __init__(self, scenario: Scenario, control_period: float | None = None, coupling: float = 2.5,
                  release: float = 1.25, dwell: float = 50e-6, grid_spacing: float = 1e-6):
         self.scenario = scenario
         self.control_period = scenario.numerics.dt

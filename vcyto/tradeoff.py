@@ -214,7 +214,7 @@ def save(result: dict, directory) -> dict:
         writer.writeheader()
         writer.writerows(result["rows"])
     plt = pyplot()
-    figure, axis = plt.subplots(figsize=(7, 4.5), constrained_layout=True)
+    figure, axis = plt.subplots(figsize=(10, 4.8), constrained_layout=True)
     by_level = defaultdict(list)
     for row in result["rows"]:
         by_level[row["level"]].append(row)
@@ -223,14 +223,14 @@ def save(result: dict, directory) -> dict:
         error = np.nanmean([r["path_mean_um"] for r in rows])
         mismatch = sum(r["cells"] - r["outlets_agree"] for r in rows)
         floor = max(error, 1e-3)
-        axis.scatter(wall, floor, marker="o" if not mismatch else "x", s=50)
-        axis.annotate(level + (f" ({mismatch} outlet(s) differ)" if mismatch else ""), (wall, floor), fontsize=7,
-                      xytext=(4, 4), textcoords="offset points")
+        axis.scatter(wall, floor, marker="o" if not mismatch else "x", s=50,
+                     label=level + (f" ({mismatch} outlet(s) differ)" if mismatch else ""))
     axis.set_xscale("log")
     axis.set_yscale("log")
     axis.set_xlabel("run wall time, all scenes (s)")
     axis.set_ylabel("mean centroid path distance to the reference (um)\n(reference drawn at 1e-3)")
     axis.set_title("speed against accuracy (x: an outlet differs from the reference)")
+    axis.legend(fontsize=7, loc="center left", bbox_to_anchor=(1.02, 0.5), frameon=False)
     figure.savefig(directory / "tradeoff.png", dpi=120)
     plt.close(figure)
     return {name: str(directory / name) for name in ("tradeoff.md", "tradeoff.csv", "tradeoff.png")}

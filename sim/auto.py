@@ -2,7 +2,7 @@
 
 The ladder measured by ``vcyto tradeoff`` (README, "Speed against accuracy") says where the reduced model
 ``rom`` is good enough: an isolated cell, deformable or not, with the IDT off, on or switching, leaves by
-the FE-IB outlet with a mean centroid path error of 1-4 um; two cells close together are not (their
+the FE-IB outlet with a mean centroid path error of 0.3-4 um; two cells close together are not (their
 hydrodynamic interaction, absent from ``rom``, moves them by 10-50 um). The rule, evaluated every control
 period on the cells in the channel:
 

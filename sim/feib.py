@@ -55,10 +55,10 @@ class Measures:
     @classmethod
     def of(cls, membrane: Membrane, mesh_h: float, before: "Measures | None" = None, corrected: float = 0.0):
         ratio = membrane.area() / membrane.initial_area
-        spacing = membrane.spacing() / mesh_h
-        low, high = float(spacing.min()), float(spacing.max())
+        lengths = membrane.spacing()
+        low, high = float(lengths.min()) / mesh_h, float(lengths.max()) / mesh_h
         before = before or cls()
-        return cls(ratio, membrane.perimeter(), low, high, min(before.area_ratio_min, ratio),
+        return cls(ratio, float(lengths.sum()), low, high, min(before.area_ratio_min, ratio),
                    max(before.area_ratio_max, ratio), min(before.spacing_lowest, low), max(before.spacing_highest, high),
                    before.area_corrected + corrected)
 
@@ -171,9 +171,6 @@ class ImmersedBoundary:
         """Points past x = length (through an outlet) are evaluated at x = length, just inside the mesh."""
         length = self.scenario.channel.length
         return np.column_stack([np.minimum(points[:, 0], length * (1 - 1e-12)), points[:, 1]])
-
-    def _reshape(self, membrane: Membrane) -> tuple[Membrane, float]:
-        return reshape(membrane, self.scenario.numerics)
 
     def _settle(self, cell: Cell, points: np.ndarray, time: float) -> Cell:
         return settle(cell, points, time, self.scenario)

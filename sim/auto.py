@@ -12,6 +12,14 @@ period on the cells in the channel:
   default 1.25) for ``dwell`` (default 50 us);
 - ``rom`` otherwise.
 
+The window model is ``feib`` on a mesh of size ``window_mesh_h`` (default ``WINDOW_MESH_H`` = 6.67 um, twice the
+paper's h, or the scenario's own h if coarser): the cheapest FE-IB level the tradeoff table puts within
+tolerance on every scene (close pair: 0.95 um mean path error against the paper's mesh, at a quarter of the
+cost per step). A pair's interaction is a flow on the scale of the cells (16 um for a melanoma), which that
+mesh resolves; an RBC (7.5 um) is thinner than two of its cells, so inside a window it moves like a finite
+tracer and its shape is not resolved (deformation is not carried out of a window anyway). The ``rom`` flows
+come from the scenario's own mesh. ``window_mesh_h`` = the scenario's h gives windows at full resolution.
+
 Hand-overs: rom -> feib builds the FE state from the rom state: the flow is the blend (1 - s) v_off + s v_on of
 the steady flows at the drive level s (Navier-Stokes at Re ~ 1-3 is nearly linear in the boundary data), and
 each cell gets its undeformed membrane at its centroid; feib -> rom hands the centroids and the drive level
@@ -25,26 +33,39 @@ import math
 
 import numpy as np
 
-from .feib import State
-from .fluid import Flow
+from .feib import ImmersedBoundary, State
+from .fluid import Flow, NavierStokes
 from .plant import FeibPlant, Observation, Truth
 from .rom import RomFlows, RomPlant
 from .scenario import Scenario
 
 
+WINDOW_MESH_H = 20e-6 / 3       # m: the coarsest FE-IB mesh within tolerance on the tradeoff scenes
+
+
 class AutoPlant:
     def __init__(self, scenario: Scenario, control_period: float | None = None, coupling: float = 2.5,
-                 release: float = 1.25, dwell: float = 50e-6, grid_spacing: float = 1e-6):
+                 release: float = 1.25, dwell: float = 50e-6, grid_spacing: float = 1e-6,
+                 window_mesh_h: float | None = None):
         self.scenario = scenario
         self.control_period = scenario.numerics.dt
         if control_period is not None and abs(control_period - self.control_period) > 1e-12:
             raise ValueError(f"the auto plant's control period is the time step dt = {self.control_period * 1e6:g} us")
         self.coupling, self.release, self.dwell = coupling, release, dwell
-        self.feib = FeibPlant(scenario)
+        own_h = scenario.numerics.mesh_h
+        self.window_mesh_h = max(own_h, WINDOW_MESH_H) if window_mesh_h is None else window_mesh_h
+        if not (math.isfinite(self.window_mesh_h) and self.window_mesh_h > 0):
+            raise ValueError(f"window_mesh_h must be a positive length in m (got {window_mesh_h!r})")
+        fine = NavierStokes(scenario)
+        same = math.isclose(self.window_mesh_h, own_h, rel_tol=1e-9)
+        window = scenario if same else scenario.with_numerics(mesh_h=self.window_mesh_h)
+        self.feib = FeibPlant(window, plant=ImmersedBoundary(window, fine if same else None))
+        self.feib.warn_under_resolved = False     # windows: validated as tracers (docstring), not a user's mesh
         fluid = self.feib.ib.fluid
         self._steady = (fluid.steady(0.0), fluid.steady(1.0))
-        off, on = (flow.velocity for flow in self._steady)
-        flows = RomFlows.sample(scenario, fluid, np.concatenate([off, on - off]), grid_spacing, {})
+        rom_steady = self._steady if same else (fine.steady(0.0), fine.steady(1.0))
+        off, on = (flow.velocity for flow in rom_steady)
+        flows = RomFlows.sample(scenario, fine, np.concatenate([off, on - off]), grid_spacing, {})
         self.rom = RomPlant(scenario, control_period=self.control_period, flows=flows)
         self._radius = {c.name: max(c.semi_axes) for c in scenario.cell_types}
         self.reset([])
@@ -112,7 +133,7 @@ class AutoPlant:
         flow = Flow(truth.time, (1 - s) * off.velocity + s * on.velocity, (1 - s) * off.pressure + s * on.pressure,
                     streaming_level=s)
         ib = self.feib.ib
-        cells = tuple(ib.new_cell(self.scenario.cell_type(c.type), c.key, c.born, centre=(c.x, c.y))
+        cells = tuple(ib.new_cell(self.scenario.cell_type(c.type), c.key, c.born, centre=(c.x, c.y), warn=False)
                       for c in truth.cells if c.fate == "in_channel")
         self.feib.adopt(State(flow, cells, round(truth.time / self.control_period)), injected=len(truth.cells))
         self._switch("feib", reason, truth.time)
@@ -144,5 +165,6 @@ class AutoPlant:
 
     def diagnostics(self) -> dict:
         return {"dt": self.control_period, "model": self.model, "reason": self.reason,
+                "window_mesh_h": self.window_mesh_h,
                 "feib_fraction": self.feib_steps / max(self.steps, 1), "switches": len(self.switches) - 1,
                 "health": "ok"}

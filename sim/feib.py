@@ -124,11 +124,13 @@ class ImmersedBoundary:
         inlet = self.scenario.channel.inlet(self.scenario.channel.injection_inlet)
         return cell_type.semi_axes[0] + gap, 0.5 * (inlet.span[0] + inlet.span[1])
 
-    def new_cell(self, cell_type: CellType, cell_id: int, time: float, centre=None) -> Cell:
+    def new_cell(self, cell_type: CellType, cell_id: int, time: float, centre=None, warn: bool = True) -> Cell:
+        """A cell of ``cell_type`` at ``centre`` (default: the injection point); ``warn``: log a warning
+        when the mesh does not resolve it (``sim.health.under_resolved``)."""
         numerics = self.scenario.numerics
         centre = self.injection_point(cell_type) if centre is None else centre
         membrane = Membrane.of(cell_type, centre, numerics.membrane_spacing * numerics.mesh_h)
-        if (warning := under_resolved(cell_type, numerics.mesh_h)) is not None:
+        if warn and (warning := under_resolved(cell_type, numerics.mesh_h)) is not None:
             LOG.warning("cell %d: %s", cell_id, warning)
         return Cell(cell_id, membrane, born=time, measures=Measures.of(membrane, numerics.mesh_h))
 

@@ -93,6 +93,7 @@ class FeibPlant:
         self.substeps = max(1, round(self.control_period / dt))
         self._initial = None
         self.state = None
+        self.warn_under_resolved = True       # log cells the mesh does not resolve (sim.health.under_resolved)
 
     def reset(self, arrivals, seed: int | None = None) -> Observation:
         if self._initial is None:
@@ -104,7 +105,7 @@ class FeibPlant:
 
     def _inject(self):
         dt = self.scenario.numerics.dt
-        new = [self.ib.new_cell(self.scenario.cell_type(name), key, self.state.time)
+        new = [self.ib.new_cell(self.scenario.cell_type(name), key, self.state.time, warn=self.warn_under_resolved)
                for key, (_, name) in self.schedule.due(self.state.time, 0.5 * dt)]
         if new:
             self.state = State(self.state.flow, self.state.cells + tuple(new), self.state.step)

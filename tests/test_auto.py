@@ -5,6 +5,9 @@ import json
 import subprocess
 import sys
 
+import math
+
+import numpy as np
 import pytest
 
 from sim.auto import AutoPlant
@@ -45,6 +48,43 @@ def test_a_close_pair_runs_in_feib_while_close_and_is_within_tolerance_where_rom
     from sim.rom import RomPlant
     rom = compare(run_scene(RomPlant(scenario, control_period=20e-6, flows=auto.rom.flows), CLOSE_PAIR), reference)
     assert rom["path_mean_um"] > 2 * result["path_mean_um"]
+
+
+@pytest.fixture(scope="module")
+def windowed():
+    """A 5 um mesh: the auto plant's windows run on its default 6.67 um mesh, its rom flows come from 5 um."""
+    scenario = Scenario().with_numerics(mesh_h=5 * UM, dt=10e-6)
+    return scenario, AutoPlant(scenario, grid_spacing=2 * UM), FeibPlant(scenario)
+
+
+def test_windows_run_on_the_coarser_mesh_and_rom_on_the_scenarios_own(windowed):
+    scenario, auto, feib = windowed
+    assert auto.window_mesh_h == pytest.approx(20 * UM / 3) and auto.diagnostics()["window_mesh_h"] == auto.window_mesh_h
+    assert auto.feib.ib.fluid.space.dofs < 0.7 * feib.ib.fluid.space.dofs
+    own = AutoPlant(scenario, grid_spacing=2 * UM, window_mesh_h=scenario.numerics.mesh_h)
+    assert own.feib.ib.fluid.space.dofs == feib.ib.fluid.space.dofs
+    np.testing.assert_array_equal(own.rom.flows.cells, auto.rom.flows.cells)     # rom: the scenario's mesh
+    with pytest.raises(ValueError, match="window_mesh_h must be a positive length"):
+        AutoPlant(scenario, window_mesh_h=-1.0)
+
+
+def test_the_hand_over_to_the_coarse_window_keeps_each_cell_where_rom_had_it(windowed):
+    _, auto, _ = windowed
+    auto.reset([(0.0, "melanoma"), (0.05e-3, "RBC")])
+    while auto.model == "rom" and auto.steps < 200:
+        auto.step(0.0)
+    assert auto.model == "feib"
+    rom_now = {cell.key: (cell.x, cell.y) for cell in auto.rom.observe().cells}
+    window = auto.feib.observe().cells
+    assert sorted(cell.key for cell in window) == sorted(rom_now) == [0, 1]
+    for cell in window:                             # the window's membranes, centred on rom's centroids
+        assert math.dist((cell.x, cell.y), rom_now[cell.key]) < 1e-3 * UM
+
+
+def test_a_close_pair_with_coarse_windows_is_within_tolerance_of_feib_on_the_finer_mesh(windowed):
+    _, auto, feib = windowed
+    result = compare(run_scene(auto, CLOSE_PAIR), run_scene(feib, CLOSE_PAIR))
+    assert auto.feib_steps > 0 and result["outlets_agree"] == 2 and result["path_mean_um"] < TOLERANCE_UM
 
 
 def test_auto_reports_what_it_runs_in_its_diagnostics(coarse):

@@ -339,8 +339,17 @@ def stream_settings(args, scenario):
         controller = ControllerSettings(delay=args.delay * 1e-3, lead=args.lead * 1e-3, pulse=args.pulse * 1e-3,
                                         mode=args.mode, coincidence_window=args.coincidence * 1e-3,
                                         enabled=not args.no_controller)
+        window = getattr(args, "window_h", None)
+        if window is not None:
+            from .config import parse_quantity
+            if args.model != "auto":
+                raise UsageError(f"--window-h sets the feib windows of --model auto (the model is {args.model}): "
+                                 "drop it or add --model auto")
+            text, window = window, parse_quantity(window)
+            if not window > 0:
+                raise UsageError(f"--window-h must be a positive length such as 6.67um (got {text!r})")
         return stream.StreamSettings(arrivals, detector, controller, args.model, args.seed,
-                                     max_time=args.max_time * 1e-3)
+                                     max_time=args.max_time * 1e-3, window_mesh_h=window)
     except ValueError as error:
         if isinstance(error, (UsageError, ScenarioError)):
             raise
@@ -584,6 +593,10 @@ def _stream_options(parser: argparse.ArgumentParser):
                              "together); oneway (membranes deforming in the blended steady flows, no feedback); "
                              "rom (cells as finite-size bodies in the blended steady flows, >10x faster than real "
                              "time without recording); or the streamline stand-in")
+    parser.add_argument("--window-h", metavar="LENGTH",
+                        help="--model auto: mesh size of its feib windows (default 6.67um, or --mesh-h if coarser: "
+                             "the coarsest mesh within tolerance on the tradeoff scenes; --window-h equal to "
+                             "--mesh-h runs the windows at full resolution)")
     parser.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
     parser.add_argument("--max-time", type=float, default=50.0, metavar="MS", help="stop after this simulated time")
 

@@ -6,6 +6,7 @@ outcomes come from the plant's ground truth, which the controller never sees.
 
 from __future__ import annotations
 
+import math
 import statistics
 import time
 from dataclasses import dataclass, field
@@ -33,12 +34,15 @@ class StreamSettings:
     seed: int = 0
     control_period: float | None = None       # default: the plant's natural period (dt for feib)
     max_time: float = 50e-3
+    window_mesh_h: float | None = None        # auto: mesh of its feib windows (None: sim.auto's default)
 
     def __post_init__(self):
         if self.model not in MODELS:
             raise ValueError(f"model must be one of {', '.join(MODELS)} (got {self.model!r})")
         if self.max_time <= 0:
             raise ValueError("max_time must be positive")
+        if self.window_mesh_h is not None and not (math.isfinite(self.window_mesh_h) and self.window_mesh_h > 0):
+            raise ValueError(f"the auto model's window mesh size must be a positive length (got {self.window_mesh_h!r})")
 
 
 def make_plant(scenario: Scenario, settings: StreamSettings):
@@ -49,7 +53,7 @@ def make_plant(scenario: Scenario, settings: StreamSettings):
         return RomPlant(scenario, control_period=settings.control_period)
     if settings.model == "auto":
         from sim.auto import AutoPlant
-        return AutoPlant(scenario, control_period=settings.control_period)
+        return AutoPlant(scenario, control_period=settings.control_period, window_mesh_h=settings.window_mesh_h)
     if settings.model == "oneway":
         from sim.oneway import OneWayPlant
         return OneWayPlant(scenario, control_period=settings.control_period)

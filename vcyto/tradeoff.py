@@ -44,17 +44,25 @@ SCENES = (
 
 @dataclass(frozen=True)
 class Level:
-    """A plant model at a resolution: mesh h, time step (feib, oneway) or control period (rom), flow grid."""
+    """A plant model at a resolution: mesh h, time step (feib, oneway) or control period (rom), flow grid,
+    and (auto) the mesh of its feib windows (None: ``sim.auto``'s default)."""
 
     model: str
     mesh_h: float
     dt: float
     grid: float = 1e-6
+    window: float | None = None
+
+    @property
+    def window_mesh_h(self) -> float:
+        from sim.auto import WINDOW_MESH_H
+        return self.window or max(self.mesh_h, WINDOW_MESH_H)
 
     @property
     def label(self) -> str:
         text = f"{self.model} h={self.mesh_h / UM:.3g}um {'dt' if self.model != 'rom' else 'period'}={self.dt * 1e6:g}us"
-        return text + (f" grid={self.grid / UM:g}um" if self.model in ("rom", "oneway", "auto") else "")
+        text += f" grid={self.grid / UM:g}um" if self.model in ("rom", "oneway", "auto") else ""
+        return text + (f" window h={self.window_mesh_h / UM:.3g}um" if self.model == "auto" else "")
 
 
 PAPER_H = 10 * UM / 3
@@ -66,7 +74,8 @@ LADDER = (
     Level("oneway", PAPER_H, 10e-6),
     Level("rom", PAPER_H, 20e-6),
     Level("rom", PAPER_H, 50e-6, grid=2e-6),
-    Level("auto", PAPER_H, 2.5e-6),
+    Level("auto", PAPER_H, 2.5e-6, window=PAPER_H),    # feib windows at the reference's own mesh
+    Level("auto", PAPER_H, 2.5e-6),                    # the default: windows on the coarsest mesh within tolerance
 )
 FAST_LADDER = (
     Level("feib", 2 * PAPER_H, 10e-6),                # the reference of the reduced set (CI)
@@ -104,7 +113,8 @@ def make_plant(scenario: Scenario, level: Level, flows: _Flows):
         return RomPlant(scenario.with_numerics(mesh_h=level.mesh_h), control_period=level.dt, flows=flows.get(level))
     if level.model == "auto":
         from sim.auto import AutoPlant
-        return AutoPlant(scenario.with_numerics(mesh_h=level.mesh_h, dt=level.dt), grid_spacing=level.grid)
+        return AutoPlant(scenario.with_numerics(mesh_h=level.mesh_h, dt=level.dt), grid_spacing=level.grid,
+                         window_mesh_h=level.window_mesh_h)
     raise ValueError(f"unknown model {level.model!r}")
 
 

@@ -93,12 +93,29 @@ def test_auto_reports_what_it_runs_in_its_diagnostics(coarse):
     assert auto.diagnostics()["model"] == "feib" and "within" in auto.diagnostics()["reason"]
 
 
+def test_bench_auto_compares_the_two_models_cell_by_cell(coarse):
+    from vcyto.bench import auto_lines, bench_auto
+    scenario, _, _ = coarse
+    result = bench_auto(scenario, count=3, rate=1000.0, seed=1)
+    outcomes = result["outcomes"]
+    assert [o["key"] for o in outcomes] == [0, 1, 2]
+    assert all(o["auto"] in ("upper", "lower") and o["feib"] in ("upper", "lower") for o in outcomes)
+    assert [d["key"] for d in result["outlets_differ"]] == [o["key"] for o in outcomes if o["auto"] != o["feib"]]
+    assert result["speedup_run"] == pytest.approx(result["run_s"]["feib"] / result["run_s"]["auto"])
+    lines = auto_lines(result)
+    assert lines[0].startswith("3-cell Poisson stream at 1000/s") and "outlets that differ" in lines[1]
+
+
 @pytest.mark.slow
 def test_tradeoff_fast_writes_table_csv_plot_and_auto_is_within_tolerance(tmp_path):
-    result = subprocess.run([sys.executable, "-m", "vcyto.cli", "tradeoff", "--fast", "--output", str(tmp_path), "--json"],
-                            capture_output=True, text=True, timeout=1200)
+    result = subprocess.run([sys.executable, "-m", "vcyto.cli", "tradeoff", "--fast", "--output", str(tmp_path), "--json",
+                             "--coupling", "3", "--pair-gap", "1.0"], capture_output=True, text=True, timeout=1200)
     assert result.returncode == 0, result.stderr
     rows = json.loads(result.stdout)["rows"]
+    levels = list(dict.fromkeys(row["level"] for row in rows))
+    scenes = list(dict.fromkeys(row["scene"] for row in rows))
+    assert levels[-1].endswith("coupling=3") and scenes[-1] == "melanoma and RBC 1 ms apart, pulse 0.9-2.1 ms"
+    assert len(rows) == len(levels) * len(scenes) == 6 * 4
     assert {p.name for p in tmp_path.iterdir()} >= {"tradeoff.md", "tradeoff.csv", "tradeoff.png"}
     with open(tmp_path / "tradeoff.csv") as handle:
         assert len(list(csv.DictReader(handle))) == len(rows)

@@ -86,3 +86,15 @@ def test_paper_2_json_reports_the_upper_outlet_and_a_time_breakdown(tmp_path):
 def test_stability_rejects_bad_input(args, words):
     result = vcyto("stability", *args)
     assert result.returncode == 2 and words in result.stderr and "Traceback" not in result.stderr
+
+
+@pytest.mark.parametrize("args, words", [
+    (["--coupling", "0,2"], "--coupling needs positive numbers"),
+    (["--coupling", "two"], "--coupling needs positive numbers"),
+    (["--pair-gap", "3"], "gaps below 2 ms"),
+    (["--pair-gap", "-1"], "--pair-gap needs positive numbers"),
+])
+def test_tradeoff_rejects_bad_levels_and_scenes(args, words, tmp_path):
+    result = vcyto("tradeoff", "--output", str(tmp_path), *args)
+    assert result.returncode == 2 and words in result.stderr and "Traceback" not in result.stderr
+    assert not list(tmp_path.iterdir())          # nothing run, nothing written

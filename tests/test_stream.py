@@ -53,6 +53,10 @@ def test_rbc_then_melanoma_are_sorted_by_the_feib_plant(scenario):
     settings = StreamSettings(Arrivals(cells=("RBC", "melanoma")), model="feib")
     result = run_stream(scenario.with_numerics(dt=10e-6), settings)
     assert outcomes(result) == [("RBC", "I", "pass", "lower"), ("melanoma", "II", "sort", "upper")]
+    spans = {outlet.name: outlet.span for outlet in scenario.channel.outlets}
+    for cell in result["cells"]:                     # where it crossed the exit lies in its outlet
+        low, high = spans[cell["outlet"]]
+        assert low * 1e6 < cell["exit_y_um"] < high * 1e6
 
 
 def test_melanoma_rbc_melanoma_and_a_longer_mixed_sequence(scenario, streamline_plant):

@@ -472,7 +472,14 @@ def bench_auto(scenario: Scenario, count: int = 100, rate: float = 500.0, mix=((
             return {"cells": count, "rate": rate, "failed": model, "error": str(error)}
     auto, feib = results["auto"], results["feib"]
     pairs = list(zip(auto["cells"], feib["cells"]))
-    differ = [{"key": a["key"], "type": a["type"], "auto": a["outlet"], "feib": f["outlet"]}
+    edges = [edge * 1e6 for outlet in scenario.channel.outlets for edge in outlet.span]
+
+    def margin(y_um):           # how far inside (or outside) its outlet the reference cell crossed the exit
+        return None if y_um is None else min(abs(y_um - edge) for edge in edges)
+
+    differ = [{"key": a["key"], "type": a["type"], "auto": a["outlet"], "feib": f["outlet"],
+               "auto_exit_y_um": a["exit_y_um"], "feib_exit_y_um": f["exit_y_um"],
+               "feib_edge_distance_um": margin(f["exit_y_um"])}
               for a, f in pairs if a["outlet"] != f["outlet"]]
     exit_errors = [abs(a["exit_time_ms"] - f["exit_time_ms"]) for a, f in pairs
                    if a["exit_time_ms"] is not None and f["exit_time_ms"] is not None]
@@ -495,9 +502,12 @@ def auto_lines(result: dict) -> list[str]:
     if "failed" in result:
         return [f"{result['cells']}-cell stream: the {result['failed']} run stopped: {result['error']}"]
     stats = result["statistics"]
+    differ = "".join(f"; cell {d['key']} ({d['type']}): auto {d['auto']}, feib {d['feib']}, feib's exit "
+                     + (f"{d['feib_edge_distance_um']:.2f} um from an outlet edge" if d["feib_edge_distance_um"]
+                        is not None else "unknown") for d in result["outlets_differ"])
     return [f"{result['cells']}-cell Poisson stream at {result['rate']:g}/s ({result['simulated_ms']:.1f} ms of device "
             f"time), seed {result['seed']}: auto against feib",
-            f"  outlets that differ: {len(result['outlets_differ'])} of {result['cells']} {result['outlets_differ'] or ''}",
+            f"  outlets that differ: {len(result['outlets_differ'])} of {result['cells']}{differ}",
             f"  exit time difference: median {result['exit_time_error_ms']['median'] * 1e3:.1f} us, "
             f"max {result['exit_time_error_ms']['max'] * 1e3:.1f} us",
             f"  purity / yield: auto {stats['auto']['purity']} / {stats['auto']['yield']}, "

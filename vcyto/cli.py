@@ -4,7 +4,9 @@ failure with one line and status 1; never a traceback (set VCYTO_DEBUG=1 to see 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
+import math
 import os
 import shutil
 import sys
@@ -262,15 +264,34 @@ def command_stability(args):
     _emit(args, result, stabilitymap.report_lines(result))
 
 
+def _positive_list(text: str, option: str, example: str, parse) -> list[float]:
+    try:
+        values = [parse(part) for part in text.split(",") if part.strip()]
+    except ValueError:
+        values = []
+    if not values or not all(math.isfinite(v) and v > 0 for v in values):
+        raise UsageError(f"{option} needs positive numbers separated by commas, such as {example} (got {text!r})")
+    return values
+
+
 def command_tradeoff(args):
     from . import tradeoff
     from .progress import Progress
     scenario = _scenario(args)
     output = _output_directory(args.output)
     progress = Progress(quiet=args.quiet or args.json)
+    ladder, scenes = tradeoff.FAST_LADDER if args.fast else tradeoff.LADDER, tradeoff.SCENES
+    if args.coupling:
+        values = _positive_list(args.coupling, "--coupling", "2,2.5,3", lambda text: float(text))
+        base = next(level for level in ladder if level.model == "auto" and level.window is None)
+        ladder += tuple(dataclasses.replace(base, coupling=value) for value in values)
+    if args.pair_gap:
+        gaps = _positive_list(args.pair_gap, "--pair-gap", "0.5,1.0", lambda text: float(text) * 1e-3)
+        if max(gaps) >= 2e-3:
+            raise UsageError(f"--pair-gap takes gaps below 2 ms (the scene's pulse ends at 2.1 ms; got {args.pair_gap})")
+        scenes += tuple(tradeoff.pair_scene(gap) for gap in gaps)
     try:
-        result = tradeoff.tradeoff(scenario, tradeoff.FAST_LADDER if args.fast else tradeoff.LADDER,
-                                   progress=progress)
+        result = tradeoff.tradeoff(scenario, ladder, scenes, progress=progress)
     finally:
         progress.close()
     lines = tradeoff.table_lines(result)
@@ -681,6 +702,11 @@ def build_parser() -> argparse.ArgumentParser:
                                  help="the reduced set (coarse mesh, reference FE-IB at h = 6.67 um; a few minutes)")
     tradeoff_parser.add_argument("--output", default="recordings/tradeoff", metavar="DIR",
                                  help="where tradeoff.md, tradeoff.csv and tradeoff.png go (default recordings/tradeoff)")
+    tradeoff_parser.add_argument("--coupling", metavar="LIST",
+                                 help="add an auto level for each coupling factor, e.g. 2,2.5,3 (default auto: 2.5)")
+    tradeoff_parser.add_argument("--pair-gap", metavar="MS",
+                                 help="add a close-pair scene for each gap (ms, below 2) between the melanoma and the "
+                                      "RBC, e.g. 0.5,1.0 (the fixed scene's gap is 0.25)")
     _scenario_options(tradeoff_parser)
     _output_options(tradeoff_parser)
     tradeoff_parser.set_defaults(handler=command_tradeoff)

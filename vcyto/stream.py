@@ -170,6 +170,7 @@ def summarise(planned, truth, events, controller, wall, setup, idt_time, setting
             "decision": decision.action if decision else None,
             "outlet": (cell.fate if cell.fate != "in_channel" else "lost") if cell else "lost",
             "exit_time_ms": cell.exit_time * 1e3 if cell else None,
+            "exit_y_um": cell.exit_y * 1e6 if cell and math.isfinite(cell.exit_y) else None,
             "area_ratio": cell.area_ratio if cell else None,
             **_shape_summary(cell.measures if cell else None),
         })

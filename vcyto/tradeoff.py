@@ -42,6 +42,12 @@ SCENES = (
 )
 
 
+def pair_scene(gap: float) -> Scene:
+    """The close-pair scene with the RBC ``gap`` (s) behind the melanoma (``vcyto tradeoff --pair-gap``)."""
+    return Scene(f"melanoma and RBC {gap * 1e3:g} ms apart, pulse 0.9-2.1 ms", ((0.0, "melanoma"), (gap, "RBC")),
+                 ((0.9e-3, 2.1e-3),))
+
+
 @dataclass(frozen=True)
 class Level:
     """A plant model at a resolution: mesh h, time step (feib, oneway) or control period (rom), flow grid,
@@ -52,6 +58,7 @@ class Level:
     dt: float
     grid: float = 1e-6
     window: float | None = None
+    coupling: float | None = None      # auto: its coupling factor (None: sim.auto's default)
 
     @property
     def window_mesh_h(self) -> float:
@@ -62,7 +69,9 @@ class Level:
     def label(self) -> str:
         text = f"{self.model} h={self.mesh_h / UM:.3g}um {'dt' if self.model != 'rom' else 'period'}={self.dt * 1e6:g}us"
         text += f" grid={self.grid / UM:g}um" if self.model in ("rom", "oneway", "auto") else ""
-        return text + (f" window h={self.window_mesh_h / UM:.3g}um" if self.model == "auto" else "")
+        if self.model == "auto":
+            text += f" window h={self.window_mesh_h / UM:.3g}um"
+        return text + (f" coupling={self.coupling:g}" if self.coupling is not None else "")
 
 
 PAPER_H = 10 * UM / 3
@@ -113,8 +122,9 @@ def make_plant(scenario: Scenario, level: Level, flows: _Flows):
         return RomPlant(scenario.with_numerics(mesh_h=level.mesh_h), control_period=level.dt, flows=flows.get(level))
     if level.model == "auto":
         from sim.auto import AutoPlant
+        rule = {} if level.coupling is None else {"coupling": level.coupling}
         return AutoPlant(scenario.with_numerics(mesh_h=level.mesh_h, dt=level.dt), grid_spacing=level.grid,
-                         window_mesh_h=level.window_mesh_h)
+                         window_mesh_h=level.window_mesh_h, **rule)
     raise ValueError(f"unknown model {level.model!r}")
 
 

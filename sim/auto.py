@@ -1,13 +1,14 @@
 """The plant ``auto``: the cheapest model whose error stays within tolerance, chosen per time window.
 
 The ladder measured by ``vcyto tradeoff`` (README, "Speed against accuracy") says where the reduced model
-``rom`` is good enough: an isolated cell, deformable or not, with the IDT off, on or switching, leaves by
+``rom`` is good enough: an isolated RBC with the IDT off and an isolated melanoma with the IDT on leave by
 the FE-IB outlet with a mean centroid path error of 0.3-4 um; two cells close together are not (their
-hydrodynamic interaction, absent from ``rom``, moves them by 10-50 um). The rule, evaluated every control
-period on the cells in the channel:
+hydrodynamic interaction, absent from ``rom``, moves them by 10-50 um). Known gap (README): a soft cell (an
+RBC) reaching the SAW window as a pulse ends is carried poorly by ``rom`` (up to 18 um), and this rule does
+not catch it. The rule, evaluated every control period on the cells in the channel:
 
 - ``feib`` while two cells are closer than ``coupling`` x (r_i + r_j) (r = a cell type's largest semi-axis;
-  default coupling 2.5: 29 um for a melanoma and an RBC; chosen with ``vcyto tradeoff``, README);
+  default coupling 3: 35 um for a melanoma and an RBC; chosen with ``vcyto tradeoff --coupling``, README);
 - back to ``rom`` once every pair has been further apart than ``release`` x that distance (hysteresis,
   default 1.25) for ``dwell`` (default 50 us);
 - ``rom`` otherwise.
@@ -44,7 +45,7 @@ WINDOW_MESH_H = 20e-6 / 3       # m: the coarsest FE-IB mesh within tolerance on
 
 
 class AutoPlant:
-    def __init__(self, scenario: Scenario, control_period: float | None = None, coupling: float = 2.5,
+    def __init__(self, scenario: Scenario, control_period: float | None = None, coupling: float = 3.0,
                  release: float = 1.25, dwell: float = 50e-6, grid_spacing: float = 1e-6,
                  window_mesh_h: float | None = None):
         self.scenario = scenario

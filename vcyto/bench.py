@@ -472,14 +472,8 @@ def bench_auto(scenario: Scenario, count: int = 100, rate: float = 500.0, mix=((
             return {"cells": count, "rate": rate, "failed": model, "error": str(error)}
     auto, feib = results["auto"], results["feib"]
     pairs = list(zip(auto["cells"], feib["cells"]))
-    edges = [edge * 1e6 for outlet in scenario.channel.outlets for edge in outlet.span]
-
-    def margin(y_um):           # how far inside (or outside) its outlet the reference cell crossed the exit
-        return None if y_um is None else min(abs(y_um - edge) for edge in edges)
-
-    differ = [{"key": a["key"], "type": a["type"], "auto": a["outlet"], "feib": f["outlet"],
-               "auto_exit_y_um": a["exit_y_um"], "feib_exit_y_um": f["exit_y_um"],
-               "feib_edge_distance_um": margin(f["exit_y_um"])}
+    differ = [{"key": a["key"], "type": a["type"], "arrival_ms": f["arrival_ms"], "auto": a["outlet"],
+               "feib": f["outlet"], "auto_exit_y_um": a["exit_y_um"], "feib_exit_y_um": f["exit_y_um"]}
               for a, f in pairs if a["outlet"] != f["outlet"]]
     exit_errors = [abs(a["exit_time_ms"] - f["exit_time_ms"]) for a, f in pairs
                    if a["exit_time_ms"] is not None and f["exit_time_ms"] is not None]
@@ -498,20 +492,27 @@ def bench_auto(scenario: Scenario, count: int = 100, rate: float = 500.0, mix=((
                           "auto_exit_ms": a["exit_time_ms"], "feib_exit_ms": f["exit_time_ms"]} for a, f in pairs]}
 
 
+def _fraction(value) -> str:
+    return "-" if value is None else f"{value:.3f}"
+
+
 def auto_lines(result: dict) -> list[str]:
     if "failed" in result:
         return [f"{result['cells']}-cell stream: the {result['failed']} run stopped: {result['error']}"]
     stats = result["statistics"]
-    differ = "".join(f"; cell {d['key']} ({d['type']}): auto {d['auto']}, feib {d['feib']}, feib's exit "
-                     + (f"{d['feib_edge_distance_um']:.2f} um from an outlet edge" if d["feib_edge_distance_um"]
-                        is not None else "unknown") for d in result["outlets_differ"])
+    def exit_at(y_um):
+        return f" (exit at y = {y_um:.1f} um)" if y_um is not None else ""
+
+    differ = "".join(f"; cell {d['key']} ({d['type']}, arrived {d['arrival_ms']:.3f} ms): auto {d['auto']}"
+                     f"{exit_at(d['auto_exit_y_um'])}, feib {d['feib']}{exit_at(d['feib_exit_y_um'])}"
+                     for d in result["outlets_differ"])
     return [f"{result['cells']}-cell Poisson stream at {result['rate']:g}/s ({result['simulated_ms']:.1f} ms of device "
             f"time), seed {result['seed']}: auto against feib",
             f"  outlets that differ: {len(result['outlets_differ'])} of {result['cells']}{differ}",
             f"  exit time difference: median {result['exit_time_error_ms']['median'] * 1e3:.1f} us, "
             f"max {result['exit_time_error_ms']['max'] * 1e3:.1f} us",
-            f"  purity / yield: auto {stats['auto']['purity']} / {stats['auto']['yield']}, "
-            f"feib {stats['feib']['purity']} / {stats['feib']['yield']}",
+            f"  purity / yield: auto {_fraction(stats['auto']['purity'])} / {_fraction(stats['auto']['yield'])}, "
+            f"feib {_fraction(stats['feib']['purity'])} / {_fraction(stats['feib']['yield'])}",
             f"  wall: auto {result['wall_s']['auto']:.1f} s (set-up {result['setup_s']['auto']:.1f} s), feib "
             f"{result['wall_s']['feib']:.1f} s (set-up {result['setup_s']['feib']:.1f} s): {result['speedup_run']:.1f}x "
             f"faster without set-up, {result['speedup_total']:.1f}x with",

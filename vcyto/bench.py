@@ -496,15 +496,16 @@ def _fraction(value) -> str:
     return "-" if value is None else f"{value:.3f}"
 
 
+def _exit_at(y_um) -> str:
+    return f" (exit at y = {y_um:.1f} um)" if y_um is not None else ""
+
+
 def auto_lines(result: dict) -> list[str]:
     if "failed" in result:
         return [f"{result['cells']}-cell stream: the {result['failed']} run stopped: {result['error']}"]
     stats = result["statistics"]
-    def exit_at(y_um):
-        return f" (exit at y = {y_um:.1f} um)" if y_um is not None else ""
-
     differ = "".join(f"; cell {d['key']} ({d['type']}, arrived {d['arrival_ms']:.3f} ms): auto {d['auto']}"
-                     f"{exit_at(d['auto_exit_y_um'])}, feib {d['feib']}{exit_at(d['feib_exit_y_um'])}"
+                     f"{_exit_at(d['auto_exit_y_um'])}, feib {d['feib']}{_exit_at(d['feib_exit_y_um'])}"
                      for d in result["outlets_differ"])
     return [f"{result['cells']}-cell Poisson stream at {result['rate']:g}/s ({result['simulated_ms']:.1f} ms of device "
             f"time), seed {result['seed']}: auto against feib",

@@ -703,7 +703,7 @@ def build_parser() -> argparse.ArgumentParser:
     tradeoff_parser.add_argument("--output", default="recordings/tradeoff", metavar="DIR",
                                  help="where tradeoff.md, tradeoff.csv and tradeoff.png go (default recordings/tradeoff)")
     tradeoff_parser.add_argument("--coupling", metavar="LIST",
-                                 help="add an auto level for each coupling factor, e.g. 2,2.5,3 (default auto: 2.5)")
+                                 help="add an auto level for each coupling factor, e.g. 2,2.5 (the default auto level has coupling 3)")
     tradeoff_parser.add_argument("--pair-gap", metavar="MS",
                                  help="add a close-pair scene for each gap (ms, below 2) between the melanoma and the "
                                       "RBC, e.g. 0.5,1.0 (the fixed scene's gap is 0.25)")

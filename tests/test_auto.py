@@ -106,6 +106,14 @@ def test_bench_auto_compares_the_two_models_cell_by_cell(coarse):
     assert lines[0].startswith("3-cell Poisson stream at 1000/s") and "outlets that differ" in lines[1]
 
 
+def test_extra_scenes_are_the_close_pair_with_another_gap_or_without_the_melanoma():
+    from vcyto.tradeoff import lone_rbc_scene, pair_scene
+    assert pair_scene(0.25e-3).arrivals == CLOSE_PAIR.arrivals and pair_scene(0.25e-3).pulses == CLOSE_PAIR.pulses
+    lone = lone_rbc_scene(0.565e-3)
+    assert lone.arrivals == ((0.565e-3, "RBC"),) and lone.pulses == CLOSE_PAIR.pulses
+    assert [lone.actuation(t) for t in (0.5e-3, 1.0e-3, 2.2e-3)] == [0.0, 1.0, 0.0]
+
+
 @pytest.mark.slow
 def test_tradeoff_fast_writes_table_csv_plot_and_auto_is_within_tolerance(tmp_path):
     result = subprocess.run([sys.executable, "-m", "vcyto.cli", "tradeoff", "--fast", "--output", str(tmp_path), "--json",

@@ -93,6 +93,8 @@ def test_stability_rejects_bad_input(args, words):
     (["--coupling", "two"], "--coupling needs positive numbers"),
     (["--pair-gap", "3"], "gaps below 2 ms"),
     (["--pair-gap", "-1"], "--pair-gap needs positive numbers"),
+    (["--lone-rbc", "2.5"], "injection times below 2 ms"),
+    (["--lone-rbc", "0,1"], "--lone-rbc needs positive numbers"),
 ])
 def test_tradeoff_rejects_bad_levels_and_scenes(args, words, tmp_path):
     result = vcyto("tradeoff", "--output", str(tmp_path), *args)

@@ -290,6 +290,11 @@ def command_tradeoff(args):
         if max(gaps) >= 2e-3:
             raise UsageError(f"--pair-gap takes gaps below 2 ms (the scene's pulse ends at 2.1 ms; got {args.pair_gap})")
         scenes += tuple(tradeoff.pair_scene(gap) for gap in gaps)
+    if args.lone_rbc:
+        starts = _positive_list(args.lone_rbc, "--lone-rbc", "0.5,0.565", lambda text: float(text) * 1e-3)
+        if max(starts) >= 2e-3:
+            raise UsageError(f"--lone-rbc takes injection times below 2 ms (the pulse ends at 2.1 ms; got {args.lone_rbc})")
+        scenes += tuple(tradeoff.lone_rbc_scene(start) for start in starts)
     try:
         result = tradeoff.tradeoff(scenario, ladder, scenes, progress=progress)
     finally:
@@ -707,6 +712,9 @@ def build_parser() -> argparse.ArgumentParser:
     tradeoff_parser.add_argument("--pair-gap", metavar="MS",
                                  help="add a close-pair scene for each gap (ms, below 2) between the melanoma and the "
                                       "RBC, e.g. 0.5,1.0 (the fixed scene's gap is 0.25)")
+    tradeoff_parser.add_argument("--lone-rbc", metavar="MS",
+                                 help="add a scene for each time (ms, below 2) with an RBC alone injected then under "
+                                      "the pair scenes' 0.9-2.1 ms pulse, e.g. 0.565 (the pair's RBC without the melanoma)")
     _scenario_options(tradeoff_parser)
     _output_options(tradeoff_parser)
     tradeoff_parser.set_defaults(handler=command_tradeoff)

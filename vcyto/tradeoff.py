@@ -42,6 +42,12 @@ SCENES = (
 )
 
 
+def lone_rbc_scene(start: float) -> Scene:
+    """An RBC alone, injected at ``start`` (s), under the close-pair scene's pulse (``vcyto tradeoff --lone-rbc``):
+    the pair's RBC without the melanoma."""
+    return Scene(f"RBC alone from {start * 1e3:g} ms, pulse 0.9-2.1 ms", ((start, "RBC"),), ((0.9e-3, 2.1e-3),))
+
+
 def pair_scene(gap: float) -> Scene:
     """The close-pair scene with the RBC ``gap`` (s) behind the melanoma (``vcyto tradeoff --pair-gap``)."""
     return Scene(f"melanoma and RBC {gap * 1e3:g} ms apart, pulse 0.9-2.1 ms", ((0.0, "melanoma"), (gap, "RBC")),

@@ -120,19 +120,10 @@ class ImmersedBoundary:
 
     # ------------------------------------------------------------------ cells
     def injection_point(self, cell_type: CellType, gap: float = 1e-6) -> tuple[float, float]:
-        """Where a cell starts (PHYSICS.md decision 4): just inside the channel, centred on the injection inlet."""
-        inlet = self.scenario.channel.inlet(self.scenario.channel.injection_inlet)
-        return cell_type.semi_axes[0] + gap, 0.5 * (inlet.span[0] + inlet.span[1])
+        return injection_point(self.scenario, cell_type, gap)
 
     def new_cell(self, cell_type: CellType, cell_id: int, time: float, centre=None, warn: bool = True) -> Cell:
-        """A cell of ``cell_type`` at ``centre`` (default: the injection point); ``warn``: log a warning
-        when the mesh does not resolve it (``sim.health.under_resolved``)."""
-        numerics = self.scenario.numerics
-        centre = self.injection_point(cell_type) if centre is None else centre
-        membrane = Membrane.of(cell_type, centre, numerics.membrane_spacing * numerics.mesh_h)
-        if warn and (warning := under_resolved(cell_type, numerics.mesh_h)) is not None:
-            LOG.warning("cell %d: %s", cell_id, warning)
-        return Cell(cell_id, membrane, born=time, measures=Measures.of(membrane, numerics.mesh_h))
+        return new_cell(self.scenario, cell_type, cell_id, time, centre, warn)
 
     def start(self, actuation: float = 0.0, cells=()) -> State:
         """The initial flow of the scenario (steady at ``actuation`` by default) with ``cells``."""
@@ -176,6 +167,24 @@ class ImmersedBoundary:
 
     def _settle(self, cell: Cell, points: np.ndarray, time: float) -> Cell:
         return settle(cell, points, time, self.scenario)
+
+
+def injection_point(scenario: Scenario, cell_type: CellType, gap: float = 1e-6) -> tuple[float, float]:
+    """Where a cell starts (PHYSICS.md decision 4): just inside the channel, centred on the injection inlet."""
+    inlet = scenario.channel.inlet(scenario.channel.injection_inlet)
+    return cell_type.semi_axes[0] + gap, 0.5 * (inlet.span[0] + inlet.span[1])
+
+
+def new_cell(scenario: Scenario, cell_type: CellType, cell_id: int, time: float, centre=None,
+             warn: bool = True) -> Cell:
+    """A cell of ``cell_type`` at ``centre`` (default: the injection point) with the scenario's membrane
+    resolution; ``warn``: log a warning when the mesh does not resolve it (``sim.health.under_resolved``)."""
+    numerics = scenario.numerics
+    centre = injection_point(scenario, cell_type) if centre is None else centre
+    membrane = Membrane.of(cell_type, centre, numerics.membrane_spacing * numerics.mesh_h)
+    if warn and (warning := under_resolved(cell_type, numerics.mesh_h)) is not None:
+        LOG.warning("cell %d: %s", cell_id, warning)
+    return Cell(cell_id, membrane, born=time, measures=Measures.of(membrane, numerics.mesh_h))
 
 
 def reshape(membrane: Membrane, numerics) -> tuple[Membrane, float]:

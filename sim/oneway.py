@@ -24,10 +24,9 @@ import math
 
 import numpy as np
 
-from .feib import Cell, Measures, membrane_forces, settle
+from .feib import Cell, membrane_forces, new_cell, settle
 from .health import HealthLimits, check_cells
-from .membrane import Membrane
-from .plant import CellTruth, CellView, Observation, Truth, _Schedule
+from .plant import Observation, Truth, _Schedule, membrane_truths, membrane_views
 from .rom import RomFlows, default_response_time
 from .scenario import Scenario
 
@@ -56,8 +55,6 @@ class OneWayPlant:
         self.response_time = default_response_time(scenario) if response_time is None else response_time
         self.epsilon = scenario.numerics.mesh_h if epsilon is None else epsilon
         self.limits = HealthLimits.of(scenario)
-        inlet = scenario.channel.inlet(scenario.channel.injection_inlet)
-        self._inlet_centre = 0.5 * (inlet.span[0] + inlet.span[1])
         self.reset([])
 
     # ------------------------------------------------------------------ the contract
@@ -69,12 +66,8 @@ class OneWayPlant:
         return self.observe()
 
     def _inject(self):
-        numerics = self.scenario.numerics
-        for key, (_, name) in self.schedule.due(self.time, 0.5 * numerics.dt):
-            cell_type = self.scenario.cell_type(name)
-            centre = (cell_type.semi_axes[0] + 1e-6, self._inlet_centre)
-            membrane = Membrane.of(cell_type, centre, numerics.membrane_spacing * numerics.mesh_h)
-            self.cells.append(Cell(key, membrane, born=self.time, measures=Measures.of(membrane, numerics.mesh_h)))
+        for key, (_, name) in self.schedule.due(self.time, 0.5 * self.scenario.numerics.dt):
+            self.cells.append(new_cell(self.scenario, self.scenario.cell_type(name), key, self.time, warn=False))
 
     def step(self, actuation: float) -> Observation:
         for _ in range(self.substeps):
@@ -108,22 +101,10 @@ class OneWayPlant:
         return self.schedule.waiting == 0 and not any(cell.in_channel for cell in self.cells)
 
     def observe(self) -> Observation:
-        views = []
-        for cell in self.cells:
-            if cell.in_channel:
-                x, y = cell.membrane.centroid()
-                views.append(CellView(cell.id, float(x), float(y), cell.membrane.area(),
-                                      cell.membrane.cell_type.fluorescence))
-        return Observation(self.time, tuple(views))
+        return Observation(self.time, membrane_views(self.cells))
 
     def truth(self) -> Truth:
-        cells = []
-        for cell in self.cells:
-            x, y = cell.membrane.centroid()
-            cells.append(CellTruth(cell.id, cell.membrane.cell_type.name, cell.born, cell.fate, cell.exit_time,
-                                   cell.exit_y, float(x), float(y), cell.measures.area_ratio, cell.membrane.points,
-                                   cell.measures.as_dict()))
-        return Truth(self.time, tuple(cells), self.schedule.waiting)
+        return Truth(self.time, membrane_truths(self.cells), self.schedule.waiting)
 
     def diagnostics(self) -> dict:
         return {"dt": self.scenario.numerics.dt, "physics_steps": self.steps, "level": self.level, "health": "ok"}

@@ -82,6 +82,28 @@ class _Schedule:
         return len(self.items) - self.position
 
 
+def membrane_views(cells) -> tuple[CellView, ...]:
+    """What the optics see of membrane cells (``sim.feib.Cell``) in the channel."""
+    views = []
+    for cell in cells:
+        if cell.in_channel:
+            x, y = cell.membrane.centroid()
+            views.append(CellView(cell.id, float(x), float(y), cell.membrane.area(),
+                                  cell.membrane.cell_type.fluorescence))
+    return tuple(views)
+
+
+def membrane_truths(cells) -> tuple[CellTruth, ...]:
+    """The ground truth of membrane cells (``sim.feib.Cell``), with their points and shape measures."""
+    truths = []
+    for cell in cells:
+        x, y = cell.membrane.centroid()
+        truths.append(CellTruth(cell.id, cell.membrane.cell_type.name, cell.born, cell.fate, cell.exit_time,
+                                cell.exit_y, float(x), float(y), cell.measures.area_ratio, cell.membrane.points,
+                                cell.measures.as_dict()))
+    return tuple(truths)
+
+
 class FeibPlant:
     """The FE-IB model behind the plant contract."""
 
@@ -122,22 +144,10 @@ class FeibPlant:
         self.state = state
 
     def observe(self) -> Observation:
-        views = []
-        for cell in self.state.cells:
-            if cell.in_channel:
-                x, y = cell.membrane.centroid()
-                views.append(CellView(cell.id, float(x), float(y), cell.membrane.area(),
-                                      cell.membrane.cell_type.fluorescence))
-        return Observation(self.state.time, tuple(views))
+        return Observation(self.state.time, membrane_views(self.state.cells))
 
     def truth(self) -> Truth:
-        cells = []
-        for cell in self.state.cells:
-            x, y = cell.membrane.centroid()
-            cells.append(CellTruth(cell.id, cell.membrane.cell_type.name, cell.born, cell.fate, cell.exit_time,
-                                   cell.exit_y, float(x), float(y), cell.measures.area_ratio, cell.membrane.points,
-                                   cell.measures.as_dict()))
-        return Truth(self.state.time, tuple(cells), self.schedule.waiting)
+        return Truth(self.state.time, membrane_truths(self.state.cells), self.schedule.waiting)
 
     @property
     def done(self) -> bool:

@@ -37,7 +37,8 @@ def test_an_isolated_cell_never_needs_the_feib_model(coarse):
 
 
 def test_a_close_pair_runs_in_feib_while_close_and_is_within_tolerance_where_rom_is_not(coarse):
-    scenario, auto, feib = coarse
+    scenario, _, feib = coarse
+    auto = AutoPlant(scenario, grid_spacing=2 * UM, stiff_capillary=0.0)     # the distance rule alone
     reference = run_scene(feib, CLOSE_PAIR)
     result = compare(run_scene(auto, CLOSE_PAIR), reference)
     models = [model for _, model, _ in auto.switches]
@@ -48,6 +49,37 @@ def test_a_close_pair_runs_in_feib_while_close_and_is_within_tolerance_where_rom
     from sim.rom import RomPlant
     rom = compare(run_scene(RomPlant(scenario, control_period=20e-6, flows=auto.rom.flows), CLOSE_PAIR), reference)
     assert rom["path_mean_um"] > 2 * result["path_mean_um"]
+
+
+def test_the_capillary_numbers_put_the_melanoma_among_stiff_cells_and_the_rbc_among_soft_ones(coarse):
+    scenario, auto, _ = coarse
+    off, on = (flow.velocity for flow in auto._steady)
+    saw_speed = np.abs(np.hypot(*(on - off))).max()
+    assert 0.3 < saw_speed < 1.5                                  # m/s: the IDT's jet (README: 0.66 m/s)
+    for cell in scenario.cell_types:
+        assert auto.capillary[cell.name] == pytest.approx(scenario.fluid.viscosity * saw_speed / cell.kappa_e)
+    assert auto.capillary["melanoma"] < auto.stiff_capillary < auto.capillary["RBC"]
+    with pytest.raises(ValueError, match="stiff_capillary"):
+        AutoPlant(scenario, grid_spacing=2 * UM, stiff_capillary=-1.0)
+
+
+def test_a_stiff_cell_with_company_runs_in_feib_at_any_distance_and_rom_once_it_is_alone(coarse):
+    scenario, auto, _ = coarse
+    scene = Scene("melanoma, RBC 1 ms later", ((0.0, "melanoma"), (1.0e-3, "RBC")))
+    run = run_scene(auto, scene)
+    times = [t for t, _, _ in auto.switches]
+    assert [model for _, model, _ in auto.switches][:3] == ["rom", "feib", "rom"]
+    assert "cell 0 (melanoma, Ca = " in auto.switches[1][2] and "shares the channel with cell 1" in auto.switches[1][2]
+    assert times[1] == pytest.approx(1.0e-3, abs=1.5 * scenario.numerics.dt)      # when the RBC came in: far apart
+    exit_melanoma = run["cells"][0]["exit_time"]
+    assert exit_melanoma < times[2] <= exit_melanoma + auto.dwell + 2 * scenario.numerics.dt
+    assert "no stiff cell" in auto.switches[2][2]
+
+
+def test_soft_cells_further_apart_than_the_coupling_distance_stay_in_rom(coarse):
+    _, auto, _ = coarse
+    run_scene(auto, Scene("two RBCs 1 ms apart", ((0.0, "RBC"), (1.0e-3, "RBC"))))
+    assert [model for _, model, _ in auto.switches] == ["rom"] and auto.feib_steps == 0
 
 
 @pytest.fixture(scope="module")
@@ -117,12 +149,12 @@ def test_extra_scenes_are_the_close_pair_with_another_gap_or_without_the_melanom
 @pytest.mark.slow
 def test_tradeoff_fast_writes_table_csv_plot_and_auto_is_within_tolerance(tmp_path):
     result = subprocess.run([sys.executable, "-m", "vcyto.cli", "tradeoff", "--fast", "--output", str(tmp_path), "--json",
-                             "--coupling", "3", "--pair-gap", "1.0"], capture_output=True, text=True, timeout=1200)
+                             "--stiff-capillary", "0", "--pair-gap", "1.0"], capture_output=True, text=True, timeout=1200)
     assert result.returncode == 0, result.stderr
     rows = json.loads(result.stdout)["rows"]
     levels = list(dict.fromkeys(row["level"] for row in rows))
     scenes = list(dict.fromkeys(row["scene"] for row in rows))
-    assert levels[-1].endswith("coupling=3") and scenes[-1] == "melanoma and RBC 1 ms apart, pulse 0.9-2.1 ms"
+    assert levels[-1].endswith("stiff Ca<0") and scenes[-1] == "melanoma and RBC 1 ms apart, pulse 0.9-2.1 ms"
     assert len(rows) == len(levels) * len(scenes) == 6 * 4
     assert {p.name for p in tmp_path.iterdir()} >= {"tradeoff.md", "tradeoff.csv", "tradeoff.png"}
     with open(tmp_path / "tradeoff.csv") as handle:

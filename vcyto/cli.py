@@ -265,12 +265,20 @@ def command_stability(args):
 
 
 def _positive_list(text: str, option: str, example: str, parse) -> list[float]:
+    return _number_list(text, option, example, parse, lambda v: v > 0, "positive")
+
+
+def _non_negative_list(text: str, option: str, example: str) -> list[float]:
+    return _number_list(text, option, example, float, lambda v: v >= 0, "non-negative")
+
+
+def _number_list(text: str, option: str, example: str, parse, valid, kind: str) -> list[float]:
     try:
         values = [parse(part) for part in text.split(",") if part.strip()]
     except ValueError:
         values = []
-    if not values or not all(math.isfinite(v) and v > 0 for v in values):
-        raise UsageError(f"{option} needs positive numbers separated by commas, such as {example} (got {text!r})")
+    if not values or not all(math.isfinite(v) and valid(v) for v in values):
+        raise UsageError(f"{option} needs {kind} numbers separated by commas, such as {example} (got {text!r})")
     return values
 
 
@@ -285,6 +293,10 @@ def command_tradeoff(args):
         values = _positive_list(args.coupling, "--coupling", "2,2.5,3", lambda text: float(text))
         base = next(level for level in ladder if level.model == "auto" and level.window is None)
         ladder += tuple(dataclasses.replace(base, coupling=value) for value in values)
+    if args.stiff_capillary:
+        values = _non_negative_list(args.stiff_capillary, "--stiff-capillary", "0,100")
+        base = next(level for level in ladder if level.model == "auto" and level.window is None)
+        ladder += tuple(dataclasses.replace(base, stiff=value) for value in values)
     if args.pair_gap:
         gaps = _positive_list(args.pair_gap, "--pair-gap", "0.5,1.0", lambda text: float(text) * 1e-3)
         if max(gaps) >= 2e-3:
@@ -615,8 +627,8 @@ def _stream_options(parser: argparse.ArgumentParser):
                         help="purity mode aborts a sort with a type-I cell predicted within half this (default 1.2)")
     optics.add_argument("--no-controller", action="store_true", help="never switch the IDT on")
     parser.add_argument("--model", choices=("feib", "auto", "oneway", "rom", "streamline"), default="feib",
-                        help="plant: full FE-IB (default); auto (rom, switching to feib while cells are close "
-                             "together); oneway (membranes deforming in the blended steady flows, no feedback); "
+                        help="plant: full FE-IB (default); auto (rom, switching to feib while a melanoma "
+                             "shares the channel or cells are close together); oneway (membranes deforming in the blended steady flows, no feedback); "
                              "rom (cells as finite-size bodies in the blended steady flows, >10x faster than real "
                              "time without recording); or the streamline stand-in")
     parser.add_argument("--window-h", metavar="LENGTH",
@@ -709,6 +721,9 @@ def build_parser() -> argparse.ArgumentParser:
                                  help="where tradeoff.md, tradeoff.csv and tradeoff.png go (default recordings/tradeoff)")
     tradeoff_parser.add_argument("--coupling", metavar="LIST",
                                  help="add an auto level for each coupling factor, e.g. 2,2.5 (the default auto level has coupling 3)")
+    tradeoff_parser.add_argument("--stiff-capillary", metavar="LIST",
+                                 help="add an auto level for each stiff-cell capillary number, e.g. 0,100 (0 turns the "
+                                      "stiff-cell rule off; the default auto level has 100)")
     tradeoff_parser.add_argument("--pair-gap", metavar="MS",
                                  help="add a close-pair scene for each gap (ms, below 2) between the melanoma and the "
                                       "RBC, e.g. 0.5,1.0 (the fixed scene's gap is 0.25)")

@@ -65,6 +65,7 @@ class Level:
     grid: float = 1e-6
     window: float | None = None
     coupling: float | None = None      # auto: its coupling factor (None: sim.auto's default)
+    stiff: float | None = None         # auto: its stiff-cell capillary number (None: sim.auto's default; 0: off)
 
     @property
     def window_mesh_h(self) -> float:
@@ -77,7 +78,8 @@ class Level:
         text += f" grid={self.grid / UM:g}um" if self.model in ("rom", "oneway", "auto") else ""
         if self.model == "auto":
             text += f" window h={self.window_mesh_h / UM:.3g}um"
-        return text + (f" coupling={self.coupling:g}" if self.coupling is not None else "")
+        text += f" coupling={self.coupling:g}" if self.coupling is not None else ""
+        return text + (f" stiff Ca<{self.stiff:g}" if self.stiff is not None else "")
 
 
 PAPER_H = 10 * UM / 3
@@ -129,6 +131,7 @@ def make_plant(scenario: Scenario, level: Level, flows: _Flows):
     if level.model == "auto":
         from sim.auto import AutoPlant
         rule = {} if level.coupling is None else {"coupling": level.coupling}
+        rule.update({} if level.stiff is None else {"stiff_capillary": level.stiff})
         return AutoPlant(scenario.with_numerics(mesh_h=level.mesh_h, dt=level.dt), grid_spacing=level.grid,
                          window_mesh_h=level.window_mesh_h, **rule)
     raise ValueError(f"unknown model {level.model!r}")

@@ -3,11 +3,12 @@
 The ladder measured by ``vcyto tradeoff`` (README, "Speed against accuracy") says where the reduced model
 ``rom`` is good enough: an isolated RBC with the IDT off and an isolated melanoma with the IDT on leave by
 the FE-IB outlet with a mean centroid path error of 0.3-4 um; two cells close together are not (their
-hydrodynamic interaction, absent from ``rom``, moves them by 10-50 um). A large stiff cell (a melanoma) interacts further than that: ``rom`` carries an isolated
-melanoma 6 % faster than ``feib`` through x = 20-100 um (2D confinement of a 16 um rigid body, absent from the
-undisturbed flow ``rom`` averages), so in a stream its detection and its pulse come tens of us early and the
-cells behind it drift; on the 100-cell streams that flips RBCs trailing a sorted melanoma (README). The rule,
-evaluated every control period on the cells in the channel:
+hydrodynamic interaction, absent from ``rom``, moves them by 10-50 um). A large stiff cell (a melanoma)
+interacts further than that: ``rom`` carries an isolated melanoma 6 % faster than ``feib`` through
+x = 20-100 um (2D confinement of a 16 um rigid body, absent from the undisturbed flow ``rom`` averages), so in
+a stream its detection and its pulse come tens of us early and the cells behind it drift; on the 100-cell
+streams that flips RBCs trailing a sorted melanoma (README). The rule, evaluated every control period on the
+cells in the channel:
 
 - ``feib`` while a stiff cell shares the channel with any other cell (stiff: capillary number
   Ca = eta U_saw / kappa_e < ``stiff_capillary``, default 100; U_saw = the largest change of the steady flow

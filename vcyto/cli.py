@@ -282,6 +282,14 @@ def _number_list(text: str, option: str, example: str, parse, valid, kind: str) 
     return values
 
 
+def _times_before_pulse_end(text: str, option: str, example: str, what: str) -> list[float]:
+    """Times in ms (returned in s) for the extra tradeoff scenes: positive and below 2 ms."""
+    times = _positive_list(text, option, example, lambda part: float(part) * 1e-3)
+    if max(times) >= 2e-3:
+        raise UsageError(f"{option} takes {what} below 2 ms (the scenes' pulse ends at 2.1 ms; got {text})")
+    return times
+
+
 def command_tradeoff(args):
     from . import tradeoff
     from .progress import Progress
@@ -289,23 +297,18 @@ def command_tradeoff(args):
     output = _output_directory(args.output)
     progress = Progress(quiet=args.quiet or args.json)
     ladder, scenes = tradeoff.FAST_LADDER if args.fast else tradeoff.LADDER, tradeoff.SCENES
+    base = next(level for level in ladder if level.model == "auto" and level.window is None)
     if args.coupling:
-        values = _positive_list(args.coupling, "--coupling", "2,2.5,3", lambda text: float(text))
-        base = next(level for level in ladder if level.model == "auto" and level.window is None)
+        values = _positive_list(args.coupling, "--coupling", "2,2.5,3", float)
         ladder += tuple(dataclasses.replace(base, coupling=value) for value in values)
     if args.stiff_capillary:
         values = _non_negative_list(args.stiff_capillary, "--stiff-capillary", "0,100")
-        base = next(level for level in ladder if level.model == "auto" and level.window is None)
         ladder += tuple(dataclasses.replace(base, stiff=value) for value in values)
     if args.pair_gap:
-        gaps = _positive_list(args.pair_gap, "--pair-gap", "0.5,1.0", lambda text: float(text) * 1e-3)
-        if max(gaps) >= 2e-3:
-            raise UsageError(f"--pair-gap takes gaps below 2 ms (the scene's pulse ends at 2.1 ms; got {args.pair_gap})")
+        gaps = _times_before_pulse_end(args.pair_gap, "--pair-gap", "0.5,1.0", "gaps")
         scenes += tuple(tradeoff.pair_scene(gap) for gap in gaps)
     if args.lone_rbc:
-        starts = _positive_list(args.lone_rbc, "--lone-rbc", "0.5,0.565", lambda text: float(text) * 1e-3)
-        if max(starts) >= 2e-3:
-            raise UsageError(f"--lone-rbc takes injection times below 2 ms (the pulse ends at 2.1 ms; got {args.lone_rbc})")
+        starts = _times_before_pulse_end(args.lone_rbc, "--lone-rbc", "0.5,0.565", "injection times")
         scenes += tuple(tradeoff.lone_rbc_scene(start) for start in starts)
     try:
         result = tradeoff.tradeoff(scenario, ladder, scenes, progress=progress)
@@ -628,7 +631,8 @@ def _stream_options(parser: argparse.ArgumentParser):
     optics.add_argument("--no-controller", action="store_true", help="never switch the IDT on")
     parser.add_argument("--model", choices=("feib", "auto", "oneway", "rom", "streamline"), default="feib",
                         help="plant: full FE-IB (default); auto (rom, switching to feib while a melanoma "
-                             "shares the channel or cells are close together); oneway (membranes deforming in the blended steady flows, no feedback); "
+                             "shares the channel or cells are close together); oneway (membranes deforming in "
+                             "the blended steady flows, no feedback); "
                              "rom (cells as finite-size bodies in the blended steady flows, >10x faster than real "
                              "time without recording); or the streamline stand-in")
     parser.add_argument("--window-h", metavar="LENGTH",

@@ -130,8 +130,8 @@ def make_plant(scenario: Scenario, level: Level, flows: _Flows):
         return RomPlant(scenario.with_numerics(mesh_h=level.mesh_h), control_period=level.dt, flows=flows.get(level))
     if level.model == "auto":
         from sim.auto import AutoPlant
-        rule = {} if level.coupling is None else {"coupling": level.coupling}
-        rule.update({} if level.stiff is None else {"stiff_capillary": level.stiff})
+        rule = {name: value for name, value in (("coupling", level.coupling), ("stiff_capillary", level.stiff))
+                if value is not None}
         return AutoPlant(scenario.with_numerics(mesh_h=level.mesh_h, dt=level.dt), grid_spacing=level.grid,
                          window_mesh_h=level.window_mesh_h, **rule)
     raise ValueError(f"unknown model {level.model!r}")

@@ -17,10 +17,24 @@ from controller.detector import Detector, DetectorSettings
 from controller.events import TYPE_I, TYPE_II, Sighting
 from controller.sorter import ControllerSettings, SortController
 from sim.arrivals import Arrivals, schedule
+from sim.fluid import NumericalBlowUp
+from sim.linalg import SolverError
 from sim.plant import FeibPlant, StreamlinePlant
 from sim.scenario import UM, Scenario
 
 MODELS = ("feib", "streamline", "rom", "oneway", "auto")
+STATUSES = ("complete", "truncated", "interrupted", "failed")
+
+
+class StreamStopped(Exception):
+    """A run that did not finish: ``status`` is "interrupted" (KeyboardInterrupt, which SIGTERM is turned into
+    by the CLI) or "failed" (a numerical failure: ``sim.fluid.NumericalBlowUp`` or ``sim.linalg.SolverError``).
+    ``result`` is the summary of what ran up to then (its "status" and "reason" say why it is partial);
+    ``__cause__`` is the original exception."""
+
+    def __init__(self, status: str, reason: str, result: dict):
+        super().__init__(reason)
+        self.status, self.reason, self.result = status, reason, result
 SORTED_OUTLET = "upper"
 TYPE_II_CELLS = ("melanoma",)
 
@@ -85,47 +99,60 @@ def run_stream(scenario: Scenario, settings: StreamSettings, progress=None, plan
     window_start, window_end = settings.detector.window     # the detector reacts to crossings of these
     keys = {cell.key for cell in observation.cells}
     now = observation.time
-    while not plant.done and now < settings.max_time:
-        if grouped:
-            # what the detector reacts to: the cells crossing its lines, one period before and at the crossing
-            until = min(controller.next_change(now), settings.max_time)
-            periods, seen = plant.step_until(actuation, until, stop_lines=(window_end,), record_lines=(window_start,))
-            now = plant.time
-        else:
-            observation, periods = plant.step(actuation), 1
-            seen, now = [observation], observation.time
-        step += periods
-        idt_time += actuation * plant.control_period * periods
-        new_events = [event for view in seen for event in detector.observe(view.time, _sightings(view))]
-        for event in new_events:
-            controller.on_event(event)
-            events[event.key] = event
+    status, reason = "complete", ""
+    try:
+        while not plant.done and now < settings.max_time:
+            if grouped:
+                # what the detector reacts to: the cells crossing its lines, one period before and at the crossing
+                until = min(controller.next_change(now), settings.max_time)
+                periods, seen = plant.step_until(actuation, until, stop_lines=(window_end,), record_lines=(window_start,))
+                now = plant.time
+            else:
+                observation, periods = plant.step(actuation), 1
+                seen, now = [observation], observation.time
+            step += periods
+            idt_time += actuation * plant.control_period * periods
+            new_events = [event for view in seen for event in detector.observe(view.time, _sightings(view))]
+            for event in new_events:
+                controller.on_event(event)
+                events[event.key] = event
+                if progress:
+                    decision = controller.decision_for(event.event_id)
+                    progress.note(f"t = {event.time * 1e3:7.3f} ms  cell {event.key}: detected type {event.classification}"
+                                  f" (fluorescence {event.fluorescence:.2f}), decision {decision.action}")
+            actuation = controller.actuation(now)
+            if sinks:
+                truth = plant.truth()
+                decisions = controller.take_changes()
+                diagnostics = plant.diagnostics() if hasattr(plant, "diagnostics") else None
+                for sink in sinks:
+                    sink.on_step(step, observation, truth, actuation, new_events, decisions, fields, diagnostics)
             if progress:
-                decision = controller.decision_for(event.event_id)
-                progress.note(f"t = {event.time * 1e3:7.3f} ms  cell {event.key}: detected type {event.classification}"
-                              f" (fluorescence {event.fluorescence:.2f}), decision {decision.action}")
-        actuation = controller.actuation(now)
-        if sinks:
-            truth = plant.truth()
-            decisions = controller.take_changes()
-            diagnostics = plant.diagnostics() if hasattr(plant, "diagnostics") else None
-            for sink in sinks:
-                sink.on_step(step, observation, truth, actuation, new_events, decisions, fields, diagnostics)
-        if progress:
-            observation = plant.observe() if grouped else observation
-            previous, keys = keys, {cell.key for cell in observation.cells}
-            if not previous <= keys:          # a cell has left the channel: report how
-                _report_exits(plant.truth(), reported, progress)
-            progress.update(f"t = {observation.time * 1e3:.3f} ms, {len(observation.cells)} cells in the channel, "
-                            f"IDT {'on' if actuation else 'off'}")
+                observation = plant.observe() if grouped else observation
+                previous, keys = keys, {cell.key for cell in observation.cells}
+                if not previous <= keys:          # a cell has left the channel: report how
+                    _report_exits(plant.truth(), reported, progress)
+                progress.update(f"t = {observation.time * 1e3:.3f} ms, {len(observation.cells)} cells in the channel, "
+                                f"IDT {'on' if actuation else 'off'}")
+    except KeyboardInterrupt:
+        status, reason = "interrupted", "interrupted by the user (SIGINT or SIGTERM)"
+    except (NumericalBlowUp, SolverError) as error:
+        status, reason, failure = "failed", str(error), error
     if progress:
         _report_exits(plant.truth(), reported, progress)
     result = summarise(planned, plant.truth(), events, controller, time.perf_counter() - started, setup, idt_time,
                        settings, scenario)
+    if status == "complete" and not plant.done:
+        status, reason = "truncated", f"stopped at max_time = {settings.max_time * 1e3:g} ms before every cell had left"
+    result["status"], result["reason"] = status, reason
     if hasattr(plant, "switches"):             # the auto plant: what it picked, when and why
-        result["auto"] = {"switches": [{"time_ms": t * 1e3, "model": model, "reason": reason}
-                                       for t, model, reason in plant.switches],
+        result["auto"] = {"switches": [{"time_ms": t * 1e3, "model": model, "reason": why}
+                                       for t, model, why in plant.switches],
                           "feib_fraction": plant.diagnostics()["feib_fraction"]}
+    if status == "interrupted":
+        raise StreamStopped(status, reason, result)
+    if status == "failed":
+        raise StreamStopped(status, reason, result) from failure
     return result
 
 

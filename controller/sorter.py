@@ -1,54 +1,96 @@
-"""The sorting controller: IDT pulses for type-II events, timed from the measured velocity.
+"""The sorting controller: IDT pulses for type-II events, timed from the measured velocity, aborted by the envelope.
 
 For each detector event the controller predicts when the cell reaches the SAW window,
     arrival = event time + delay * reference_velocity / measured velocity,
-with ``delay`` the calibrated time from the detection window to the SAW window of a cell moving at
-``reference_velocity`` (the "sort delay" of a cytometer, measured with a calibration cell: on the paper's
-device with the default detection window (30, 60) um, a melanoma leaves the window at 0.91 ms at 0.094 m/s
-and its centroid reaches x = 150 um 0.56 ms later, with the FE-IB and the streamline plants alike). A type-II cell
-gets a pulse [arrival - lead, arrival - lead + pulse]. Modes: ``yield`` sorts every type-II cell;
-``purity`` aborts a sort when a type-I cell is predicted within ``coincidence_window`` / 2 of it (the type-I
-cell would be deflected too) and counts the abort. Several pending pulses may overlap: the IDT is on
-while any is. The controller is fed events and asked for the actuation at each control period; it never
-sees ground truth, so the same object could drive an instrument.
+with ``delay`` the calibrated time from the end of the detection window to the centre of the SAW window of a
+cell moving at ``reference_velocity`` (a sorter's "sort delay"). A sorted cell gets the pulse
+[arrival - lead, arrival - lead + pulse]. The pulse deflects more than its target: ``envelope`` = (low, high)
+is the range of arrival offsets (s, relative to the target's arrival; > 0: after it) at which a non-target
+cell alone under the same pulse would be deflected too (measured by ``vcyto calibrate``). Each predicted
+arrival is uncertain by ``timing_error`` (s), so two cells' offset by twice that.
+
+Modes (what a sorter offers; ``MODES``):
+- ``purity``: abort a sort whenever a type-I cell's predicted offset lies in the envelope widened by
+  2 * timing_error; a sort is aborted only before its pulse starts (a type-I cell detected later is told so).
+- ``enrichment``: abort only when a type-I cell's predicted offset lies in the envelope itself (no margin):
+  more yield, a little less purity.
+- ``yield``: sort every type-II cell; co-deflected type-I cells are accepted.
+- ``single``: ``purity``, and also abort when another type-II cell falls in the widened envelope (both are
+  aborted), so that every sorted pulse carries exactly one cell.
+Several pending pulses may overlap: the IDT is on while any is. The controller is fed events and asked for the
+actuation at each control period; it never sees ground truth, so the same object could drive an instrument.
 """
 
 from __future__ import annotations
 
+import math
 import time as clock
+from collections import deque
 from dataclasses import dataclass, field
 
 from .events import TYPE_II, Decision, DetectorEvent
 
-MODES = ("purity", "yield")
+MODES = ("purity", "enrichment", "yield", "single")
+LATENCY_SAMPLES = 100_000      # the latest decision latencies kept (bounded memory over long runs)
+REORDER_SLACK = 1e-3           # s: predicted arrivals may come out of detection order by up to this
 
 
 @dataclass(frozen=True)
 class ControllerSettings:
-    delay: float = 0.56e-3
-    reference_velocity: float = 0.095
-    lead: float = 0.5e-3
-    pulse: float = 1.2e-3
+    """Calibrated on the paper's device with the ``paper`` SAW model (``vcyto calibrate``; README "Sort
+    envelope"): a melanoma reaches the SAW window's centre 0.548 ms after leaving the detection window at
+    0.0997 m/s (rom). The shortest pulse that sorts it on ``rom`` is 0.30 ms, but ``feib`` needs the jet
+    earlier and longer (a stiff 16 um cell turns more slowly); 0.40 ms started 0.30 ms before the arrival sorts
+    it on ``rom`` (good leads 0.05-0.44 ms) and on ``feib`` at 6.67 and 3.33 um (0.15-0.2 ms and up). On ``rom``
+    that pulse deflects a type-I cell arriving from 0.236 ms before to 0.123 ms after the target."""
+
+    delay: float = 0.5478e-3
+    reference_velocity: float = 0.0997
+    lead: float = 0.30e-3
+    pulse: float = 0.40e-3
     mode: str = "purity"
-    coincidence_window: float = 1.2e-3
+    envelope: tuple[float, float] = (-0.2362e-3, 0.1225e-3)
+    timing_error: float = 0.0271e-3
     enabled: bool = True
 
     def __post_init__(self):
+        object.__setattr__(self, "envelope", tuple(float(v) for v in self.envelope))
         if self.mode not in MODES:
             raise ValueError(f"controller mode must be one of {', '.join(MODES)} (got {self.mode!r})")
         for name in ("delay", "reference_velocity", "pulse"):
-            if not getattr(self, name) > 0:
-                raise ValueError(f"controller {name} must be positive (got {getattr(self, name)!r})")
-        if self.lead < 0 or self.coincidence_window < 0:
-            raise ValueError("controller lead and coincidence_window must be >= 0")
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value > 0):
+                raise ValueError(f"controller {name} must be a finite positive number (got {value!r})")
+        for name in ("lead", "timing_error"):
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value >= 0):
+                raise ValueError(f"controller {name} must be a finite number >= 0 (got {value!r})")
+        if len(self.envelope) != 2 or not all(math.isfinite(v) for v in self.envelope) \
+                or self.envelope[0] > self.envelope[1]:
+            raise ValueError(f"controller envelope must be two finite offsets (low <= high) in s (got {self.envelope!r})")
+
+    def window(self, margin: bool = True) -> tuple[float, float]:
+        """The offsets (s) at which another cell counts as coincident with a sort: the envelope, widened by the
+        timing error of both cells' predictions when ``margin``."""
+        widen = 2 * self.timing_error if margin else 0.0
+        return self.envelope[0] - widen, self.envelope[1] + widen
+
+
+@dataclass
+class _Pending:
+    """A recent event that may still coincide with another: its class, predicted arrival and event id."""
+
+    classification: str
+    arrival: float
+    event_id: int
 
 
 @dataclass
 class SortController:
     settings: ControllerSettings
-    latencies: list = field(default_factory=list)
+    latencies: deque = field(default_factory=lambda: deque(maxlen=LATENCY_SAMPLES))
     _decisions: dict = field(default_factory=dict)    # event_id -> Decision, in event order
-    _recent: list = field(default_factory=list)       # (classification, arrival, event_id) still able to coincide
+    _recent: list = field(default_factory=list)       # _Pending entries still able to coincide
     _pulses: dict = field(default_factory=dict)       # event_id -> (on, off), not yet over
     _changes: list = field(default_factory=list)      # decisions made or revised since take_changes()
 
@@ -59,19 +101,23 @@ class SortController:
     def decision_for(self, event_id: int) -> Decision | None:
         return self._decisions.get(event_id)
 
+    def predicted_arrival(self, event: DetectorEvent) -> float:
+        settings = self.settings
+        return event.time + settings.delay * settings.reference_velocity / max(event.velocity, 1e-9)
+
     def on_event(self, event: DetectorEvent) -> None:
         started = clock.perf_counter()
-        settings = self.settings
-        arrival = event.time + settings.delay * settings.reference_velocity / max(event.velocity, 1e-9)
-        horizon = event.time - settings.coincidence_window
-        self._recent = [entry for entry in self._recent if entry[1] >= horizon]
-        if not settings.enabled:
+        arrival = self.predicted_arrival(event)
+        low, high = self.settings.window()
+        reach = max(high, -low, 0.0)
+        self._recent = [entry for entry in self._recent if entry.arrival >= arrival - reach - REORDER_SLACK]
+        if not self.settings.enabled:
             self._decide(Decision(event.event_id, "pass", arrival, reason="controller disabled"))
         elif event.classification == TYPE_II:
             self._sort(event, arrival)
         else:
             self._pass(event, arrival)
-        self._recent.append((event.classification, arrival, event.event_id))
+        self._recent.append(_Pending(event.classification, arrival, event.event_id))
         self.latencies.append(clock.perf_counter() - started)
 
     def _decide(self, decision: Decision):
@@ -83,27 +129,43 @@ class SortController:
         changes, self._changes = self._changes, []
         return changes
 
+    def _coincident(self, offset: float, other_class: str) -> bool:
+        """Whether a cell of ``other_class`` at ``offset`` (s, after the target) forbids the target's sort."""
+        mode = self.settings.mode
+        if mode == "yield" or (other_class == TYPE_II and mode != "single"):
+            return False
+        low, high = self.settings.window(margin=mode != "enrichment")
+        return low <= offset <= high
+
     def _sort(self, event, arrival):
-        settings = self.settings
-        half = settings.coincidence_window / 2
-        if settings.mode == "purity" and any(kind != TYPE_II and abs(other - arrival) < half
-                                             for kind, other, _ in self._recent):
-            self._decide(Decision(event.event_id, "abort", arrival, reason="type-I cell in coincidence"))
-            return
-        on = arrival - settings.lead
-        self._pulses[event.event_id] = (on, on + settings.pulse)
-        self._decide(Decision(event.event_id, "sort", arrival, on, on + settings.pulse))
+        for other in self._recent:
+            if self._coincident(other.arrival - arrival, other.classification):
+                self._decide(Decision(event.event_id, "abort", arrival,
+                                      reason=f"{_describe(other, arrival)} inside the sort envelope"))
+                if other.classification == TYPE_II:          # single-cell mode: the other one goes too
+                    self._abort(other.event_id, event.time, f"type-II event {event.event_id} inside its envelope")
+                return
+        on = arrival - self.settings.lead
+        self._pulses[event.event_id] = (on, on + self.settings.pulse)
+        self._decide(Decision(event.event_id, "sort", arrival, on, on + self.settings.pulse))
 
     def _pass(self, event, arrival):
-        self._decide(Decision(event.event_id, "pass", arrival))
-        if self.settings.mode != "purity":
-            return
-        half = self.settings.coincidence_window / 2
-        for kind, other, event_id in self._recent:       # a type-I cell next to a scheduled sort: abort it
-            decision = self._decisions[event_id]
-            if kind == TYPE_II and decision.action == "sort" and abs(other - arrival) < half:
-                self._pulses.pop(event_id, None)
-                self._decide(Decision(event_id, "abort", other, reason="type-I cell in coincidence"))
+        reason = ""
+        for other in self._recent:
+            decision = self._decisions[other.event_id]
+            if decision.action == "sort" and self._coincident(arrival - other.arrival, event.classification):
+                if not self._abort(other.event_id, event.time, f"type-I event {event.event_id} inside its envelope"):
+                    reason = f"inside the envelope of event {other.event_id}'s pulse, which had started"
+        self._decide(Decision(event.event_id, "pass", arrival, reason=reason))
+
+    def _abort(self, event_id: int, now: float, reason: str) -> bool:
+        """Abort the sort of ``event_id`` if its pulse has not started by ``now``; whether it was aborted."""
+        decision = self._decisions[event_id]
+        if decision.action != "sort" or decision.pulse_on <= now:
+            return decision.action == "abort"
+        self._pulses.pop(event_id, None)
+        self._decide(Decision(event_id, "abort", decision.arrival, reason=reason))
+        return True
 
     def next_change(self, time: float) -> float:
         """The earliest pulse start or end after ``time`` (inf if none): until then, and until the next
@@ -118,3 +180,8 @@ class SortController:
         on = any(start <= time for start, _ in self._pulses.values())
         self.latencies.append(clock.perf_counter() - started)
         return 1.0 if on else 0.0
+
+
+def _describe(other: _Pending, arrival: float) -> str:
+    offset = (other.arrival - arrival) * 1e3
+    return f"type-{other.classification} event {other.event_id} ({offset:+.3f} ms)"

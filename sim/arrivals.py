@@ -1,56 +1,108 @@
 """Cell arrivals at the injection inlet: an explicit ordered list, or a count with a type mix and a rate.
 
-``schedule`` returns (time, type name) pairs in arrival order. Regular arrivals are 1/rate apart;
-Poisson arrivals have exponential gaps drawn from the given generator. Every gap is at least
-``min_spacing`` (s) so that membranes never start overlapped: with Poisson arrivals this is a dead time,
-as in a real flow cell.
+``schedule`` returns the cells that enter the channel, (time, type name) pairs in arrival order;
+``offer`` also returns the ones turned away. Processes (``Arrivals.process``):
+
+- ``regular``: one cell every 1 / rate (the rate may not exceed 1 / min_spacing).
+- ``poisson``: the sample's cells reach the inlet as a Poisson process of intensity ``rate``; a cell that comes
+  less than ``min_spacing`` after the last admitted one is rejected and counted (a non-paralysable dead time, as
+  a sorter's electronics reject coincident events): two membranes are never injected on top of each other.
+  The admitted cells' gaps are then exactly min_spacing + Exp(rate) (memorylessness), their rate is
+  rate / (1 + rate * min_spacing) and a cell is rejected with probability rate * min_spacing / (1 + rate *
+  min_spacing) (``dead_time_acceptance``). Gaps are drawn, never clipped, so nothing piles up at the minimum.
+
+Types are drawn from ``mix`` independently of the times (a thinned Poisson process per type).
 """
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
 
 PROCESSES = ("regular", "poisson")
+MAX_COUNT = 10_000_000          # ~1 GB of schedule and summary; beyond it a run is a sweep, not one stream
 
 
 @dataclass(frozen=True)
 class Arrivals:
     cells: tuple[str, ...] = ()            # explicit order; empty -> count / mix / rate
-    count: int = 0
+    count: int = 0                         # cells offered (poisson: admitted + rejected)
     mix: tuple[tuple[str, float], ...] = ()
-    rate: float = 500.0                    # cells per second
+    rate: float = 500.0                    # cells per second offered at the inlet
     process: str = "regular"
-    min_spacing: float = 0.5e-3
+    min_spacing: float = 0.5e-3            # s, the inlet's dead time
     first: float = 0.0
 
     def __post_init__(self):
         if not self.cells and self.count <= 0:
             raise ValueError("arrivals need an explicit list of cells or a positive count")
-        if self.rate <= 0:
-            raise ValueError(f"arrival rate must be positive (got {self.rate} cells/s)")
+        if self.count > MAX_COUNT or len(self.cells) > MAX_COUNT:
+            raise ValueError(f"at most {MAX_COUNT:,} cells per stream (split longer samples into several runs)")
+        if not (math.isfinite(self.rate) and self.rate > 0):
+            raise ValueError(f"arrival rate must be positive and finite, in cells/s (got {self.rate})")
         if self.process not in PROCESSES:
             raise ValueError(f"arrival process must be one of {', '.join(PROCESSES)} (got {self.process!r})")
-        if self.min_spacing < 0:
-            raise ValueError("min_spacing must be >= 0")
-        if not self.cells and (not self.mix or any(weight < 0 for _, weight in self.mix)
+        if not (math.isfinite(self.min_spacing) and self.min_spacing >= 0):
+            raise ValueError(f"min_spacing must be a finite time >= 0 s (got {self.min_spacing})")
+        if not (math.isfinite(self.first) and self.first >= 0):
+            raise ValueError(f"the first arrival must be at a finite time >= 0 s (got {self.first})")
+        if self.process == "regular" and self.rate * self.min_spacing > 1 + 1e-12:
+            raise ValueError(f"regular arrivals at {self.rate:g} cells/s come closer than the minimum spacing "
+                             f"{self.min_spacing * 1e3:g} ms: lower the rate to <= {1 / self.min_spacing:g} cells/s "
+                             "or use poisson arrivals (coincident cells rejected and counted)")
+        if not self.cells and (not self.mix or any(not (math.isfinite(w) and w >= 0) for _, w in self.mix)
                                or sum(weight for _, weight in self.mix) <= 0):
-            raise ValueError("a count of cells needs a type mix with non-negative weights, e.g. RBC:0.9,melanoma:0.1")
+            raise ValueError("a count of cells needs a type mix with finite non-negative weights, "
+                             "e.g. RBC:0.9,melanoma:0.1")
+
+
+@dataclass(frozen=True)
+class Offer:
+    """The sample as it reached the inlet: the admitted cells (time, type) and the rejected ones."""
+
+    admitted: list[tuple[float, str]]
+    rejected: list[tuple[float, str]]
+
+
+def dead_time_acceptance(rate: float, dead_time: float) -> float:
+    """The fraction of a Poisson stream of intensity ``rate`` that a non-paralysable dead time admits."""
+    return 1.0 / (1.0 + rate * dead_time)
+
+
+def offer(arrivals: Arrivals, rng: np.random.Generator) -> Offer:
+    """Draw the sample's types and times and apply the inlet's dead time."""
+    names = list(arrivals.cells) if arrivals.cells else _draw_types(arrivals, rng)
+    if arrivals.process == "regular":
+        times = arrivals.first + np.arange(len(names)) / arrivals.rate
+        return Offer([(float(t), str(n)) for t, n in zip(times, names)], [])
+    gaps = rng.exponential(1 / arrivals.rate, size=len(names))
+    gaps[0] = 0.0
+    times = arrivals.first + np.cumsum(gaps)
+    keep = _admitted(times, arrivals.min_spacing)
+    admitted = [(float(t), str(n)) for t, n, k in zip(times, names, keep) if k]
+    rejected = [(float(t), str(n)) for t, n, k in zip(times, names, keep) if not k]
+    return Offer(admitted, rejected)
 
 
 def schedule(arrivals: Arrivals, rng: np.random.Generator) -> list[tuple[float, str]]:
-    if arrivals.cells:
-        names = list(arrivals.cells)
-    else:
-        types = [name for name, _ in arrivals.mix]
-        weights = np.array([weight for _, weight in arrivals.mix], dtype=float)
-        names = list(rng.choice(types, size=arrivals.count, p=weights / weights.sum()))
-    if arrivals.process == "poisson":
-        gaps = rng.exponential(1 / arrivals.rate, size=len(names))
-    else:
-        gaps = np.full(len(names), 1 / arrivals.rate)
-    gaps = np.maximum(gaps, arrivals.min_spacing)
-    gaps[0] = 0.0
-    times = arrivals.first + np.cumsum(gaps)
-    return [(float(t), str(name)) for t, name in zip(times, names)]
+    """The cells that enter the channel, in arrival order."""
+    return offer(arrivals, rng).admitted
+
+
+def _draw_types(arrivals: Arrivals, rng: np.random.Generator) -> list[str]:
+    types = [name for name, _ in arrivals.mix]
+    weights = np.array([weight for _, weight in arrivals.mix], dtype=float)
+    return list(rng.choice(types, size=arrivals.count, p=weights / weights.sum()))
+
+
+def _admitted(times: np.ndarray, dead_time: float) -> np.ndarray:
+    """Which of the sorted ``times`` a non-paralysable dead time after each admitted one lets through."""
+    keep = np.zeros(len(times), dtype=bool)
+    free = -math.inf
+    for index, t in enumerate(times.tolist()):
+        if t >= free:
+            keep[index] = True
+            free = t + dead_time
+    return keep

@@ -241,7 +241,7 @@ class RomPlant:
         self._log_positions = np.zeros((2 * n + 64, 4))
         self._counters = np.zeros(7, dtype=np.int64)
         self._level = np.zeros(1)
-        self._settled: dict[int, CellTruth] = {}
+        self._unreported, self._reported = 0, set()        # truth_update's position: keys below are all reported
         self._arrays = (self.flows.cells, self._params, self._segments, self._outlets, self._semi_axes, self._start,
                         self._kind, self._arrival, self._born, self._position, self._fate, self._exit_time,
                         self._exit_y, self._stalled, self._counters, self._level, self._before, self._touched,
@@ -314,19 +314,32 @@ class RomPlant:
         return Observation(step * self.control_period, views)
 
     def truth(self) -> Truth:
-        """Ground truth of every injected cell; settled cells' records are built once and reused."""
+        """Ground truth of every injected cell (its cost grows with the cells run: call it at the end)."""
+        cells = tuple(self._record(i) for i in range(int(self._counters[kernels.NEXT])))
+        return Truth(self.time, cells, len(self._arrival) - int(self._counters[kernels.NEXT]))
+
+    def truth_update(self) -> Truth:
+        """Ground truth of the cells in the channel and of those that settled since the previous call (each
+        settled cell once); its cost depends on the cells in the channel, not on how many have passed."""
+        upto = int(self._counters[kernels.NEXT])
         cells = []
-        for i in range(int(self._counters[kernels.NEXT])):
-            record = self._settled.get(i)
-            if record is None:
-                code = int(self._fate[i])
-                record = CellTruth(i, self._names[self._kind[i]], float(self._born[i]),
-                                   self._outlet_names.get(code) or FATES[code], float(self._exit_time[i]),
-                                   float(self._exit_y[i]), float(self._position[i, 0]), float(self._position[i, 1]), 1.0)
-                if code != kernels.IN_CHANNEL:
-                    self._settled[i] = record
+        for i in range(self._unreported, upto):
+            if i in self._reported:
+                continue
+            record = self._record(i)
+            if record.fate != "in_channel":
+                self._reported.add(i)
             cells.append(record)
-        return Truth(self.time, tuple(cells), len(self._arrival) - int(self._counters[kernels.NEXT]))
+        while self._unreported < upto and self._unreported in self._reported:
+            self._reported.discard(self._unreported)
+            self._unreported += 1
+        return Truth(self.time, tuple(cells), len(self._arrival) - upto)
+
+    def _record(self, i: int) -> CellTruth:
+        code = int(self._fate[i])
+        return CellTruth(i, self._names[self._kind[i]], float(self._born[i]), self._outlet_names.get(code) or FATES[code],
+                         float(self._exit_time[i]), float(self._exit_y[i]), float(self._position[i, 0]),
+                         float(self._position[i, 1]), 1.0)
 
     def adopt(self, time_s: float, level: float, cells: dict, injected: int):
         """Continue from another plant's state (the ``auto`` plant's hand-over): at ``time_s`` (a whole number
@@ -345,7 +358,7 @@ class RomPlant:
             self._before[key] = (x, y)
             self._born[key] = born
             self._stalled[key] = 0.0
-        self._settled = {key: record for key, record in self._settled.items() if key not in cells}
+        self._unreported, self._reported = 0, set()
         self._level[0] = level
 
     def diagnostics(self) -> dict:

@@ -289,9 +289,12 @@ class Numerics:
 
 @dataclass(frozen=True)
 class CellType:
-    """A kind of cell: membrane moduli (kappa_e N/m, kappa_b N m), initial shape and optical signature.
+    """A kind of cell: membrane moduli (kappa_e N/m, kappa_b N m), initial shape, optical signature and sort class.
 
-    The shape is an ellipse with semi-axes (along x, along y); equal axes give a circle.
+    The shape is an ellipse with semi-axes (along x, along y); equal axes give a circle. ``target``: whether the
+    sorter should send this type to the sorted (upper) outlet (true class II, e.g. a labelled melanoma cell) or
+    let it pass to the default (lower) one (class I). The detector sees only ``fluorescence``, so a target type
+    needs a brightness above the detector's gate to be found.
     """
 
     name: str
@@ -299,10 +302,15 @@ class CellType:
     kappa_b: float
     semi_axes: tuple[float, float]
     fluorescence: float = 0.0
+    target: bool = False
 
     def __post_init__(self):
         object.__setattr__(self, "semi_axes", tuple(float(v) for v in self.semi_axes))
         _positive(self, "kappa_e")
+        if not (math.isfinite(self.fluorescence) and self.fluorescence >= 0):
+            raise ScenarioError("fluorescence", f"must be a finite brightness >= 0 (got {self.fluorescence!r})")
+        if not isinstance(self.target, bool):
+            raise ScenarioError("target", f"must be true or false (got {self.target!r})")
         if not (math.isfinite(self.kappa_b) and self.kappa_b >= 0):
             raise ScenarioError("kappa_b", f"must be >= 0 (got {self.kappa_b!r})")
         if len(self.semi_axes) != 2 or not all(math.isfinite(v) and v > 0 for v in self.semi_axes):
@@ -326,7 +334,8 @@ class CellType:
 
 # PHYSICS.md decision 3: the RBC is an ellipse of diameter 7.5 um and perimeter 19.8 um (semi-axes 3.75, 2.5 um)
 RBC = CellType("RBC", kappa_e=6.0e-6, kappa_b=2.0e-19, semi_axes=(3.75e-6, 2.5e-6), fluorescence=0.0)
-MELANOMA = CellType("melanoma", kappa_e=2.8e-4, kappa_b=1.2e-16, semi_axes=(8.0e-6, 8.0e-6), fluorescence=1.0)
+MELANOMA = CellType("melanoma", kappa_e=2.8e-4, kappa_b=1.2e-16, semi_axes=(8.0e-6, 8.0e-6), fluorescence=1.0,
+                    target=True)
 
 
 # the cells across the narrowest inlet or outlet below which the profile is not resolved
@@ -346,6 +355,8 @@ class Scenario:
     def __post_init__(self):
         object.__setattr__(self, "cell_types", tuple(self.cell_types))
         names = [cell.name for cell in self.cell_types]
+        if not names:
+            raise ScenarioError("cell_types", "needs at least one [[cell_types]] entry (or none at all for the defaults)")
         if len(set(names)) != len(names):
             raise ScenarioError("cell_types", f"names must be unique (got {names})")
         narrowest = min(self.channel.inlets + self.channel.outlets, key=lambda b: b.span[1] - b.span[0])

@@ -18,3 +18,10 @@ def paper_solver(paper_scenario):
 @pytest.fixture(scope="session")
 def coarse_scenario():
     return Scenario().with_numerics(mesh_h=5 * UM)
+
+
+@pytest.fixture(scope="session")
+def rom_plant(paper_scenario, paper_solver):
+    """The rom plant of the paper's device (its flows from the session's paper solver)."""
+    from sim.rom import RomFlows, RomPlant
+    return RomPlant(paper_scenario, flows=RomFlows.of(paper_scenario, fluid=paper_solver))

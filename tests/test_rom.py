@@ -18,7 +18,9 @@ from sim.rom import JET_RESPONSE_TIME, RomFlows, RomPlant, area_mean_rule, measu
 from sim.scenario import UM, Scenario
 from sim.streamline import trace
 from sim.transfer import PointLocator
-from vcyto.stream import SORTED_OUTLET, TYPE_II, StreamSettings, run_stream
+from controller.events import TYPE_II
+from vcyto.outcomes import SORTED_OUTLET
+from vcyto.stream import StreamSettings, run_stream
 
 # The FE-IB plant on the paper's scenarios (README, `vcyto paper 1`, `vcyto paper 2`): outlet and exit ordinate.
 FEIB_SCENARIO_I = ("lower", 72.2 * UM)        # RBC, IDT off

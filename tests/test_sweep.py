@@ -74,7 +74,7 @@ def test_stream_options_reach_the_settings_in_their_command_line_units():
 
 def test_random_sampling_is_determined_by_its_seed_and_stays_in_bounds():
     def spec(seed):
-        return {"base": {**BASE, "mix": "RBC:0.5,melanoma:0.5"},
+        return {"base": {**BASE, "mix": "RBC:0.5,melanoma:0.5", "min_spacing": 0.05},
                 "sweep": {"sampling": "random", "samples": 12, "sampling_seed": seed},
                 "parameters": {"lead": {"uniform": [0.1, 0.9]}, "rate": {"log_uniform": [100, 10000]},
                                "count": {"integers": [2, 4]}, "mode": ["purity", "yield"]}}

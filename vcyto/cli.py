@@ -13,6 +13,9 @@ import sys
 import time
 from pathlib import Path
 
+import numpy as np
+
+from controller.sorter import MODES
 from sim.fluid import NumericalBlowUp
 from sim.linalg import SolverError
 from sim.scenario import CONVECTIONS, MEMBRANE_METHODS, SAW_MODELS, ScenarioError
@@ -361,8 +364,6 @@ def _mix(text: str) -> tuple[tuple[str, float], ...]:
 
 def stream_settings(args, scenario):
     """The ``StreamSettings`` of the stream options in ``args`` (vcyto stream, and each point of vcyto sweep)."""
-    from controller.detector import DetectorSettings
-    from controller.sorter import ControllerSettings
     from sim.arrivals import Arrivals
     from . import stream
     try:
@@ -372,14 +373,8 @@ def stream_settings(args, scenario):
                             min_spacing=args.min_spacing * 1e-3)
         for name in set(arrivals.cells) | {name for name, _ in arrivals.mix}:
             scenario.cell_type(name)
-        low, high = (float(v) * 1e-6 for v in args.detection_window.split(","))
-        if high > scenario.channel.length:
-            raise UsageError(f"--detection-window {args.detection_window} um lies outside the channel "
-                             f"(0, {scenario.channel.length * 1e6:g}) um")
-        detector = DetectorSettings(window=(low, high), gate=args.gate, noise_cv=args.noise)
-        controller = ControllerSettings(delay=args.delay * 1e-3, lead=args.lead * 1e-3, pulse=args.pulse * 1e-3,
-                                        mode=args.mode, coincidence_window=args.coincidence * 1e-3,
-                                        enabled=not args.no_controller)
+        detector = _detector_settings(args, scenario)
+        controller = _controller_settings(args)
         window = getattr(args, "window_h", None)
         if window is not None:
             from .config import parse_quantity
@@ -389,13 +384,51 @@ def stream_settings(args, scenario):
             text, window = window, parse_quantity(window)
             if not window > 0:
                 raise UsageError(f"--window-h must be a positive length such as 6.67um (got {text!r})")
+        max_time = args.max_time * 1e-3 if args.max_time is not None else None
         return stream.StreamSettings(arrivals, detector, controller, args.model, args.seed,
-                                     max_time=args.max_time * 1e-3, window_mesh_h=window)
+                                     max_time=max_time, window_mesh_h=window)
     except ValueError as error:
         if isinstance(error, (UsageError, ScenarioError)):
             raise
         raise UsageError(str(error)) from None
 
+
+
+def _detector_settings(args, scenario):
+    from controller.detector import DetectorSettings
+    low, high = (v * 1e-6 for v in _pair(args.detection_window, "--detection-window"))
+    if high > scenario.channel.length:
+        raise UsageError(f"--detection-window {args.detection_window} um lies outside the channel "
+                         f"(0, {scenario.channel.length * 1e6:g}) um")
+    try:
+        return DetectorSettings(window=(low, high), gate=args.gate, noise_cv=args.noise)
+    except ValueError as error:
+        raise UsageError(f"--detection-window/--gate/--noise: {error}") from None
+
+
+def _controller_settings(args):
+    """The controller file (or the shipped defaults), then the controller options given on the command line."""
+    from dataclasses import replace
+    from controller.sorter import ControllerSettings
+    base = ControllerSettings()
+    if getattr(args, "controller", None):
+        from .controllerfile import load_controller
+        base = load_controller(args.controller)
+    changes = {name: getattr(args, name) * 1e-3 for name in ("delay", "lead", "pulse", "timing_error")
+               if getattr(args, name, None) is not None}
+    if getattr(args, "mode", None):
+        changes["mode"] = args.mode
+    if getattr(args, "envelope", None):
+        parts = args.envelope.split(",")
+        try:
+            changes["envelope"] = tuple(float(part) * 1e-3 for part in parts)
+        except ValueError:
+            parts = []
+        if len(parts) != 2:
+            raise UsageError(f"--envelope wants two offsets in ms, LO,HI, such as -0.08,0.14 (got {args.envelope!r})")
+    if args.no_controller:
+        changes["enabled"] = False
+    return replace(base, **changes)
 
 
 def stream_run_options() -> argparse.ArgumentParser:
@@ -463,6 +496,83 @@ def command_stream(args):
         result.setdefault("files", {}).update({"fcs": str(fcs_path), "summary": str(summary_path)})
         lines.append(f"detector events: {fcs_path} (FCS 3.1); summary: {summary_path}")
     _emit(args, result, lines)
+    return _partial_status(args, result)
+
+
+def _partial_status(args, result) -> int:
+    """Exit status of a finished run: 0, or 1 for a run cut short that the user did not cap (README "Exit status")."""
+    if result.get("status", "complete") == "complete":
+        return 0
+    asked = getattr(args, "allow_partial", False)
+    print(f"vcyto: {'note' if asked else 'error'}: the run is partial ({result['status']}): {result['reason']}"
+          + ("" if asked else "; its statistics are not those of the whole sample (--allow-partial to accept it)"),
+          file=sys.stderr)
+    return 0 if asked else EXIT_NUMERICAL
+
+
+def command_calibrate(args):
+    from . import calibrate
+    from .controllerfile import controller_toml
+    scenario = _scenario(args)
+    output = _output_directory(args.output)
+    base = _controller_settings(args)
+    grid = _calibration_grid(args)
+    pulse = None
+    if args.pulse is not None or args.lead is not None:
+        if args.pulse is None or args.lead is None:
+            raise UsageError("--pulse and --lead go together: give both to measure the envelope of that pulse, "
+                             "or neither to search for the shortest reliable pulse")
+        pulse = (base.pulse, base.lead)
+    detector = _detector_settings(args, scenario)
+    from .progress import Progress
+    progress = Progress(quiet=args.quiet or args.json)
+    started = time.perf_counter()
+    try:
+        plant = calibrate.make_calibration_plant(scenario, args.model)
+        result = calibrate.calibrate(plant, scenario, detector, grid, pulse, base, progress)
+    except calibrate.CalibrationError as error:
+        raise UsageError(str(error)) from None
+    finally:
+        progress.close()
+    record = dict(result.as_dict(), model=args.model, saw_model=scenario.saw.model,
+                  wall_time_s=time.perf_counter() - started, files={})
+    if output is not None:
+        stem = output / time.strftime(f"calibration-{args.model}-%Y%m%d-%H%M%S")
+        provenance = {"command": " ".join(sys.argv), "model": args.model, "saw_model": scenario.saw.model,
+                      "mesh_h_um": scenario.numerics.mesh_h * 1e6, "dt_us": scenario.numerics.dt * 1e6,
+                      "date": time.strftime("%Y-%m-%d %H:%M:%S")}
+        paths = {"controller": stem.with_suffix(".toml"), "summary": stem.with_suffix(".json"),
+                 "figure": stem.with_suffix(".png")}
+        paths["controller"].write_text(controller_toml(result.settings, provenance))
+        calibrate.save_figure(result, paths["figure"])
+        record["files"] = {kind: str(path) for kind, path in paths.items()}
+        paths["summary"].write_text(json.dumps(record, indent=2, default=_plain))
+    _emit(args, record, calibrate.report_lines(record))
+
+
+def _calibration_grid(args):
+    from .calibrate import Grid
+    low, high = (float(v) * 1e-3 for v in _pair(args.pulse_range, "--pulse-range"))
+    steps = {"lead_step": args.lead_step, "offset_step": args.offset_step, "offset_range": args.offset_range,
+             "resolution": args.resolution}
+    for name, value in dict(steps, pulse_low=low, pulse_high=high).items():
+        if not (math.isfinite(value) and value > 0):
+            raise UsageError(f"--{name.replace('_', '-')}: must be a positive number of ms (got {value!r})")
+    if high < low:
+        raise UsageError(f"--pulse-range: the shortest pulse comes first (got {args.pulse_range!r})")
+    pulses = tuple(float(v) for v in np.round(np.arange(low, high + 1e-12, args.pulse_step * 1e-3), 9))
+    return Grid(pulses=pulses, **{name: value * 1e-3 for name, value in steps.items()})
+
+
+def _pair(text: str, option: str):
+    parts = text.split(",")
+    try:
+        values = [float(part) for part in parts]
+    except ValueError:
+        values = []
+    if len(values) != 2:
+        raise UsageError(f"{option} wants two numbers LO,HI (got {text!r})")
+    return values
 
 
 def _viewer_target(args, default_save: Path | None, spawn_by_default: bool):
@@ -620,14 +730,24 @@ def _stream_options(parser: argparse.ArgumentParser):
                         help="detection window along the channel in um (default 30,60)")
     optics.add_argument("--gate", type=float, default=0.5, help="fluorescence gate for type II (default 0.5)")
     optics.add_argument("--noise", type=float, default=0.2, help="fluorescence noise CV (default 0.2)")
-    optics.add_argument("--delay", type=float, default=0.56, metavar="MS",
-                        help="calibrated delay from the detector to the SAW window at 0.095 m/s (default 0.56)")
-    optics.add_argument("--lead", type=float, default=0.5, metavar="MS",
-                        help="IDT on this long before the predicted arrival (default 0.5)")
-    optics.add_argument("--pulse", type=float, default=1.2, metavar="MS", help="IDT pulse length (default 1.2)")
-    optics.add_argument("--mode", choices=("purity", "yield"), default="purity", help="sort mode (default purity)")
-    optics.add_argument("--coincidence", type=float, default=1.2, metavar="MS",
-                        help="purity mode aborts a sort with a type-I cell predicted within half this (default 1.2)")
+    optics.add_argument("--controller", metavar="FILE",
+                        help="controller settings file written by vcyto calibrate (default: the shipped calibration, "
+                             "README 'Sort envelope'); the options below override it")
+    optics.add_argument("--delay", type=float, metavar="MS",
+                        help="sort delay: detection to the SAW window at the reference velocity (default 0.548)")
+    optics.add_argument("--lead", type=float, metavar="MS",
+                        help="IDT on this long before the predicted arrival (default 0.3)")
+    optics.add_argument("--pulse", type=float, metavar="MS", help="IDT pulse length (default 0.4)")
+    optics.add_argument("--mode", choices=MODES,
+                        help="sort mode: purity (abort when a type-I cell is predicted in the widened envelope; "
+                             "the default), enrichment (abort only inside the envelope itself), yield (never abort), "
+                             "single (purity, and abort two type-II cells in each other's envelope)")
+    optics.add_argument("--envelope", metavar="LO,HI",
+                        help="offsets in ms from a sorted cell's arrival at which another cell is deflected too "
+                             "(default -0.236,0.123: measured by vcyto calibrate)")
+    optics.add_argument("--timing-error", type=float, metavar="MS",
+                        help="uncertainty of one predicted arrival; the purity window is the envelope widened by twice "
+                             "this (default 0.027)")
     optics.add_argument("--no-controller", action="store_true", help="never switch the IDT on")
     parser.add_argument("--model", choices=("feib", "auto", "oneway", "rom", "streamline"), default="feib",
                         help="plant: full FE-IB (default); auto (rom, switching to feib while a melanoma "
@@ -640,7 +760,44 @@ def _stream_options(parser: argparse.ArgumentParser):
                              "the coarsest mesh within tolerance on the tradeoff scenes; --window-h equal to "
                              "--mesh-h runs the windows at full resolution)")
     parser.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
-    parser.add_argument("--max-time", type=float, default=50.0, metavar="MS", help="stop after this simulated time")
+    parser.add_argument("--max-time", type=float, metavar="MS",
+                        help="cap the run at this simulated time; by default it runs until every cell has left "
+                             "(a capped run says so, its statistics are marked partial and cells never injected are "
+                             "counted as such); exit status 1 unless --allow-partial")
+    parser.add_argument("--allow-partial", action="store_true",
+                        help="a run cut short by --max-time (or by cells stuck in the channel) exits 0")
+
+
+def _calibration_options(parser: argparse.ArgumentParser):
+    parser.add_argument("--model", choices=("rom", "auto", "oneway", "feib"), default="rom",
+                        help="plant the calibration cells go through (default rom: about 1 s; feib: minutes to hours, "
+                             "coarsen --pulse-step/--lead-step/--offset-step or give --pulse and --lead)")
+    parser.add_argument("--detection-window", default="30,60", metavar="X0,X1", help="as for vcyto stream (um)")
+    parser.add_argument("--gate", type=float, default=0.5, help="fluorescence gate for type II (default 0.5)")
+    parser.add_argument("--noise", type=float, default=0.2, help="fluorescence noise CV (default 0.2)")
+    parser.add_argument("--controller", metavar="FILE", help="start from this controller file (mode and fields not "
+                                                             "measured are kept)")
+    parser.add_argument("--mode", choices=MODES, help="sort mode written to the controller file (default purity)")
+    for name in ("delay", "envelope", "timing_error"):
+        parser.set_defaults(**{name: None})
+    parser.set_defaults(no_controller=False)
+    parser.add_argument("--pulse", type=float, metavar="MS", help="with --lead: skip the pulse search and measure "
+                                                                  "the envelope of this pulse")
+    parser.add_argument("--lead", type=float, metavar="MS", help="with --pulse: its lead")
+    parser.add_argument("--pulse-range", default="0.02,2", metavar="LO,HI", help="pulse lengths searched, ms "
+                                                                                  "(default 0.02,2)")
+    parser.add_argument("--pulse-step", type=float, default=0.02, metavar="MS", help="pulse search step (default 0.02)")
+    parser.add_argument("--lead-step", type=float, default=0.01, metavar="MS", help="lead search step (default 0.01)")
+    parser.add_argument("--offset-step", type=float, default=0.02, metavar="MS",
+                        help="envelope scan step (default 0.02); its edges are bisected to --resolution")
+    parser.add_argument("--offset-range", type=float, default=1.5, metavar="MS",
+                        help="envelope scan from -this to +this (default 1.5)")
+    parser.add_argument("--resolution", type=float, default=0.0025, metavar="MS",
+                        help="envelope edge resolution (default 0.0025)")
+    parser.add_argument("--output", default="recordings", metavar="DIR",
+                        help="where the controller file (.toml), the record (.json) and the plot (.png) go "
+                             "(default recordings/; '' writes nothing)")
+    _output_options(parser)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -679,6 +836,12 @@ def build_parser() -> argparse.ArgumentParser:
     _viewer_options(stream)
     _output_options(stream)
     stream.set_defaults(handler=command_stream)
+
+    calibration = commands.add_parser("calibrate", help="measure the sort envelope (sort delay, shortest reliable "
+                                                        "pulse, deflection envelope) and write a controller file")
+    _scenario_options(calibration)
+    _calibration_options(calibration)
+    calibration.set_defaults(handler=command_calibrate)
 
     replay_parser = commands.add_parser("replay", help="re-log an MCAP recording to Rerun")
     replay_parser.add_argument("file", metavar="FILE.mcap", help="a recording written by vcyto stream")
@@ -808,7 +971,7 @@ def main(argv=None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     try:
-        args.handler(args)
+        status = args.handler(args)
     except (ScenarioError, UsageError) as error:
         return _fail(error, EXIT_INPUT)
     except (NumericalBlowUp, SolverError) as error:
@@ -822,7 +985,7 @@ def main(argv=None) -> int:
         print(f"vcyto: internal error: {type(error).__name__}: {error} (set VCYTO_DEBUG=1 for the traceback; "
               "please report it)", file=sys.stderr)
         return EXIT_INTERNAL
-    return 0
+    return status or 0
 
 
 def _fail(error: Exception, status: int) -> int:

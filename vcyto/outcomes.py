@@ -8,13 +8,14 @@ The classes (in this order, which recordings and viewers use as class ids 0..N-1
 - ``misclassified``: a cell whose detected class differs from its true class (whatever its outlet);
 - ``co-deflected``: a non-target, detected as such, that left by the sorted outlet anyway;
 - ``lost``: a cell that hit a wall, never left, or was never detected;
-- ``not_injected``: a scheduled cell that never entered the channel (a run cut short).
+- ``not_injected``: a scheduled cell that never entered the channel (a run cut short);
+- ``unfinished``: a cell still in the channel when a run was cut short (its outcome is unknown).
 """
 
 from __future__ import annotations
 
 OUTCOME_CLASSES = ("sorted", "passed", "aborted", "missed", "misclassified", "co-deflected", "lost",
-                   "not_injected")
+                   "not_injected", "unfinished")
 SORTED_OUTLET = "upper"
 DEFAULT_OUTLET = "lower"
 
@@ -23,8 +24,8 @@ def outcome_class(cell: dict) -> str:
     """The outcome class of one cell of ``run_stream``'s summary (keys true_class, detected_class,
     decision, outlet)."""
     outlet, detected, true = cell["outlet"], cell["detected_class"], cell["true_class"]
-    if outlet == "not_injected":
-        return "not_injected"
+    if outlet in ("not_injected", "in_channel"):
+        return "not_injected" if outlet == "not_injected" else "unfinished"
     if detected is not None and detected != true:
         return "misclassified"
     if outlet not in (SORTED_OUTLET, DEFAULT_OUTLET) or detected is None:

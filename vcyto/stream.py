@@ -1,26 +1,32 @@
 """`vcyto stream`: the closed sorting loop. The one function that owns the loop is ``run_stream``.
 
 plant.step(actuation) -> observation -> detector -> controller -> actuation for the next control period;
-outcomes come from the plant's ground truth, which the controller never sees.
+outcomes come from the plant's ground truth, which the controller never sees. A run ends when every cell of
+the sample has left the device; ``max_time`` is an explicit cap, and a run that reaches it (or whose cells
+are still in the channel ``drain_time`` after the last arrival) is reported as truncated, never as complete.
+The loop's work per period depends on the cells in the channel, not on how many have passed: plants that
+can report only what changed (``truth_update``) are asked for that, and the summary is built once at the end.
 """
 
 from __future__ import annotations
 
 import math
-import statistics
 import time
 from dataclasses import dataclass, field
 
 import numpy as np
 
 from controller.detector import Detector, DetectorSettings
-from controller.events import TYPE_I, TYPE_II, Sighting
+from controller.events import Sighting
 from controller.sorter import ControllerSettings, SortController
-from sim.arrivals import Arrivals, schedule
+from sim.arrivals import Arrivals, offer
 from sim.fluid import NumericalBlowUp
 from sim.linalg import SolverError
 from sim.plant import FeibPlant, StreamlinePlant
-from sim.scenario import UM, Scenario
+from sim.scenario import Scenario
+
+from . import sortreport
+from .sortreport import report_lines, statistics_of, true_class  # noqa: F401  (the loop's public names)
 
 MODELS = ("feib", "streamline", "rom", "oneway", "auto")
 STATUSES = ("complete", "truncated", "interrupted", "failed")
@@ -35,8 +41,10 @@ class StreamStopped(Exception):
     def __init__(self, status: str, reason: str, result: dict):
         super().__init__(reason)
         self.status, self.reason, self.result = status, reason, result
-SORTED_OUTLET = "upper"
-TYPE_II_CELLS = ("melanoma",)
+
+NOTE_LIMIT = 200               # per-cell lines on screen for samples up to this size; beyond, counts only
+DRAIN_TIME = 20e-3             # s after the last arrival by which every cell must have left (else: truncated)
+RECORD_INTERVAL = 0.2e-3       # s: an event-driven plant shows its state to the sinks at least this often
 
 
 @dataclass(frozen=True)
@@ -47,14 +55,19 @@ class StreamSettings:
     model: str = "feib"
     seed: int = 0
     control_period: float | None = None       # default: the plant's natural period (dt for feib)
-    max_time: float = 50e-3
+    max_time: float | None = None             # an explicit cap on simulated time (None: until the sample ends)
     window_mesh_h: float | None = None        # auto: mesh of its feib windows (None: sim.auto's default)
+    drain_time: float = DRAIN_TIME
+    record_interval: float = RECORD_INTERVAL
 
     def __post_init__(self):
         if self.model not in MODELS:
             raise ValueError(f"model must be one of {', '.join(MODELS)} (got {self.model!r})")
-        if self.max_time <= 0:
-            raise ValueError("max_time must be positive")
+        if self.max_time is not None and not (math.isfinite(self.max_time) and self.max_time > 0):
+            raise ValueError(f"max_time must be a finite positive time (got {self.max_time!r})")
+        for name in ("drain_time", "record_interval"):
+            if not (math.isfinite(getattr(self, name)) and getattr(self, name) > 0):
+                raise ValueError(f"{name} must be a finite positive time (got {getattr(self, name)!r})")
         if self.window_mesh_h is not None and not (math.isfinite(self.window_mesh_h) and self.window_mesh_h > 0):
             raise ValueError(f"the auto model's window mesh size must be a positive length (got {self.window_mesh_h!r})")
 
@@ -75,76 +88,42 @@ def make_plant(scenario: Scenario, settings: StreamSettings):
 
 
 def run_stream(scenario: Scenario, settings: StreamSettings, progress=None, plant=None, sinks=()) -> dict:
-    """Run the loop until every scheduled cell has left (or ``max_time``); a JSON-ready summary.
+    """Run the loop until every admitted cell has left (or a cap); a JSON-ready summary (``sortreport``).
 
-    ``sinks`` (e.g. an MCAP recorder) get every control period through ``on_step``; the caller closes them.
-    Without sinks, a plant that can group periods (``step_until``, the rom plant) is stepped up to the next
-    moment the loop must look: a cell crossing the end of the detection window, the controller's next pulse
-    edge, ``max_time``; the detector is fed the cells that crossed an edge of its window, one period before
-    and at the crossing. It reacts to nothing else and the controller to nothing but its events, so the
-    outcome is the same as stepping period by period (tested), at a fraction of the cost.
+    ``sinks`` (e.g. an MCAP recorder) get each step through ``on_step``; the caller closes them. The ``truth``
+    they get holds the cells in the channel and those that left since the previous step. A plant that can group
+    periods (``step_until``, the rom plant) is stepped up to the next moment the loop must look: a cell crossing
+    the end of the detection window, the controller's next pulse edge, the cap, and with sinks every
+    ``record_interval``; the detector is fed the cells that crossed an edge of its window, one period before and
+    at the crossing. It reacts to nothing else and the controller to nothing but its events, so the outcome is
+    the same as stepping period by period (tested), at a fraction of the cost.
     """
     started = time.perf_counter()
     rng = np.random.default_rng(settings.seed)
     arrivals_rng, detector_rng = rng.spawn(2)
-    planned = schedule(settings.arrivals, arrivals_rng)
+    sample = offer(settings.arrivals, arrivals_rng)
     plant = plant or make_plant(scenario, settings)
-    detector = Detector(settings.detector, detector_rng)
-    controller = SortController(settings.controller)
-    observation = plant.reset(planned, seed=settings.seed)
+    run = _Run(plant, settings, Detector(settings.detector, detector_rng), SortController(settings.controller),
+               sinks, progress, len(sample.admitted))
+    run.observation = plant.reset(sample.admitted, seed=settings.seed)
     setup = time.perf_counter() - started
-    events, reported, actuation, idt_time, step = {}, set(), 0.0, 0.0, 0
-    fields = _field_payload(plant) if hasattr(plant, "fields") else None
-    grouped = not sinks and hasattr(plant, "step_until")
-    window_start, window_end = settings.detector.window     # the detector reacts to crossings of these
-    keys = {cell.key for cell in observation.cells}
-    now = observation.time
-    status, reason = "complete", ""
+    last_arrival = sample.admitted[-1][0] if sample.admitted else 0.0
+    drain_cap = last_arrival + settings.drain_time
+    cap = min(drain_cap, settings.max_time) if settings.max_time is not None else drain_cap
+    status, reason, failure = "complete", "", None
     try:
-        while not plant.done and now < settings.max_time:
-            if grouped:
-                # what the detector reacts to: the cells crossing its lines, one period before and at the crossing
-                until = min(controller.next_change(now), settings.max_time)
-                periods, seen = plant.step_until(actuation, until, stop_lines=(window_end,), record_lines=(window_start,))
-                now = plant.time
-            else:
-                observation, periods = plant.step(actuation), 1
-                seen, now = [observation], observation.time
-            step += periods
-            idt_time += actuation * plant.control_period * periods
-            new_events = [event for view in seen for event in detector.observe(view.time, _sightings(view))]
-            for event in new_events:
-                controller.on_event(event)
-                events[event.key] = event
-                if progress:
-                    decision = controller.decision_for(event.event_id)
-                    progress.note(f"t = {event.time * 1e3:7.3f} ms  cell {event.key}: detected type {event.classification}"
-                                  f" (fluorescence {event.fluorescence:.2f}), decision {decision.action}")
-            actuation = controller.actuation(now)
-            if sinks:
-                truth = plant.truth()
-                decisions = controller.take_changes()
-                diagnostics = plant.diagnostics() if hasattr(plant, "diagnostics") else None
-                for sink in sinks:
-                    sink.on_step(step, observation, truth, actuation, new_events, decisions, fields, diagnostics)
-            if progress:
-                observation = plant.observe() if grouped else observation
-                previous, keys = keys, {cell.key for cell in observation.cells}
-                if not previous <= keys:          # a cell has left the channel: report how
-                    _report_exits(plant.truth(), reported, progress)
-                progress.update(f"t = {observation.time * 1e3:.3f} ms, {len(observation.cells)} cells in the channel, "
-                                f"IDT {'on' if actuation else 'off'}")
+        while not plant.done and run.now < cap:
+            run.step(cap)
     except KeyboardInterrupt:
         status, reason = "interrupted", "interrupted by the user (SIGINT or SIGTERM)"
     except (NumericalBlowUp, SolverError) as error:
         status, reason, failure = "failed", str(error), error
-    if progress:
-        _report_exits(plant.truth(), reported, progress)
-    result = summarise(planned, plant.truth(), events, controller, time.perf_counter() - started, setup, idt_time,
-                       settings, scenario)
+    run.finish()
     if status == "complete" and not plant.done:
-        status, reason = "truncated", f"stopped at max_time = {settings.max_time * 1e3:g} ms before every cell had left"
-    result["status"], result["reason"] = status, reason
+        status, reason = "truncated", _truncation(plant, settings, cap, drain_cap)
+    result = sortreport.summarise(sample, plant.truth(), run.events, run.controller, scenario, settings)
+    result.update(status=status, reason=reason, wall_time_s=time.perf_counter() - started, setup_time_s=setup,
+                  idt_on_time_ms=run.idt_time * 1e3, steps=run.steps)
     if hasattr(plant, "switches"):             # the auto plant: what it picked, when and why
         result["auto"] = {"switches": [{"time_ms": t * 1e3, "model": model, "reason": why}
                                        for t, model, why in plant.switches],
@@ -154,6 +133,100 @@ def run_stream(scenario: Scenario, settings: StreamSettings, progress=None, plan
     if status == "failed":
         raise StreamStopped(status, reason, result) from failure
     return result
+
+
+def _truncation(plant, settings, cap, drain_cap) -> str:
+    truth = plant.truth()
+    waiting = truth.waiting
+    inside = sum(cell.fate == "in_channel" for cell in truth.cells)
+    if settings.max_time is not None and cap < drain_cap:
+        return (f"stopped at --max-time {settings.max_time * 1e3:g} ms as asked: {waiting} cells never injected, "
+                f"{inside} still in the channel")
+    return (f"{inside} cells still in the channel {settings.drain_time * 1e3:g} ms after the last arrival "
+            "(stuck or too slow): their outcomes are unknown")
+
+
+class _Run:
+    """The state of one closed-loop run between its steps (``run_stream`` owns the loop)."""
+
+    def __init__(self, plant, settings, detector, controller, sinks, progress, count):
+        self.plant, self.settings, self.detector, self.controller = plant, settings, detector, controller
+        self.sinks, self.progress = sinks, progress
+        self.notes = progress is not None and count <= NOTE_LIMIT
+        self.events, self.settled, self.left = {}, set(), 0
+        self.actuation = self.idt_time = 0.0
+        self.steps = 0
+        self.fields = _field_payload(plant) if sinks and hasattr(plant, "fields") else None
+        self.grouped = hasattr(plant, "step_until")
+        self.observation = None
+        self.truth_update = getattr(plant, "truth_update", None)
+
+    @property
+    def now(self) -> float:
+        return self.plant.time if self.grouped else self.observation.time
+
+    def step(self, cap: float):
+        plant, controller = self.plant, self.controller
+        if self.grouped:
+            # what the detector reacts to: the cells crossing its lines, one period before and at the crossing
+            until = min(controller.next_change(self.now), cap)
+            if self.sinks:
+                until = min(until, self.now + self.settings.record_interval)
+            window_start, window_end = self.settings.detector.window
+            periods, seen = plant.step_until(self.actuation, until, stop_lines=(window_end,),
+                                             record_lines=(window_start,))
+            self.observation = plant.observe() if self.sinks or self.progress else None
+        else:
+            self.observation, periods = plant.step(self.actuation), 1
+            seen = [self.observation]
+        self.steps += periods
+        self.idt_time += self.actuation * plant.control_period * periods
+        new_events = [event for view in seen for event in self.detector.observe(view.time, _sightings(view))]
+        for event in new_events:
+            controller.on_event(event)
+            self.events[event.key] = event
+            if self.notes:
+                decision = controller.decision_for(event.event_id)
+                self.progress.note(f"t = {event.time * 1e3:7.3f} ms  cell {event.key}: detected type "
+                                   f"{event.classification} (fluorescence {event.fluorescence:.2f}), "
+                                   f"decision {decision.action}")
+        self.actuation = controller.actuation(self.now)
+        if self.sinks or self.progress:
+            self._show(new_events)
+
+    def _show(self, new_events):
+        truth = self._truth()
+        if self.sinks:
+            decisions = self.controller.take_changes()
+            diagnostics = self.plant.diagnostics() if hasattr(self.plant, "diagnostics") else None
+            for sink in self.sinks:
+                sink.on_step(self.steps, self.observation, truth, self.actuation, new_events, decisions, self.fields,
+                             diagnostics)
+        if self.progress:
+            self._report(truth)
+            self.progress.update(f"t = {self.now * 1e3:.3f} ms, {len(self.observation.cells)} cells in the channel, "
+                                 f"{self.left} left, {len(self.events)} detected, IDT {'on' if self.actuation else 'off'}")
+
+    def _truth(self):
+        """The cells in the channel and those that left since the last call (each settled cell once)."""
+        if self.truth_update is not None:
+            return self.truth_update()
+        truth = self.plant.truth()
+        cells = tuple(cell for cell in truth.cells if cell.fate == "in_channel" or cell.key not in self.settled)
+        self.settled.update(cell.key for cell in cells if cell.fate != "in_channel")
+        return type(truth)(truth.time, cells, truth.waiting)
+
+    def _report(self, truth):
+        for cell in truth.cells:
+            if cell.fate != "in_channel":
+                self.left += 1
+                if self.notes:
+                    self.progress.note(f"t = {cell.exit_time * 1e3:7.3f} ms  cell {cell.key} ({cell.type}) left by: "
+                                       f"{cell.fate}")
+
+    def finish(self):
+        if self.progress:
+            self._report(self._truth())
 
 
 def _sightings(observation) -> list[Sighting]:
@@ -167,113 +240,3 @@ def _field_payload(plant):
         vertices, velocity, pressure, grid_x, grid_y = plant.fields()
         return velocity_field(vertices, velocity, pressure, grid_x, grid_y, plant.truth().time)
     return payload
-
-
-def _report_exits(truth, reported, progress):
-    for cell in truth.cells:
-        if cell.fate != "in_channel" and cell.key not in reported:
-            reported.add(cell.key)
-            progress.note(f"t = {cell.exit_time * 1e3:7.3f} ms  cell {cell.key} ({cell.type}) left by: {cell.fate}")
-
-
-def true_class(type_name: str) -> str:
-    return TYPE_II if type_name in TYPE_II_CELLS else TYPE_I
-
-
-def summarise(planned, truth, events, controller, wall, setup, idt_time, settings, scenario) -> dict:
-    by_key = {cell.key: cell for cell in truth.cells}
-    cells = []
-    for key, (arrival, type_name) in enumerate(planned):
-        cell = by_key.get(key)
-        event = events.get(key)
-        decision = controller.decision_for(event.event_id) if event else None
-        cells.append({
-            "key": key, "type": type_name, "true_class": true_class(type_name), "arrival_ms": arrival * 1e3,
-            "detected_class": event.classification if event else None,
-            "detection_time_ms": event.time * 1e3 if event else None,
-            "fluorescence": event.fluorescence if event else None,
-            "scatter": event.scatter if event else None,
-            "velocity_mm_s": event.velocity * 1e3 if event else None,
-            "decision": decision.action if decision else None,
-            "outlet": (cell.fate if cell.fate != "in_channel" else "lost") if cell else "lost",
-            "exit_time_ms": cell.exit_time * 1e3 if cell else None,
-            "exit_y_um": cell.exit_y * 1e6 if cell and math.isfinite(cell.exit_y) else None,
-            "area_ratio": cell.area_ratio if cell else None,
-            **_shape_summary(cell.measures if cell else None),
-        })
-    return {"cells": cells, "statistics": statistics_of(cells, truth.time),
-            "wall_time_s": wall, "setup_time_s": setup, "simulated_time_ms": truth.time * 1e3,
-            "idt_on_time_ms": idt_time * 1e3, "model": settings.model, "seed": settings.seed,
-            "controller_mode": settings.controller.mode,
-            "controller_latency_us": _latency(controller.latencies)}
-
-
-def _shape_summary(measures: dict | None) -> dict:
-    """Area kept over the transit and the band of point spacings (FE-IB cells; None for point-like models)."""
-    if not measures:
-        return {"area_ratio_range": None, "spacing_over_h": None, "area_corrected": None}
-    return {"area_ratio_range": [measures["area_ratio_min"], measures["area_ratio_max"]],
-            "spacing_over_h": [measures["spacing_lowest"], measures["spacing_highest"]],
-            "area_corrected": measures["area_corrected"]}
-
-
-def _latency(samples):
-    if not samples:
-        return {}
-    micro = np.array(samples) * 1e6
-    return {"median": float(np.median(micro)), "p99": float(np.percentile(micro, 99)), "max": float(micro.max())}
-
-
-def statistics_of(cells, simulated_time) -> dict:
-    """Purity, yield, abort rate, throughput and misclassifications from per-cell outcomes."""
-    sorted_cells = [c for c in cells if c["outlet"] == SORTED_OUTLET]
-    wanted = [c for c in cells if c["true_class"] == TYPE_II]
-    detected_ii = [c for c in cells if c["detected_class"] == TYPE_II]
-    aborts = [c for c in cells if c["decision"] == "abort"]
-    exits = [c["exit_time_ms"] for c in cells if c["exit_time_ms"] is not None and c["outlet"] != "lost"]
-    return {
-        "cells": len(cells),
-        "purity": (sum(c["true_class"] == TYPE_II for c in sorted_cells) / len(sorted_cells)) if sorted_cells else None,
-        "yield": (sum(c["outlet"] == SORTED_OUTLET for c in wanted) / len(wanted)) if wanted else None,
-        "abort_rate": (len(aborts) / len(detected_ii)) if detected_ii else None,
-        "aborts": len(aborts),
-        "misclassified": sum(c["detected_class"] is not None and c["detected_class"] != c["true_class"] for c in cells),
-        "undetected": sum(c["detected_class"] is None for c in cells),
-        "throughput_cells_per_s": (len(cells) / (max(exits) * 1e-3)) if exits else None,
-        "outlets": {outlet: sum(c["outlet"] == outlet for c in cells)
-                    for outlet in sorted({c["outlet"] for c in cells})},
-    }
-
-
-def report_lines(result: dict) -> list[str]:
-    lines = [f"{'cell':>4}  {'type':<9} {'detected':>8}  {'decision':<8} {'outlet':<7} {'exit (ms)':>9}  "
-             f"{'area kept (min-max)':<20} spacing / h"]
-    for cell in result["cells"]:
-        exit_ms = f"{cell['exit_time_ms']:9.3f}" if cell["exit_time_ms"] is not None else "        -"
-        low_high = cell.get("area_ratio_range")
-        area = f"{100 * low_high[0]:6.2f}-{100 * low_high[1]:6.2f} %" if low_high else "-"
-        spacing = cell.get("spacing_over_h")
-        band = f"{spacing[0]:.2f}-{spacing[1]:.2f}" if spacing else "-"
-        lines.append(f"{cell['key']:>4}  {cell['type']:<9} {cell['detected_class'] or '-':>8}  "
-                     f"{cell['decision'] or '-':<8} {cell['outlet']:<7} {exit_ms}  {area:<20} {band}")
-    stats = result["statistics"]
-
-    def percent(value):
-        return "n/a" if value is None else f"{100 * value:.1f} %"
-
-    throughput = stats["throughput_cells_per_s"]
-    lines += [
-        f"purity {percent(stats['purity'])}, yield {percent(stats['yield'])}, abort rate {percent(stats['abort_rate'])}"
-        f" ({stats['aborts']} aborts), misclassified {stats['misclassified']}, undetected {stats['undetected']}",
-        f"throughput {throughput:.0f} cells/s of simulated time" if throughput else "throughput n/a",
-        f"simulated {result['simulated_time_ms']:.3f} ms (IDT on {result['idt_on_time_ms']:.3f} ms) in "
-        f"{result['wall_time_s']:.1f} s wall ({result['model']} model, set-up {result['setup_time_s']:.1f} s); "
-        f"controller latency p99 {result['controller_latency_us'].get('p99', float('nan')):.1f} us",
-    ]
-    if "auto" in result:
-        auto = result["auto"]
-        lines.append(f"auto: feib for {100 * auto['feib_fraction']:.1f} % of the periods, "
-                     f"{len(auto['switches']) - 1} switches" + "".join(
-                         f"\n  t = {s['time_ms']:7.3f} ms -> {s['model']}: {s['reason']}" for s in auto["switches"][1:9])
-                     + ("\n  ..." if len(auto["switches"]) > 9 else ""))
-    return lines

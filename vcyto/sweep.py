@@ -69,6 +69,9 @@ FAILURES_SHOWN = 5
 THREAD_VARIABLES = ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS", "NUMBA_NUM_THREADS")
 
 
+ROW_STATUSES = ("ok", "failed", "truncated")   # truncated: the run hit a cap before its sample ended
+
+
 class SweepError(ValueError):
     """A bad spec or sweep option; ``str(error)`` is one line naming what is wrong."""
 
@@ -197,8 +200,8 @@ def _base_arguments(table: dict, options: dict, directory: Path) -> argparse.Nam
     for key, value in table.items():
         if key not in options:
             raise SweepError(f"base.{key}: unknown option; known: {', '.join(sorted(options))}")
-        if key == "scenario":
-            arguments.scenario = str(directory / _checked_text(value, "base.scenario"))
+        if key in ("scenario", "controller"):          # files named relative to the spec
+            setattr(arguments, key, str(directory / _checked_text(value, f"base.{key}")))
         elif key == "set":
             if not isinstance(value, list) or not all(isinstance(item, str) for item in value):
                 raise SweepError('base.set: must be a list of "FIELD=VALUE" strings, e.g. ["saw.model=streaming"]')
@@ -454,7 +457,10 @@ def evaluate(jobs, metrics, simulator=None) -> list[dict]:
         started = time.perf_counter()
         try:
             result = (simulator or simulate)(scenario, settings)
-            row = {"status": "ok", "error": "", **{name: metric_value(result, name) for name in metrics}}
+            if result.get("status", "complete") != "complete":     # a partial run is not a result
+                row = {"status": "truncated", "error": _one_line(result.get("reason", ""))}
+            else:
+                row = {"status": "ok", "error": "", **{name: metric_value(result, name) for name in metrics}}
         except Exception as error:  # noqa: BLE001 - a failed point is data, not the end of the sweep
             row = {"status": "failed", "error": _one_line(f"{type(error).__name__}: {error}")}
         row["wall_time_s"] = time.perf_counter() - started
@@ -488,7 +494,7 @@ class ResultTable:
         rows = {}
         for line in lines[1:]:
             fields = next(csv.reader([line]), [])
-            if line.endswith("\n") and len(fields) == len(self.columns) and fields[1] in ("ok", "failed"):
+            if line.endswith("\n") and len(fields) == len(self.columns) and fields[1] in ROW_STATUSES:
                 rows[fields[0]] = dict(zip(self.columns, fields))
             else:
                 self.repaired += 1
@@ -533,8 +539,8 @@ def run_sweep(sweep: Sweep, output: Path, executor, slots: int = 1, progress=Non
     started = time.perf_counter()
     table = ResultTable(output / RESULTS, sweep.columns)
     previous = table.load()
-    if retry_failed and any(row["status"] == "failed" for row in previous.values()):
-        previous = {key: row for key, row in previous.items() if row["status"] != "failed"}
+    if retry_failed and any(row["status"] != "ok" for row in previous.values()):
+        previous = {key: row for key, row in previous.items() if row["status"] == "ok"}
         table.rewrite(previous.values())
     todo = [point for point in sweep.points if point.id not in previous]
     rows = dict(previous)
@@ -591,11 +597,11 @@ class _Tracker:
     def finished(self, rows):
         self.done += len(rows)
         for row in rows:
-            if row["status"] == "failed":
+            if row["status"] != "ok":
                 self.failed += 1
                 if self.progress and self.failed <= FAILURES_SHOWN:
                     more = " (further failures are only counted)" if self.failed == FAILURES_SHOWN else ""
-                    self.progress.note(f"point {row['point']} failed: {row['error']}{more}")
+                    self.progress.note(f"point {row['point']} {row['status']}: {row['error']}{more}")
         if self.progress:
             self.progress.update(self.bar())
 
@@ -621,7 +627,8 @@ def _summary(sweep: Sweep, output: Path, rows: dict, ran: int, repaired: int, wa
     best = max(scored, key=lambda row: _float(row[sweep.plot]), default=None)
     return {"spec": sweep.path, "sampling": sweep.sampling, "parameters": [p.name for p in sweep.parameters],
             "metrics": list(sweep.metrics), "plot_metric": sweep.plot, "points": len(sweep.points),
-            "ok": len(ok), "failed": len(current) - len(ok), "ran": ran, "done_before": len(sweep.points) - ran,
+            "ok": len(ok), "failed": sum(row["status"] == "failed" for row in current),
+            "truncated": sum(row["status"] == "truncated" for row in current), "ran": ran, "done_before": len(sweep.points) - ran,
             "repaired_rows": repaired, "stale_rows": len(rows) - len(current), "wall_time_s": wall,
             "highest": best,
             "files": {"table": str(output / RESULTS)}, "rows": current}
@@ -636,7 +643,8 @@ def _float(value) -> float:
 
 
 def report_lines(result: dict) -> list[str]:
-    lines = [f"{result['points']} points: {result['ok']} ok, {result['failed']} failed ({result['ran']} run now, "
+    lines = [f"{result['points']} points: {result['ok']} ok, {result['failed']} failed, {result['truncated']} truncated "
+             f"(not results: raise max_time or drop it) ({result['ran']} run now, "
              f"{result['done_before']} done before) in {result['wall_time_s']:.1f} s"]
     if result["repaired_rows"]:
         lines.append(f"  {result['repaired_rows']} torn row(s) of an interrupted run dropped; those points ran again")
@@ -646,8 +654,8 @@ def report_lines(result: dict) -> list[str]:
     if best:
         where = ", ".join(f"{name}={best[name]}" for name in result["parameters"])
         lines.append(f"  highest {result['plot_metric']} = {best[result['plot_metric']]} at {where}")
-    for row in [row for row in result["rows"] if row["status"] == "failed"][:5]:
-        lines.append(f"  failed: {', '.join(f'{n}={row[n]}' for n in result['parameters'])}: {row['error']}")
+    for row in [row for row in result["rows"] if row["status"] != "ok"][:5]:
+        lines.append(f"  {row['status']}: {', '.join(f'{n}={row[n]}' for n in result['parameters'])}: {row['error']}")
     lines += [f"  {kind}: {path}" for kind, path in result["files"].items()]
     return lines
 

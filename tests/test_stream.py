@@ -148,7 +148,6 @@ def test_arrivals_keep_the_minimum_spacing():
     (["--cells", ","], "--cells needs at least one"),
     (["--count", "5", "--mix", "RBC:1", "--rate", "-3"], "rate must be positive"),
     (["--envelope", "0.1"], "--envelope wants two offsets"),
-    (["--mode", "greedy"], "invalid choice"),
     (["--controller", "/nonexistent.toml"], "is not a file"),
     (["--detection-window", "30,400"], "outside the channel"),
     (["--window-h", "5um"], "add --model auto"),

@@ -675,8 +675,8 @@ def build_parser() -> argparse.ArgumentParser:
     _scenario_options(stream)
     _stream_options(stream)
     stream.add_argument("--output", default="recordings", metavar="DIR",
-                        help="where the run's files go: the MCAP recording, FCS 3.1 detector events and a JSON "
-                             "summary (default recordings/; --output '' writes nothing)")
+                        help="where the run's files go: the MCAP recording, FCS 3.1 detector events, the gate "
+                             "(Gating-ML 2.0) and a JSON summary (default recordings/; --output '' writes nothing)")
     stream.add_argument("--no-record", action="store_true", help="no MCAP recording")
     stream.add_argument("--flush-every", type=int, default=50, metavar="N",
                         help="flush the recording every N control periods: a crash loses at most N (default 50)")

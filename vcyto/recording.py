@@ -124,7 +124,8 @@ class McapRecorder:
         self._classes = CellClasses()
         self._paths: dict[int, list] = {}        # the cells in the channel: their centroid paths (um)
         self._reported: set[int] = set()         # cells that left, while ``truth`` still lists them
-        self._write_proto("/foxglove/scene", 0.0, foxglove.device(self.origin_ns, device_outlines(scenario, detection_window)))
+        outlines = device_outlines(scenario, detection_window)
+        self._write_proto("/foxglove/scene", 0.0, foxglove.device(self.origin_ns, outlines))
         self._writer.flush()
         self.closed = False
 

@@ -91,8 +91,8 @@ class RerunLogger:
 
     def _static(self, scenario, detection_window):
         rr = self.rr
-        self.stream.log("/", rr.AnnotationContext([(CLASS_IDS[name], name, CLASS_COLOURS[name]) for name in CLASS_NAMES]),
-                        static=True)
+        classes = [(CLASS_IDS[name], name, CLASS_COLOURS[name]) for name in CLASS_NAMES]
+        self.stream.log("/", rr.AnnotationContext(classes), static=True)
         # plant coordinates (y up) shown in a y-down 2D view: y -> height - y
         self.stream.log("device", rr.Transform3D(translation=[0.0, self.height_um, 0.0], scale=[1.0, -1.0, 1.0]),
                         static=True)
@@ -104,12 +104,13 @@ class RerunLogger:
         rr = self.rr
         groups = collections.defaultdict(list)
         for entity, points, colour, label in device_outlines(scenario, detection_window):
-            name = {"device/inlet": "device/inlets", "device/outlet": "device/outlets"}.get(entity.rsplit("/", 1)[0], entity)
+            parent = entity.rsplit("/", 1)[0]
+            name = {"device/inlet": "device/inlets", "device/outlet": "device/outlets"}.get(parent, entity)
             groups[name].append((np.asarray(points, dtype=float), colour, label))
         for entity, strips in groups.items():
+            labels = [s[2] for s in strips] if any(s[2] for s in strips) else None
             self.stream.log(entity, rr.LineStrips2D([s[0] for s in strips], colors=[s[1] for s in strips],
-                                                    radii=0.5 if entity.endswith("outline") else 1.5,
-                                                    labels=[s[2] for s in strips] if any(s[2] for s in strips) else None),
+                                                    radii=0.5 if entity.endswith("outline") else 1.5, labels=labels),
                             static=True)
 
     def _legend(self):
@@ -282,13 +283,15 @@ class RerunSink:
         classes.observe(events, decisions)
         logger.time(observation.time, step)
         logger.idt(actuation)
-        logger.cells([_cell_view(cell, classes.provisional(cell.key)) for cell in truth.cells if cell.fate == "in_channel"])
+        logger.cells([_cell_view(cell, classes.provisional(cell.key)) for cell in truth.cells
+                      if cell.fate == "in_channel"])
         for event in events:
             logger.event(event.time, event.key, classes.provisional(event.key), event_text(event))
         for decision in decisions:
             logger.text(decision_text(decision.event_id, decision.action, decision.reason),
                         level="WARN" if decision.action == "abort" else "INFO")
-            pulse = (decision.pulse_on, decision.pulse_off) if decision.action == "sort" else revised.get(decision.event_id)
+            pulse = (decision.pulse_on, decision.pulse_off) if decision.action == "sort" \
+                else revised.get(decision.event_id)
             if pulse and math.isfinite(pulse[0]):
                 logger.pulse(*pulse, aborted=decision.action == "abort")
         classes.forget_pulses(observation.time)

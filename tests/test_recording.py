@@ -38,10 +38,13 @@ def record(plant, path, seed=0, cells=("melanoma", "RBC", "melanoma"), backgroun
 
 
 def messages(path):
+    """(topic, log time from the run's start in ns, payload) of the JSON channels."""
     with open(path, "rb") as handle:
         reader = make_reader(handle)
-        return [(channel.topic, message.log_time, json.loads(message.data))
-                for _, channel, message in reader.iter_messages(log_time_order=False)]
+        origin = int(next(iter(reader.iter_metadata())).metadata["time_origin_unix_ns"])
+        return [(channel.topic, message.log_time - origin, json.loads(message.data))
+                for _, channel, message in reader.iter_messages(log_time_order=False)
+                if channel.message_encoding == "json"]
 
 
 def test_round_trip_one_message_per_step_monotonic_times_and_outcomes(plant, tmp_path):

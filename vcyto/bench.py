@@ -252,7 +252,8 @@ def bench_recording(scenario: Scenario, cells=("RBC", "melanoma"), repeats: int 
                     progress.note(f"pair {repeat + 1}/{repeats}: stream {mode} recording")
                 sinks = []
                 if mode == "with":
-                    sinks = [BackgroundSinks([McapRecorder(Path(directory) / "run.mcap", {"benchmark": "recording"}),
+                    sinks = [BackgroundSinks([McapRecorder(Path(directory) / "run.mcap", {"benchmark": "recording"},
+                                                           scenario=scenario, detection_window=DetectorSettings().window),
                                               RerunSink(scenario, DetectorSettings().window,
                                                         ("save", Path(directory) / "run.rrd"))])]
                 started = time.perf_counter()

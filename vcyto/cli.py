@@ -489,12 +489,16 @@ def command_stream(args):
         result["files"]["rerun"] = target[0] if target[0] != "save" else str(target[1])
         lines.append(f"Rerun: {'saved to ' + str(target[1]) if target[0] == 'save' else target[0]}")
     if output is not None:
-        from . import fcs
-        fcs_path = fcs.write_fcs(output / f"{run_id}.fcs", result, {"VCYTO_COMMAND": " ".join(sys.argv)})
+        from . import fcs, gatingml
+        fcs_path = fcs.write_fcs(output / f"{run_id}.fcs", result, {"VCYTO_COMMAND": " ".join(sys.argv)},
+                                 settings=settings, scenario=scenario)
+        gate_path = gatingml.write_gatingml(output / f"{run_id}.gating.xml", settings.detector.gate)
         summary_path = output / f"{run_id}.json"
         summary_path.write_text(json.dumps(result, indent=2, default=_plain))
-        result.setdefault("files", {}).update({"fcs": str(fcs_path), "summary": str(summary_path)})
-        lines.append(f"detector events: {fcs_path} (FCS 3.1); summary: {summary_path}")
+        result.setdefault("files", {}).update({"fcs": str(fcs_path), "gatingml": str(gate_path),
+                                               "summary": str(summary_path)})
+        lines.append(f"detector events: {fcs_path} (FCS 3.1; classification gate: {gate_path}, Gating-ML 2.0); "
+                     f"summary: {summary_path}")
     _emit(args, result, lines)
     return _partial_status(args, result)
 
@@ -801,7 +805,9 @@ def _calibration_options(parser: argparse.ArgumentParser):
 
 
 def build_parser() -> argparse.ArgumentParser:
+    from . import __version__
     parser = argparse.ArgumentParser(prog="vcyto", description="A virtual cytometer: a simulated SAW cell sorter.")
+    parser.add_argument("--version", action="version", version=f"vcyto {__version__}")
     commands = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
     flow = commands.add_parser("flow", help="steady flow with the IDT off and on; where the injection streamline leaves")
@@ -826,8 +832,8 @@ def build_parser() -> argparse.ArgumentParser:
     _scenario_options(stream)
     _stream_options(stream)
     stream.add_argument("--output", default="recordings", metavar="DIR",
-                        help="where the run's files go: the MCAP recording, FCS 3.1 detector events and a JSON "
-                             "summary (default recordings/; --output '' writes nothing)")
+                        help="where the run's files go: the MCAP recording, FCS 3.1 detector events, the gate "
+                             "(Gating-ML 2.0) and a JSON summary (default recordings/; --output '' writes nothing)")
     stream.add_argument("--no-record", action="store_true", help="no MCAP recording")
     stream.add_argument("--flush-every", type=int, default=50, metavar="N",
                         help="flush the recording every N control periods: a crash loses at most N (default 50)")

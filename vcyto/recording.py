@@ -1,67 +1,54 @@
-"""MCAP recording of a closed-loop run: typed JSON channels, log time = simulated time, crash safety.
+"""MCAP recording of a closed-loop run: Foxglove well-known channels any tool draws, vcyto's typed channels
+for analysis and replay, crash safety.
 
-Topics (JSON, each with a JSON Schema):
+Foxglove channels (protobuf; ``vcyto.foxglove``): ``/foxglove/scene`` (``foxglove.SceneUpdate``: the device once,
+a marker per detector event, each cell's centroid path when it has left, coloured by outcome class),
+``/foxglove/membranes`` (``foxglove.PointCloud`` every control period: the membrane points of the cells in the
+channel, with fields key, class and a colour), ``/foxglove/speed`` (``foxglove.RawImage``, 32FC1 in mm/s, at the
+field cadence) and ``/foxglove/log`` (``foxglove.Log``: events, decisions with their reasons, outcomes).
+
+vcyto's channels (JSON, each with a JSON Schema stating required fields and units; ``SCHEMAS``):
 - ``/loop/step``         every control period: time, step, IDT drive, cells in the channel, wall time,
                          plant diagnostics (dt, physics steps, cumulative solver times: wall-clock);
-- ``/cells``             every control period: each cell's key, type, centroid, area ratio, fate, membrane
-                         points (um, rounded to 1 nm), perimeter and smallest/largest point spacing / h
-                         (null for models without membranes);
+- ``/cells``             every control period: each cell's key, type, class, centroid, area ratio, fate,
+                         perimeter and smallest/largest point spacing / h (null for models without membranes);
+                         its membrane is in ``/foxglove/membranes`` (recordings before that carried ``membrane_um``);
 - ``/detector/event``    each detector event (fluorescence, scatter, velocity, class);
-- ``/controller/decision`` each decision (sort / pass / abort, predicted arrival, pulse);
-- ``/outcome``           each cell when it leaves (outlet, exit time and ordinate);
+- ``/controller/decision`` each decision (sort / pass / abort, predicted arrival, pulse, reason);
+- ``/outcome``           each cell when it leaves (outlet, exit time and ordinate, outcome class);
 - ``/flow/velocity``     every ``field_every`` control periods (0: never): velocity (m/s) and pressure (Pa) at
-                         the mesh vertices (float32, base64) with the grid, for replay as an image.
-Run metadata (scenario TOML, seed, command line, versions) is an MCAP metadata record named ``run``.
+                         the mesh vertices (float32, base64) with the grid.
+
+Log and publish times are the wall-clock start of the run (``time_origin_unix_ns`` in the metadata) plus the
+simulated time, so MCAP tools show a date and a timeline as long as the simulated run; every message also
+carries its simulated time. Run metadata (scenario TOML, seed, settings as JSON text, command line, versions) is
+an MCAP metadata record named ``run``, every value a plain string.
 
 The writer flushes every ``flush_every`` control periods, so a killed process loses at most that many
 steps; ``close`` finishes the file (summary and index) and is called on normal exit, Ctrl-C and SIGTERM.
+State is bounded: only the cells in the channel are remembered (their paths until they leave).
 """
 
 from __future__ import annotations
 
 import base64
+import dataclasses
 import json
 import time
 from pathlib import Path
 
 import numpy as np
 from mcap.writer import CompressionType, Writer
+from mcap_protobuf.schema import register_schema
 
-SCHEMAS = {
-    "/loop/step": {"type": "object", "properties": {
-        "time": {"type": "number"}, "step": {"type": "integer"}, "idt": {"type": "number"},
-        "cells_in_channel": {"type": "integer"}, "wall_time": {"type": "number"},
-        "diagnostics": {"type": "object", "description": "plant figures: dt, physics steps, cumulative solver "
-                                                          "wall times (s, wall-clock), health"}}},
-    "/cells": {"type": "object", "properties": {"time": {"type": "number"}, "cells": {"type": "array", "items": {
-        "type": "object", "properties": {
-            "key": {"type": "integer"}, "type": {"type": "string"}, "x_um": {"type": "number"},
-            "y_um": {"type": "number"}, "area_ratio": {"type": "number"}, "fate": {"type": "string"},
-            "perimeter_um": {"type": ["number", "null"]},
-            "spacing_min_h": {"type": ["number", "null"], "description": "smallest point spacing / mesh h"},
-            "spacing_max_h": {"type": ["number", "null"], "description": "largest point spacing / mesh h"},
-            "membrane_um": {"type": "array", "items": {"type": "array", "items": {"type": "number"}}}}}}}},
-    "/detector/event": {"type": "object", "properties": {
-        "event_id": {"type": "integer"}, "time": {"type": "number"}, "fluorescence": {"type": "number"},
-        "scatter": {"type": "number"}, "velocity": {"type": "number"}, "classification": {"type": "string"},
-        "key": {"type": "integer"}}},
-    "/controller/decision": {"type": "object", "properties": {
-        "event_id": {"type": "integer"}, "action": {"type": "string"}, "arrival": {"type": "number"},
-        "pulse_on": {"type": ["number", "null"]}, "pulse_off": {"type": ["number", "null"]},
-        "reason": {"type": "string"}}},
-    "/outcome": {"type": "object", "properties": {
-        "key": {"type": "integer"}, "type": {"type": "string"}, "outlet": {"type": "string"},
-        "exit_time": {"type": "number"}, "exit_y_um": {"type": "number"}}},
-    "/flow/velocity": {"type": "object", "properties": {
-        "time": {"type": "number"}, "shape": {"type": "array", "items": {"type": "integer"}},
-        "x_um": {"type": "array"}, "y_um": {"type": "array"}, "vx_f32_b64": {"type": "string"},
-        "vy_f32_b64": {"type": "string"}, "p_f32_b64": {"type": "string"}}},
-}
+from sim.scenario import UM, Scenario
+
+from . import foxglove
+from .classes import CLASS_COLOURS, CLASS_IDS, CellClasses
+from .schemas import SCHEMAS
+
 PER_STEP = ("/loop/step", "/cells")
-
-
-def _nanoseconds(seconds: float) -> int:
-    return int(round(seconds * 1e9))
+FORMAT = "2"                  # 1: JSON channels only, membranes in /cells; 2: Foxglove channels beside them
 
 
 def _rounded(value: float, digits: int):
@@ -73,66 +60,168 @@ def _finite(value):
     return None if value is None or (isinstance(value, float) and not np.isfinite(value)) else value
 
 
+def plain_metadata(metadata: dict) -> dict:
+    """Metadata values as plain strings: settings (dataclasses) and containers as JSON text."""
+    def text(value):
+        if dataclasses.is_dataclass(value) and not isinstance(value, type):
+            return json.dumps(dataclasses.asdict(value))
+        if isinstance(value, (dict, list, tuple, bool)) or value is None:
+            return json.dumps(value)
+        return str(value)
+    return {key: text(value) for key, value in metadata.items()}
+
+
+def device_outlines(scenario: Scenario, detection_window=None) -> list:
+    """(id, points in um, RGB, label) of the channel, inlets, outlets, SAW window and detection window."""
+    channel = scenario.channel
+    length, height = channel.length / UM, channel.height / UM
+    outlines = [("device/outline", [[0, 0], [length, 0], [length, height], [0, height], [0, 0]], (200, 200, 200), "")]
+    outlines += [(f"device/inlet/{i.name}", [[0, i.span[0] / UM], [0, i.span[1] / UM]], (0, 190, 255), i.name)
+                 for i in channel.inlets]
+    outlines += [(f"device/outlet/{o.name}", [[length, o.span[0] / UM], [length, o.span[1] / UM]], (255, 140, 0),
+                  o.name) for o in channel.outlets]
+    low, high = np.array(channel.saw_window.span) / UM
+    outlines.append(("device/saw_window", [[low, 0], [high, 0]], (255, 0, 0), "SAW"))
+    if detection_window is not None:
+        x0, x1 = np.array(detection_window) / UM
+        outlines.append(("device/detection_window", [[x0, 0], [x1, 0], [x1, height], [x0, height], [x0, 0]],
+                         (120, 255, 120), "detector"))
+    return outlines
+
+
+def _scenario_of(metadata: dict) -> Scenario:
+    if "scenario_toml" in metadata:
+        from .config import scenario_from_toml
+        return scenario_from_toml(str(metadata["scenario_toml"]))
+    return Scenario()
+
+
 class McapRecorder:
     """A sink of the closed loop that writes every step to an MCAP file."""
 
-    def __init__(self, path: Path, metadata: dict, flush_every: int = 50, field_every: int = 100):
+    def __init__(self, path: Path, metadata: dict, flush_every: int = 50, field_every: int = 100,
+                 scenario: Scenario | None = None, detection_window=None):
         self.path = Path(path)
         self._file = open(self.path, "wb")
         self._writer = Writer(self._file, compression=CompressionType.ZSTD)
         self._writer.start(profile="", library="vcyto")
         self._channels = {}
         for topic, schema in SCHEMAS.items():
-            schema_id = self._writer.register_schema(topic.strip("/").replace("/", "."), "jsonschema",
-                                                     json.dumps(schema).encode())
+            schema_id = self._writer.register_schema(schema["title"], "jsonschema", json.dumps(schema).encode())
             self._channels[topic] = self._writer.register_channel(topic, "json", schema_id)
-        self._writer.add_metadata("run", {key: str(value) for key, value in metadata.items()})
+        for topic, message_class in foxglove.TOPICS.items():
+            self._channels[topic] = self._writer.register_channel(topic, "protobuf",
+                                                                  register_schema(self._writer, message_class))
+        self.origin_ns = time.time_ns()
+        detection_window = detection_window or getattr(metadata.get("detector"), "window", None)
+        scenario = scenario or _scenario_of(metadata)
+        self._writer.add_metadata("run", plain_metadata({**metadata, "time_origin_unix_ns": self.origin_ns,
+                                                         "recording_format": FORMAT}))
         self.flush_every = max(1, flush_every)
         self.field_every = field_every
         self._steps = 0
         self._sequence = 0
-        self._settled = set()
+        self._classes = CellClasses()
+        self._paths: dict[int, list] = {}        # the cells in the channel: their centroid paths (um)
+        self._reported: set[int] = set()         # cells that left, while ``truth`` still lists them
+        outlines = device_outlines(scenario, detection_window)
+        self._write_proto("/foxglove/scene", 0.0, foxglove.device(self.origin_ns, outlines))
         self._writer.flush()
         self.closed = False
 
-    def _write(self, topic: str, time_s: float, payload: dict):
+    def _stamp(self, time_s: float) -> int:
+        return self.origin_ns + int(round(time_s * 1e9))
+
+    def _add(self, topic: str, time_s: float, data: bytes):
         self._sequence += 1
-        stamp = _nanoseconds(time_s)
-        self._writer.add_message(self._channels[topic], log_time=stamp, publish_time=stamp,
-                                 data=json.dumps(payload, separators=(",", ":")).encode(), sequence=self._sequence)
+        stamp = self._stamp(time_s)
+        self._writer.add_message(self._channels[topic], log_time=stamp, publish_time=stamp, data=data,
+                                 sequence=self._sequence)
+
+    def _write(self, topic: str, time_s: float, payload: dict):
+        self._add(topic, time_s, json.dumps(payload, separators=(",", ":")).encode())
+
+    def _write_proto(self, topic: str, time_s: float, message):
+        self._add(topic, time_s, message.SerializeToString())
+
+    def _log(self, time_s: float, text: str, level: str = "INFO"):
+        self._write_proto("/foxglove/log", time_s, foxglove.log(self._stamp(time_s), text, level))
 
     def on_step(self, step: int, observation, truth, actuation: float, events, decisions, fields=None,
                 diagnostics=None):
         now = observation.time
+        self._classes.observe(events, decisions)
+        in_channel = [cell for cell in truth.cells if cell.fate == "in_channel"]
+        left = self._left(truth)
         self._write("/loop/step", now, {"time": now, "step": step, "idt": actuation,
                                         "cells_in_channel": len(observation.cells), "wall_time": time.time(),
                                         "diagnostics": diagnostics or {}})
-        self._write("/cells", now, {"time": now, "cells": [self._cell(cell) for cell in truth.cells
-                                                           if cell.fate == "in_channel" or cell.key not in self._settled]})
+        self._membranes(now, in_channel)
+        self._write("/cells", now, {"time": now, "cells": [self._cell(cell) for cell in in_channel]})
+        positions = {cell.key: cell for cell in in_channel}
         for event in events:
-            self._write("/detector/event", event.time, {key: getattr(event, key) for key in SCHEMAS["/detector/event"]["properties"]})
+            self._event(event, positions.get(event.key))
         for decision in decisions:
             self._write("/controller/decision", now, {key: _finite(getattr(decision, key))
                                                       for key in SCHEMAS["/controller/decision"]["properties"]})
-        for cell in truth.cells:
-            if cell.fate != "in_channel" and cell.key not in self._settled:
-                self._settled.add(cell.key)
-                self._write("/outcome", now, {"key": cell.key, "type": cell.type, "outlet": cell.fate,
-                                              "exit_time": _finite(cell.exit_time),
-                                              "exit_y_um": _finite(cell.exit_y * 1e6)})
+            reason = f" ({decision.reason})" if decision.reason else ""
+            self._log(now, f"event {decision.event_id}: {decision.action}{reason}",
+                      "WARN" if decision.action == "abort" else "INFO")
+        for cell in left:
+            self._outcome(now, cell)
         if fields is not None and self.field_every and step % self.field_every == 0:
-            self._write("/flow/velocity", now, fields())
+            payload = fields()
+            self._write("/flow/velocity", now, payload)
+            self._write_proto("/foxglove/speed", now, foxglove.speed_image(self._stamp(now), payload))
         self._steps += 1
         if self._steps % self.flush_every == 0:
             self._writer.flush()
             self._file.flush()
 
-    @staticmethod
-    def _cell(cell) -> dict:
-        membrane = np.round(np.asarray(cell.membrane) * 1e6, 3).tolist() if cell.membrane is not None else []
+    def _left(self, truth) -> list:
+        """The cells that left since the previous step (each once: ``truth`` may list them again)."""
+        self._reported &= {cell.key for cell in truth.cells}
+        left = [cell for cell in truth.cells if cell.fate != "in_channel" and cell.key not in self._reported]
+        self._reported.update(cell.key for cell in left)
+        return left
+
+    def _membranes(self, now: float, cells):
+        rows = []
+        for cell in cells:
+            self._paths.setdefault(cell.key, []).append((round(cell.x / UM, 4), round(cell.y / UM, 4)))
+            name = self._classes.provisional(cell.key)
+            points = np.asarray(cell.membrane) / UM if cell.membrane is not None else np.array([[cell.x, cell.y]]) / UM
+            rows.append((cell.key, CLASS_IDS[name], CLASS_COLOURS[name], points))
+        self._write_proto("/foxglove/membranes", now, foxglove.membranes(self._stamp(now), rows))
+
+    def _event(self, event, cell):
+        values = {key: getattr(event, key) for key in SCHEMAS["/detector/event"]["properties"]}
+        self._write("/detector/event", event.time, values)
+        text = (f"cell {event.key}: detected type {event.classification} (fluorescence {event.fluorescence:.2f}, "
+                f"{event.velocity * 1e3:.1f} mm/s)")
+        self._log(event.time, text)
+        if cell is not None:
+            name = self._classes.provisional(event.key)
+            self._write_proto("/foxglove/scene", event.time,
+                              foxglove.marker(self._stamp(event.time), f"event/{event.event_id}", cell.x / UM,
+                                              cell.y / UM, CLASS_COLOURS[name], f"event {event.event_id}: "
+                                              f"type {event.classification}"))
+
+    def _outcome(self, now: float, cell):
+        name = self._classes.settle(cell)
+        self._write("/outcome", now, {"key": cell.key, "type": cell.type, "outlet": cell.fate, "class": name,
+                                      "exit_time": _finite(cell.exit_time), "exit_y_um": _finite(cell.exit_y / UM)})
+        self._log(now, f"cell {cell.key} ({cell.type}) left by: {cell.fate} ({name})",
+                  "INFO" if name in ("sorted", "passed") else "WARN")
+        path = self._paths.pop(cell.key, None) or [(cell.x / UM, cell.y / UM)]
+        self._write_proto("/foxglove/scene", now, foxglove.path(self._stamp(now), cell.key, path,
+                                                                CLASS_COLOURS[name], f"{cell.key}: {name}"))
+
+    def _cell(self, cell) -> dict:
         shape = cell.measures or {}
-        return {"key": cell.key, "type": cell.type, "x_um": round(cell.x * 1e6, 4), "y_um": round(cell.y * 1e6, 4),
-                "area_ratio": round(cell.area_ratio, 6), "fate": cell.fate, "membrane_um": membrane,
+        return {"key": cell.key, "type": cell.type, "class": self._classes.provisional(cell.key),
+                "x_um": round(cell.x * 1e6, 4), "y_um": round(cell.y * 1e6, 4),
+                "area_ratio": round(cell.area_ratio, 6), "fate": cell.fate,
                 "perimeter_um": _rounded(shape.get("perimeter", float("nan")) * 1e6, 4),
                 "spacing_min_h": _rounded(shape.get("spacing_min", float("nan")), 4),
                 "spacing_max_h": _rounded(shape.get("spacing_max", float("nan")), 4)}

@@ -1,4 +1,9 @@
-"""`vcyto replay FILE.mcap`: re-log a recording to Rerun; damaged files replay what can be recovered."""
+"""`vcyto replay FILE.mcap`: re-log a recording to Rerun; damaged files replay what can be recovered.
+
+Reads recordings of both formats: 1 (JSON channels only, membranes in ``/cells``) and 2 (membranes in the
+Foxglove point cloud ``/foxglove/membranes``, classes in ``/cells`` and ``/outcome``). The replayed view shows
+what the live one did: cells coloured by class, detector event markers, pulses, decisions with their reasons.
+"""
 
 from __future__ import annotations
 
@@ -13,16 +18,28 @@ from zstandard import ZstdError
 
 from sim.scenario import Scenario
 
+from .classes import true_class
 from .config import scenario_from_toml
-from .viewer import RerunLogger
+from .outcomes import outcome_class
+from .viewer import RerunLogger, decision_text
+
+MEMBRANES = "/foxglove/membranes"
 
 
 class ReplayError(ValueError):
     """The file is not a vcyto recording at all."""
 
 
-def read_recording(path: Path):
-    """(metadata, [(topic, data)], problem) from an MCAP file, reading past nothing that is damaged."""
+def _decode(topic: str, data: bytes):
+    if topic == MEMBRANES:
+        from . import foxglove
+        return foxglove.membrane_points(foxglove.PointCloud.FromString(data))
+    return json.loads(data)
+
+
+def read_recording(path: Path, protobuf_topics=(MEMBRANES,)):
+    """(metadata, [(topic, data)], problem) from an MCAP file, reading past nothing that is damaged. JSON messages
+    are decoded to dicts; of the protobuf ones only ``protobuf_topics`` are kept (the membranes, as an array)."""
     metadata, channels, messages, problem = {}, {}, [], ""
     with open(path, "rb") as handle:
         try:
@@ -30,9 +47,11 @@ def read_recording(path: Path):
                 if isinstance(record, Metadata) and record.name == "run":
                     metadata = dict(record.metadata)
                 elif isinstance(record, Channel):
-                    channels[record.id] = record.topic
+                    if record.message_encoding == "json" or record.topic in protobuf_topics:
+                        channels[record.id] = record.topic
                 elif isinstance(record, Message) and record.channel_id in channels:
-                    messages.append((channels[record.channel_id], json.loads(record.data)))
+                    topic = channels[record.channel_id]
+                    messages.append((topic, _decode(topic, record.data)))
         except (McapError, ValueError, EOFError, struct.error, ZstdError) as error:   # damaged: stop there
             problem = f"{type(error).__name__}: {error}".strip()
     if not channels and not metadata:
@@ -40,14 +59,89 @@ def read_recording(path: Path):
     return metadata, messages, problem
 
 
+def detection_window(metadata: dict):
+    """The detector window (m) of the run's metadata: JSON text (format 2) or a Python repr (format 1)."""
+    text = metadata.get("detector", "")
+    try:
+        return tuple(json.loads(text)["window"])
+    except (ValueError, KeyError, TypeError):
+        pass
+    if "window=(" in text:
+        return tuple(float(v) for v in text.split("window=(", 1)[1].split(")", 1)[0].split(","))
+    return None
+
+
+class _Replayer:
+    """Turns the messages of a recording into the calls the live view makes."""
+
+    def __init__(self, logger: RerunLogger):
+        self.logger = logger
+        self.membranes = {}                   # key -> points of the step being read (format 2)
+        self.detected, self.actions, self.events = {}, {}, {}     # of the cells in the channel (format 1 classes)
+        self.pulses = {}
+
+    def on(self, topic: str, data):
+        logger = self.logger
+        if topic == MEMBRANES:
+            self.membranes = {key: data[data["key"] == key] for key in set(data["key"].tolist())}
+        elif topic == "/cells":
+            for cell in data["cells"]:
+                if "membrane_um" not in cell and cell["key"] in self.membranes:
+                    points = self.membranes[cell["key"]]
+                    cell["membrane_um"] = list(zip(points["x"].astype(float), points["y"].astype(float)))
+                cell.setdefault("class", self._provisional(cell["key"]))
+            logger.cells(data["cells"])
+        elif topic == "/detector/event":
+            self._event(data)
+        elif topic == "/controller/decision":
+            self._decision(data)
+        elif topic == "/outcome":
+            name = data.get("class") or self._settle(data)
+            logger.outcome(data["key"], name, f"cell {data['key']} ({data['type']}) left by: {data['outlet']} ({name})")
+        elif topic == "/flow/velocity":
+            logger.field(data)
+
+    def _event(self, data):
+        self.detected[data["key"]] = data["classification"]
+        self.events[data["event_id"]] = data["key"]
+        text = f"cell {data['key']}: detected type {data['classification']} (fluorescence {data['fluorescence']:.2f}"
+        text += f", {data['velocity'] * 1e3:.1f} mm/s)" if data.get("velocity") is not None else ")"
+        self.logger.event(data["time"], data["key"], self._provisional(data["key"]), text)
+
+    def _decision(self, data):
+        key = self.events.get(data["event_id"])
+        if key is not None:
+            self.actions[key] = data["action"]
+        self.logger.text(decision_text(data["event_id"], data["action"], data.get("reason")),
+                         level="WARN" if data["action"] == "abort" else "INFO")
+        if data["action"] == "sort" and data.get("pulse_on") is not None:
+            self.pulses[data["event_id"]] = (data["pulse_on"], data["pulse_off"])
+            self.logger.pulse(data["pulse_on"], data["pulse_off"])
+        elif data["action"] == "abort" and data["event_id"] in self.pulses:
+            self.logger.pulse(*self.pulses.pop(data["event_id"]), aborted=True)
+
+    def _provisional(self, key: int) -> str:
+        detected = self.detected.get(key)
+        if detected is None:
+            return "in channel"
+        if detected != "II":
+            return "detected type I"
+        return "type II: sort aborted" if self.actions.get(key) == "abort" else "type II: sort scheduled"
+
+    def _settle(self, data) -> str:
+        """The outcome class of a format-1 recording's cell, from the events and decisions read so far."""
+        key = data["key"]
+        for event_id in [e for e, k in self.events.items() if k == key]:
+            del self.events[event_id]
+        return outcome_class({"outlet": data["outlet"], "true_class": true_class(data["type"]),
+                              "detected_class": self.detected.pop(key, None), "decision": self.actions.pop(key, None)})
+
+
 def replay(path: Path, target, progress=None) -> dict:
     metadata, messages, problem = read_recording(path)
     scenario = scenario_from_toml(metadata["scenario_toml"]) if "scenario_toml" in metadata else Scenario()
-    window = None
-    if "detector" in metadata and "window=(" in metadata["detector"]:
-        text = metadata["detector"].split("window=(", 1)[1].split(")", 1)[0]
-        window = tuple(float(v) for v in text.split(","))
-    logger = RerunLogger(scenario, window, target)
+    logger = RerunLogger(scenario, detection_window(metadata), target)
+    replayer = _Replayer(logger)
     steps = 0
     last_time = 0.0
     for topic, data in messages:
@@ -56,17 +150,8 @@ def replay(path: Path, target, progress=None) -> dict:
             last_time = data["time"]
             logger.time(data["time"], data["step"])
             logger.idt(data["idt"])
-        elif topic == "/cells":
-            logger.cells(data["cells"])
-        elif topic == "/detector/event":
-            logger.text(f"cell {data['key']}: detected type {data['classification']} "
-                        f"(fluorescence {data['fluorescence']:.2f})")
-        elif topic == "/controller/decision":
-            logger.text(f"event {data['event_id']}: {data['action']}", level="WARN" if data["action"] == "abort" else "INFO")
-        elif topic == "/outcome":
-            logger.text(f"cell {data['key']} ({data['type']}) left by: {data['outlet']}")
-        elif topic == "/flow/velocity":
-            logger.field(data)
+        else:
+            replayer.on(topic, data)
     logger.close()
     return {"steps": steps, "messages": len(messages), "last_time_ms": last_time * 1e3, "damaged": bool(problem),
-            "problem": problem}
+            "problem": problem, "format": metadata.get("recording_format", "1")}

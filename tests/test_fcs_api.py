@@ -1,0 +1,88 @@
+"""FCS a cytometrist can gate (FlowKit applies the exported Gating-ML gate) and the Python API."""
+
+import re
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from sim.arrivals import Arrivals
+from sim.scenario import Scenario
+from vcyto import __version__
+from vcyto.fcs import CHANNELS, gate_consistent, write_fcs
+from vcyto.gatingml import GATE_IDS, write_gatingml
+from vcyto.stream import StreamSettings, run_stream
+
+README = Path(__file__).resolve().parent.parent / "README.md"
+
+
+@pytest.fixture(scope="module")
+def exported(tmp_path_factory):
+    """A streamline stream with noisy fluorescence (misclassifications) exported as FCS and Gating-ML."""
+    from controller.detector import DetectorSettings
+    directory = tmp_path_factory.mktemp("fcs")
+    settings = StreamSettings(Arrivals(count=60, mix=(("RBC", 0.6), ("melanoma", 0.4)), rate=2000.0, process="poisson"),
+                              detector=DetectorSettings(noise_cv=0.6, gate=0.45), model="streamline", seed=5)
+    result = run_stream(Scenario(), settings)
+    return (write_fcs(directory / "run.fcs", result, settings=settings, scenario=Scenario()),
+            write_gatingml(directory / "run.gating.xml", settings.detector.gate), result)
+
+
+def test_flowkit_applies_the_exported_gate_and_counts_vcytos_classes(exported):
+    flowkit = pytest.importorskip("flowkit")
+    fcs_path, gate_path, result = exported
+    sample = flowkit.Sample(str(fcs_path))
+    strategy = flowkit.parse_gating_xml(str(gate_path))
+    report = strategy.gate_sample(sample)
+    counts = {label: int(report.get_gate_membership(gate_id).sum()) for label, gate_id in GATE_IDS.items()}
+    expected = {label: sum(c["detected_class"] == label for c in result["cells"]) for label in GATE_IDS}
+    assert counts == expected and min(expected.values()) > 0
+    assert result["statistics"]["misclassified"] > 0        # the gate is applied, not the true classes
+
+
+def test_every_channel_is_bounded_by_its_range_and_described(exported):
+    flowkit = pytest.importorskip("flowkit")
+    sample = flowkit.Sample(str(exported[0]))
+    events = sample.get_events(source="raw")
+    metadata = sample.get_metadata()
+    for index, name in enumerate(CHANNELS, start=1):
+        assert metadata[f"p{index}n"] == name and metadata[f"p{index}s"]
+        assert events[:, index - 1].max() <= float(metadata[f"p{index}r"]) and metadata[f"p{index}e"] == "0,0"
+    assert float(metadata["p2r"]) <= 10                      # fluorescence of 0-2: a range a logicle display spreads
+    assert metadata["timestep"] == "0.001" and "vcyto" in metadata["cyt"]
+    assert re.fullmatch(r"\d\d-[A-Z]{3}-\d{4}", metadata["date"]) and re.fullmatch(r"\d\d:\d\d:\d\d", metadata["btim"])
+    assert metadata["vcyto_detector_gate"] == "0.45" and metadata["vcyto_channel_um"] == "300x220"
+
+
+def test_float32_rounding_never_moves_a_value_across_the_gate():
+    gate = 0.1                                                    # not a float32 number
+    below, above = np.nextafter(gate, 0.0), gate
+    values = gate_consistent(np.array([below, above, 0.05, 0.2]), np.array([1, 2, 1, 2]), gate)
+    assert values.dtype == np.float32
+    assert list(values >= np.float32(gate)) == [False, True, False, True]
+
+
+def test_python_m_vcyto_prints_the_version():
+    done = subprocess.run([sys.executable, "-m", "vcyto", "--version"], capture_output=True, text=True, timeout=60)
+    assert done.returncode == 0 and done.stdout.strip() == f"vcyto {__version__}"
+
+
+def test_the_readme_python_example_runs(tmp_path):
+    text = README.read_text()
+    section = text.split("## Use from Python", 1)[1]
+    code = re.search(r"```python\n(.*?)```", section, re.S).group(1)
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=600, cwd=tmp_path)
+    assert done.returncode == 0, done.stderr
+    assert "purity" in done.stdout and list(tmp_path.glob("*.mcap"))
+
+
+def test_the_public_api_is_exported():
+    import sim
+    import vcyto
+    for name in vcyto.__all__:
+        assert getattr(vcyto, name) is not None
+    for name in sim.__all__:
+        assert getattr(sim, name) is not None
+    assert (Path(vcyto.__file__).parent / "py.typed").exists()

@@ -1,0 +1,231 @@
+"""Recordings that open anywhere: the MCAP against its schemas and through Rerun's MCAP importer, the Rerun view
+of the sort (plant coordinates, classes, event markers), replay of both recording formats."""
+
+import json
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+from jsonschema import Draft202012Validator
+from mcap.reader import make_reader
+from mcap_protobuf.decoder import DecoderFactory
+from rerun.chunk import RrdReader
+
+from sim.arrivals import Arrivals
+from sim.plant import FeibPlant
+from sim.scenario import Scenario
+from vcyto.classes import CLASS_IDS
+from vcyto.outcomes import outcome_class
+from vcyto.recording import McapRecorder
+from vcyto.stream import StreamSettings, run_stream
+from vcyto.viewer import RerunSink
+
+FOXGLOVE = {"/foxglove/scene": "foxglove.SceneUpdate", "/foxglove/membranes": "foxglove.PointCloud",
+            "/foxglove/speed": "foxglove.RawImage", "/foxglove/log": "foxglove.Log"}
+OLD = Path(__file__).parent / "data" / "format1-streamline.mcap"
+
+
+class Capture:
+    """A sink that keeps the plant's membranes (um) per step."""
+    field_every = 0
+
+    def __init__(self):
+        self.membranes = {}
+
+    def on_step(self, step, observation, truth, *rest):
+        self.membranes[round(observation.time * 1e9)] = {c.key: np.asarray(c.membrane) * 1e6 for c in truth.cells
+                                                         if c.fate == "in_channel" and c.membrane is not None}
+
+    def close(self):
+        pass
+
+
+def recorded_run(directory, settings, plant=None, field_every=0):
+    scenario = Scenario()
+    capture = Capture()
+    recorder = McapRecorder(directory / "run.mcap", {"seed": settings.seed, "detector": settings.detector},
+                            field_every=field_every, scenario=scenario)
+    viewer = RerunSink(scenario, settings.detector.window, ("save", directory / "live.rrd"), field_every=field_every)
+    try:
+        result = run_stream(scenario, settings, plant=plant, sinks=[capture, recorder, viewer])
+    finally:
+        recorder.close()
+        viewer.close()
+    return {"dir": directory, "result": result, "capture": capture, "recorder": recorder, "viewer": viewer}
+
+
+@pytest.fixture(scope="module")
+def feib(tmp_path_factory):
+    """A short FE-IB run (one cell, 100 steps) with the flow field every 25 steps."""
+    settings = StreamSettings(Arrivals(cells=("melanoma",)), model="feib", max_time=0.25e-3)
+    return recorded_run(tmp_path_factory.mktemp("feib"), settings, plant=FeibPlant(Scenario()), field_every=25)
+
+
+@pytest.fixture(scope="module")
+def sort(tmp_path_factory):
+    """A streamline stream dense enough for coincidences (aborts) and both outlets."""
+    settings = StreamSettings(Arrivals(count=14, mix=(("RBC", 0.5), ("melanoma", 0.5)), rate=2500.0,
+                                       process="poisson", min_spacing=0.1e-3), model="streamline", seed=3)
+    return recorded_run(tmp_path_factory.mktemp("sort"), settings)
+
+
+def mcap_messages(path):
+    with open(path, "rb") as handle:
+        reader = make_reader(handle)
+        metadata = {m.name: m.metadata for m in reader.iter_metadata()}
+        return metadata, list(reader.iter_messages(log_time_order=False))
+
+
+def rrd_rows(path):
+    """entity -> [(sim_time ns or None, {component: value})] of the non-static rows; and the static components."""
+    rows, static = {}, {}
+    for chunk in RrdReader(str(path)).stream():
+        batch = chunk.to_record_batch()
+        names = [n for n in batch.schema.names if ":" in n]
+        columns = {n: batch.column(n).to_pylist() for n in names}
+        if chunk.is_static:
+            static.setdefault(chunk.entity_path, {}).update({n: v[-1] for n, v in columns.items()})
+            continue
+        times = batch.column("sim_time").cast("int64").to_pylist() if "sim_time" in batch.schema.names \
+            else [None] * batch.num_rows
+        for row, time_ns in enumerate(times):
+            rows.setdefault(chunk.entity_path, []).append((time_ns, {n: columns[n][row] for n in names}))
+    for entity in rows:
+        rows[entity].sort(key=lambda item: item[0] if item[0] is not None else -1)
+    return rows, static
+
+
+@pytest.mark.parametrize("run_name", ["feib", "sort"])
+def test_every_message_matches_its_channel_schema_and_geometry_is_foxglove(run_name, request):
+    run = request.getfixturevalue(run_name)
+    metadata, messages = mcap_messages(run["dir"] / "run.mcap")
+    validators, decoders, topics = {}, {}, set()
+    for schema, channel, message in messages:
+        topics.add(channel.topic)
+        if channel.message_encoding == "json":
+            validator = validators.setdefault(schema.id, Draft202012Validator(json.loads(schema.data)))
+            validator.validate(json.loads(message.data))
+        else:
+            assert channel.message_encoding == "protobuf" and schema.encoding == "protobuf"
+            decoded = decoders.setdefault(schema.id, DecoderFactory().decoder_for("protobuf", schema))(message.data)
+            assert schema.name == FOXGLOVE[channel.topic] == decoded.DESCRIPTOR.full_name
+            assert decoded.SerializeToString() == message.data        # nothing the schema does not describe
+    expected = set(FOXGLOVE) - ({"/foxglove/speed"} if run_name == "sort" else {"/foxglove/log"})   # no event yet
+    assert expected <= topics
+    run_metadata = metadata["run"]
+    assert all(isinstance(value, str) for value in run_metadata.values())
+    assert json.loads(run_metadata["detector"])["window"] == [30e-6, 60e-6]
+    origin = int(run_metadata["time_origin_unix_ns"])
+    assert min(m.log_time for _, _, m in messages) == origin       # the device, at t = 0
+
+
+def _rerun_cli():
+    found = Path(sys.executable).parent / "rerun"
+    return str(found) if found.exists() else shutil.which("rerun")
+
+
+@pytest.mark.skipif(_rerun_cli() is None, reason="the rerun CLI is not installed")
+def test_rerun_mcap_importer_draws_membranes_flow_and_log(feib, sort, tmp_path):
+    for run, name in ((feib, "feib"), (sort, "sort")):
+        converted = tmp_path / f"{name}.rrd"
+        done = subprocess.run([_rerun_cli(), "mcap", "convert", "--disable-raw-fallback", "-o", str(converted),
+                               str(run["dir"] / "run.mcap")], capture_output=True, text=True, timeout=300,
+                              env={"RERUN_ANALYTICS": "0", "PATH": ""})
+        assert done.returncode == 0, done.stderr
+        rows, _ = _components(converted)
+        assert "Points3D:positions" in rows["/foxglove/membranes"]
+        if name == "feib":
+            assert "Image:buffer" in rows["/foxglove/speed"]
+            first = next(iter(run["capture"].membranes.values()))[0]
+            points = np.array(rows["/foxglove/membranes"]["Points3D:positions"][0])
+            assert np.allclose(points[:, :2], first, atol=1e-3) and np.all(points[:, 2] == 0)
+        else:
+            cells = run["result"]["cells"]
+            detected = sum(c["detected_class"] is not None for c in cells)
+            assert "TextLog:text" in rows["/foxglove/log"]
+            assert len(rows["/foxglove/log"]["TextLog:text"]) >= 2 * detected + len(cells)
+
+
+def _components(path):
+    """entity -> component -> values of the rows in file order (static and temporal)."""
+    found = {}
+    for chunk in RrdReader(str(path)).stream():
+        batch = chunk.to_record_batch()
+        for name in batch.schema.names:
+            if ":" in name:
+                found.setdefault(chunk.entity_path, {}).setdefault(name, []).extend(batch.column(name).to_pylist())
+    return found, None
+
+
+def test_rerun_view_keeps_the_plants_coordinates(feib):
+    rows, static = rrd_rows(feib["dir"] / "live.rrd")
+    compared = 0
+    for time_ns, values in rows["/device/cells/0"]:
+        if time_ns in feib["capture"].membranes and "LineStrips2D:strips" in values:
+            strip = np.array(values["LineStrips2D:strips"][0])
+            plant = feib["capture"].membranes[time_ns][0]
+            assert np.allclose(strip[:-1], plant, atol=1e-4)          # float32 of the plant's um, y up, no flip
+            compared += 1
+    assert compared >= 90
+    flip = static["/device"]
+    assert flip["Transform3D:scale"] == [[1.0, -1.0, 1.0]] and flip["Transform3D:translation"][0][1] == 220.0
+    assert any("Image:buffer" in values for _, values in rows["/device/flow"])
+
+
+def test_each_cell_is_coloured_by_its_outcome_class(sort):
+    rows, _ = rrd_rows(sort["dir"] / "live.rrd")
+    _, messages = mcap_messages(sort["dir"] / "run.mcap")
+    recorded = {json.loads(m.data)["key"]: json.loads(m.data)["class"] for _, c, m in messages
+                if c.topic == "/outcome"}
+    classes = set()
+    for cell in sort["result"]["cells"]:
+        expected = outcome_class(cell)
+        classes.add(expected)
+        assert rows[f"/device/paths/{cell['key']}"][-1][1]["LineStrips2D:class_ids"] == [CLASS_IDS[expected]]
+        assert recorded[cell["key"]] == expected
+    assert {"sorted", "passed"} <= classes and len(classes) >= 3, classes
+
+
+def test_every_detector_event_is_a_marker_where_and_when_it_happened(sort):
+    rows, _ = rrd_rows(sort["dir"] / "live.rrd")
+    markers = rows["/device/events"]
+    events = sorted(c["detection_time_ms"] for c in sort["result"]["cells"] if c["detection_time_ms"] is not None)
+    assert [t for t, _ in markers] == [round(t * 1e6) for t in events]
+    for _, values in markers:
+        x, _ = values["Points2D:positions"][-1]                       # the newest marker: this event's cell
+        assert 60.0 <= x < 70.0                                       # just past the detection window's end
+
+
+def test_replay_shows_what_the_live_view_shows(sort, tmp_path):
+    replayed = tmp_path / "replay.rrd"
+    done = subprocess.run([sys.executable, "-m", "vcyto", "replay", str(sort["dir"] / "run.mcap"), "--save",
+                           str(replayed), "--json"], capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr
+    live, _ = rrd_rows(sort["dir"] / "live.rrd")
+    again, _ = rrd_rows(replayed)
+    for entity in ["/idt", "/log", "/device/events", "/pulses/scheduled"] + [e for e in live if "/paths/" in e]:
+        assert [t for t, _ in again[entity]] == [t for t, _ in live[entity]], entity
+    assert [v for _, v in again["/log"]] == [v for _, v in live["/log"]]          # velocities and reasons too
+    assert any("mm/s" in v["TextLog:text"][0] for _, v in again["/log"])
+    assert json.loads(done.stdout)["format"] == "2"
+
+
+def test_a_recording_of_the_first_format_still_replays(tmp_path):
+    replayed = tmp_path / "old.rrd"
+    done = subprocess.run([sys.executable, "-m", "vcyto", "replay", str(OLD), "--save", str(replayed), "--json"],
+                          capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr
+    assert json.loads(done.stdout)["format"] == "1" and json.loads(done.stdout)["steps"] > 500
+    rows, _ = rrd_rows(replayed)
+    final = {key: rows[f"/device/paths/{key}"][-1][1]["LineStrips2D:class_ids"] for key in range(3)}
+    assert final == {0: [CLASS_IDS["sorted"]], 1: [CLASS_IDS["passed"]], 2: [CLASS_IDS["sorted"]]}
+    assert len(rows["/device/events"]) == 3
+
+
+def test_sinks_keep_only_the_cells_in_the_channel(sort):
+    recorder, viewer = sort["recorder"], sort["viewer"]
+    assert recorder._paths == {} and recorder._classes._detected == {} and recorder._classes._event_keys == {}
+    assert viewer.logger.paths == {} and viewer.logger.positions == {} and viewer.classes._action == {}

@@ -64,7 +64,7 @@ def load_scenario(path: str | os.PathLike | None = None, overrides: Sequence[str
         _merge(tree, _read_document(path))
     for override in overrides:
         _apply_override(tree, override)
-    return _build(Scenario, tree, "")
+    return _build(Scenario, _inherit_sort_class(tree), "")
 
 
 def scenario_from_toml(text: str) -> Scenario:
@@ -74,7 +74,19 @@ def scenario_from_toml(text: str) -> Scenario:
         _merge(tree, tomllib.loads(text))
     except tomllib.TOMLDecodeError as error:
         raise ScenarioError("scenario", f"not valid TOML: {_one_line(error)}") from None
-    return _build(Scenario, tree, "")
+    return _build(Scenario, _inherit_sort_class(tree), "")
+
+
+def _inherit_sort_class(tree: dict) -> dict:
+    """A ``[[cell_types]]`` entry named like a built-in type and without ``target`` takes the built-in type's sort
+    class: files written before ``target`` existed keep sorting the melanoma."""
+    builtin = {cell.name: cell.target for cell in Scenario().cell_types}
+    types = tree.get("cell_types")
+    if isinstance(types, list):
+        for entry in types:
+            if isinstance(entry, dict) and "target" not in entry and entry.get("name") in builtin:
+                entry["target"] = builtin[entry["name"]]
+    return tree
 
 
 def scenario_to_toml(scenario: Scenario) -> str:

@@ -121,7 +121,7 @@ class McapRecorder:
         self.field_every = field_every
         self._steps = 0
         self._sequence = 0
-        self._classes = CellClasses()
+        self._classes = CellClasses(scenario)
         self._paths: dict[int, list] = {}        # the cells in the channel: their centroid paths (um)
         self._reported: set[int] = set()         # cells that left, while ``truth`` still lists them
         outlines = device_outlines(scenario, detection_window)

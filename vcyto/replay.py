@@ -18,7 +18,7 @@ from zstandard import ZstdError
 
 from sim.scenario import Scenario
 
-from .classes import true_class
+from .classes import class_of_type
 from .config import scenario_from_toml
 from .outcomes import outcome_class
 from .viewer import RerunLogger, decision_text
@@ -74,8 +74,9 @@ def detection_window(metadata: dict):
 class _Replayer:
     """Turns the messages of a recording into the calls the live view makes."""
 
-    def __init__(self, logger: RerunLogger):
+    def __init__(self, logger: RerunLogger, scenario: Scenario):
         self.logger = logger
+        self.true_class = class_of_type(scenario)
         self.membranes = {}                   # key -> points of the step being read (format 2)
         self.detected, self.actions, self.events = {}, {}, {}     # of the cells in the channel (format 1 classes)
         self.pulses = {}
@@ -133,7 +134,7 @@ class _Replayer:
         key = data["key"]
         for event_id in [e for e, k in self.events.items() if k == key]:
             del self.events[event_id]
-        return outcome_class({"outlet": data["outlet"], "true_class": true_class(data["type"]),
+        return outcome_class({"outlet": data["outlet"], "true_class": self.true_class(data["type"]),
                               "detected_class": self.detected.pop(key, None), "decision": self.actions.pop(key, None)})
 
 
@@ -141,7 +142,7 @@ def replay(path: Path, target, progress=None) -> dict:
     metadata, messages, problem = read_recording(path)
     scenario = scenario_from_toml(metadata["scenario_toml"]) if "scenario_toml" in metadata else Scenario()
     logger = RerunLogger(scenario, detection_window(metadata), target)
-    replayer = _Replayer(logger)
+    replayer = _Replayer(logger, scenario)
     steps = 0
     last_time = 0.0
     for topic, data in messages:

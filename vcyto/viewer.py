@@ -274,7 +274,7 @@ class RerunSink:
     def __init__(self, scenario: Scenario, detection_window, target, field_every: int = 200):
         self.logger = RerunLogger(scenario, detection_window, target)
         self.field_every = field_every
-        self.classes = CellClasses()
+        self.classes = CellClasses(scenario)
         self._reported: set[int] = set()
 
     def on_step(self, step, observation, truth, actuation, events, decisions, fields=None, diagnostics=None):

@@ -41,15 +41,16 @@ class ControllerSettings:
     envelope"): a melanoma reaches the SAW window's centre 0.548 ms after leaving the detection window at
     0.0997 m/s (rom). The shortest pulse that sorts it on ``rom`` is 0.30 ms, but ``feib`` needs the jet
     earlier and longer (a stiff 16 um cell turns more slowly); 0.40 ms started 0.30 ms before the arrival sorts
-    it on ``rom`` (good leads 0.05-0.44 ms) and on ``feib`` at 6.67 and 3.33 um (0.15-0.2 ms and up). On ``rom``
-    that pulse deflects a type-I cell arriving from 0.236 ms before to 0.123 ms after the target."""
+    it on ``rom`` (good leads 0.05-0.44 ms) and on ``feib`` at 6.67 and 3.33 um (0.15-0.2 ms and up). That pulse
+    deflects an RBC arriving from 0.236 ms before to 0.123 ms after the target on ``rom``, and from 0.21 ms before
+    to 0.27 ms after on ``feib`` at 6.67 um: the envelope is their union, so that purity holds on every level."""
 
     delay: float = 0.5478e-3
     reference_velocity: float = 0.0997
     lead: float = 0.30e-3
     pulse: float = 0.40e-3
     mode: str = "purity"
-    envelope: tuple[float, float] = (-0.2362e-3, 0.1225e-3)
+    envelope: tuple[float, float] = (-0.2362e-3, 0.27e-3)
     timing_error: float = 0.0271e-3
     enabled: bool = True
 

@@ -8,6 +8,7 @@ import sys
 
 import pytest
 
+from controller.detector import DetectorSettings
 from controller.sorter import ControllerSettings
 from sim.arrivals import Arrivals
 from vcyto.calibrate import Grid, calibrate
@@ -96,8 +97,10 @@ def test_calibration_on_rom_reproduces_the_shipped_controller(paper_scenario, ro
     assert measured.delay == pytest.approx(shipped.delay, abs=2e-6)
     assert measured.reference_velocity == pytest.approx(shipped.reference_velocity, rel=1e-3)
     assert measured.timing_error == pytest.approx(shipped.timing_error, abs=1e-6)
-    for edge, expected in zip(measured.envelope, shipped.envelope):       # within the 2.5 us edge resolution
-        assert abs(edge - expected) <= grid.resolution
+    # the leading edge is rom's (within the 2.5 us edge resolution); the trailing edge is feib's at 6.67 um,
+    # 0.27 ms, which rom underestimates (0.1225 ms: test_rom_and_feib_envelopes_at_a_handful_of_offsets)
+    assert abs(measured.envelope[0] - shipped.envelope[0]) <= grid.resolution
+    assert abs(measured.envelope[1] - 0.1225e-3) <= grid.resolution < shipped.envelope[1] - measured.envelope[1]
     assert result.envelopes["melanoma"] is not None      # a second target in the envelope is deflected too
 
 
@@ -111,3 +114,28 @@ def test_the_shortest_pulse_search_finds_a_band_of_good_leads(paper_scenario, ro
     low, high = bands[0.3]
     assert high - low >= 2 * settings.timing_error and settings.lead == pytest.approx(0.5 * (low + high))
     assert settings.envelope[0] < 0 < settings.envelope[1]
+
+
+@pytest.mark.slow
+def test_rom_and_feib_envelopes_at_a_handful_of_offsets(paper_scenario, rom_plant):
+    """The RBC under the shipped pulse, alone, at offsets from the target's arrival, on rom and on feib (6.67 um,
+    dt 10 us). Measured: both leave lower at -0.32 and -0.28 ms and upper at 0 and +0.08 ms; the leading edge
+    agrees within 0.03 ms (rom -0.236, feib -0.21 ms), but feib still deflects the RBC at +0.16 and +0.2 ms where
+    rom lets it pass (trailing edge: rom +0.12, feib +0.27 ms): rom misses the soft cell's lag behind the
+    switching jet, which is why the shipped envelope is the union of both."""
+    from sim.plant import FeibPlant
+    from vcyto.calibrate import deflected, measure_delay
+    shipped = ControllerSettings()
+    coarse = paper_scenario.with_numerics(mesh_h=6.6667e-6, dt=10e-6)
+    feib = FeibPlant(coarse)
+    fates = {}
+    for name, plant, scenario in (("rom", rom_plant, paper_scenario), ("feib", feib, coarse)):
+        delay = measure_delay(plant, scenario, DetectorSettings())
+        fates[name] = {offset: deflected(plant, "RBC", delay, offset * 1e-3, shipped.pulse, shipped.lead,
+                                         DetectorSettings()) != "lower"
+                       for offset in (-0.32, -0.28, 0.0, 0.08, 0.16, 0.2)}
+    for offset in (-0.32, -0.28, 0.0, 0.08):
+        assert fates["rom"][offset] == fates["feib"][offset] == (offset >= 0), offset
+    assert not fates["rom"][0.16] and fates["feib"][0.16] and fates["feib"][0.2]
+    low, high = shipped.envelope
+    assert all(low <= offset * 1e-3 <= high for offset, hit in fates["feib"].items() if hit)

@@ -134,6 +134,14 @@ def command_bench(args):
         _bench_sweep(args, bench)
         return
     scenario = _scenario(args)
+    if args.target == "sort":
+        from . import benchsort
+        counts = [int(v) for v in args.counts.split(",") if v.strip()]
+        if not counts or min(counts) < 1:
+            raise UsageError(f"--counts wants positive cell counts such as 1000,10000 (got {args.counts!r})")
+        result = benchsort.bench_sort(counts, args.rate, not args.no_record, not args.no_rerun, args.seed, progress)
+        _emit(args, result, benchsort.report_lines(result))
+        return
     if args.target == "realtime":
         _bench_realtime(args, bench, scenario, progress)
         return
@@ -748,7 +756,7 @@ def _stream_options(parser: argparse.ArgumentParser):
                              "single (purity, and abort two type-II cells in each other's envelope)")
     optics.add_argument("--envelope", metavar="LO,HI",
                         help="offsets in ms from a sorted cell's arrival at which another cell is deflected too "
-                             "(default -0.236,0.123: measured by vcyto calibrate)")
+                             "(default -0.236,0.27: vcyto calibrate on rom and feib, README 'Sort envelope')")
     optics.add_argument("--timing-error", type=float, metavar="MS",
                         help="uncertainty of one predicted arrival; the purity window is the envelope widened by twice "
                              "this (default 0.027)")
@@ -954,6 +962,18 @@ def build_parser() -> argparse.ArgumentParser:
     sweep_bench.add_argument("--repeats", type=int, default=1, help="runs per pool size; medians (default 1)")
     _output_options(sweep_bench)
     sweep_bench.set_defaults(handler=command_bench)
+    sort_bench = targets.add_parser("sort", help="long rom sorting runs with recording: loop cost per event, "
+                                                 "linearity in run length, peak memory, file sizes")
+    _scenario_options(sort_bench)
+    sort_bench.add_argument("--counts", default="1000,10000", help="cells offered per run (default 1000,10000)")
+    sort_bench.add_argument("--rate", type=float, default=2000.0,
+                            help="offered rate, cells/s (default 2000: about 1000 events/s after the dead time)")
+    sort_bench.add_argument("--seed", type=int, default=3, help="random seed (default 3)")
+    sort_bench.add_argument("--no-record", action="store_true", help="no MCAP and no Rerun")
+    sort_bench.add_argument("--no-rerun", action="store_true", help="MCAP only")
+    _output_options(sort_bench)
+    sort_bench.set_defaults(handler=command_bench)
+
     realtime_bench = targets.add_parser("realtime", help="real-time factor of the closed loop with the rom plant: "
                                                          "a Poisson stream, detector and controller, no recording")
     _scenario_options(realtime_bench)

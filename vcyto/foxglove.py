@@ -51,14 +51,15 @@ def membranes(unix_ns: int, cells) -> PointCloud:
     """Every cell's membrane points (or its centroid for point-like models) with its key, class id and colour.
 
     ``cells``: (key, class id, RGB, points (n, 2) in um)."""
-    blocks = []
-    for key, class_id, colour, points in cells:
-        block = np.zeros(len(points), dtype=POINT)
-        block["x"], block["y"] = _binary(points[:, 0]), _binary(points[:, 1])
-        block["red"], block["green"], block["blue"], block["alpha"] = (*colour, 255)
-        block["key"], block["class"] = key, class_id
-        blocks.append(block)
-    data = np.concatenate(blocks) if blocks else np.zeros(0, dtype=POINT)
+    counts = [len(points) for _, _, _, points in cells]
+    data = np.zeros(sum(counts), dtype=POINT)
+    if cells:                               # one vectorised fill (cells of point-like models are one point each)
+        points = np.concatenate([points for _, _, _, points in cells])
+        data["x"], data["y"] = _binary(points[:, 0]), _binary(points[:, 1])
+        colours = np.repeat(np.array([colour for _, _, colour, _ in cells], dtype=np.uint8), counts, axis=0)
+        data["red"], data["green"], data["blue"], data["alpha"] = colours[:, 0], colours[:, 1], colours[:, 2], 255
+        data["key"] = np.repeat([key for key, _, _, _ in cells], counts)
+        data["class"] = np.repeat([class_id for _, class_id, _, _ in cells], counts)
     return PointCloud(timestamp=stamp(unix_ns), frame_id=FRAME, pose=Pose(orientation={"w": 1.0}),
                       point_stride=POINT.itemsize, fields=POINT_FIELDS, data=data.tobytes())
 

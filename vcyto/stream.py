@@ -11,6 +11,7 @@ can report only what changed (``truth_update``) are asked for that, and the summ
 from __future__ import annotations
 
 import math
+import sys
 import time
 from dataclasses import dataclass, field
 
@@ -44,7 +45,7 @@ class StreamStopped(Exception):
 
 NOTE_LIMIT = 200               # per-cell lines on screen for samples up to this size; beyond, counts only
 DRAIN_TIME = 20e-3             # s after the last arrival by which every cell must have left (else: truncated)
-RECORD_INTERVAL = 0.2e-3       # s: an event-driven plant shows its state to the sinks at least this often
+RECORD_INTERVAL = 0.25e-3      # s: an event-driven plant shows its state to the sinks this often (paths ~25 um)
 
 
 @dataclass(frozen=True)
@@ -107,6 +108,7 @@ def run_stream(scenario: Scenario, settings: StreamSettings, progress=None, plan
                sinks, progress, len(sample.admitted))
     run.observation = plant.reset(sample.admitted, seed=settings.seed)
     setup = time.perf_counter() - started
+    rss_setup = _peak_rss_mb()
     last_arrival = sample.admitted[-1][0] if sample.admitted else 0.0
     drain_cap = last_arrival + settings.drain_time
     cap = min(drain_cap, settings.max_time) if settings.max_time is not None else drain_cap
@@ -123,7 +125,8 @@ def run_stream(scenario: Scenario, settings: StreamSettings, progress=None, plan
         status, reason = "truncated", _truncation(plant, settings, cap, drain_cap)
     result = sortreport.summarise(sample, plant.truth(), run.events, run.controller, scenario, settings)
     result.update(status=status, reason=reason, wall_time_s=time.perf_counter() - started, setup_time_s=setup,
-                  idt_on_time_ms=run.idt_time * 1e3, steps=run.steps)
+                  idt_on_time_ms=run.idt_time * 1e3, steps=run.steps, memory_mb={"after_setup": rss_setup,
+                                                                                  "peak": _peak_rss_mb()})
     if hasattr(plant, "switches"):             # the auto plant: what it picked, when and why
         result["auto"] = {"switches": [{"time_ms": t * 1e3, "model": model, "reason": why}
                                        for t, model, why in plant.switches],
@@ -160,6 +163,7 @@ class _Run:
         self.grouped = hasattr(plant, "step_until")
         self.observation = None
         self.truth_update = getattr(plant, "truth_update", None)
+        self.pending, self.shown = [], 0.0          # events not yet shown to the sinks; when they last saw a step
 
     @property
     def now(self) -> float:
@@ -171,11 +175,10 @@ class _Run:
             # what the detector reacts to: the cells crossing its lines, one period before and at the crossing
             until = min(controller.next_change(self.now), cap)
             if self.sinks:
-                until = min(until, self.now + self.settings.record_interval)
+                until = min(until, self.shown + self.settings.record_interval)
             window_start, window_end = self.settings.detector.window
             periods, seen = plant.step_until(self.actuation, until, stop_lines=(window_end,),
                                              record_lines=(window_start,))
-            self.observation = plant.observe() if self.sinks or self.progress else None
         else:
             self.observation, periods = plant.step(self.actuation), 1
             seen = [self.observation]
@@ -191,8 +194,14 @@ class _Run:
                                    f"{event.classification} (fluorescence {event.fluorescence:.2f}), "
                                    f"decision {decision.action}")
         self.actuation = controller.actuation(self.now)
-        if self.sinks or self.progress:
-            self._show(new_events)
+        self.pending.extend(new_events)
+        # an event-driven plant shows its state every record_interval (events and decisions wait for it)
+        due = not self.grouped or self.now >= self.shown + self.settings.record_interval - 1e-12 or plant.done
+        if due and (self.sinks or self.progress):
+            if self.grouped:
+                self.observation = plant.observe()
+            self._show(self.pending)
+            self.pending, self.shown = [], self.now
 
     def _show(self, new_events):
         truth = self._truth()
@@ -225,8 +234,21 @@ class _Run:
                                        f"{cell.fate}")
 
     def finish(self):
-        if self.progress:
+        if self.sinks and self.grouped and (self.pending or self.now > self.shown):
+            self.observation = self.plant.observe()
+            self._show(self.pending)
+        elif self.progress:
             self._report(self._truth())
+
+
+def _peak_rss_mb() -> float | None:
+    """The process's peak resident memory so far (MB; None where the platform does not say)."""
+    try:
+        import resource
+    except ImportError:
+        return None
+    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    return peak / 1024 if sys.platform != "darwin" else peak / 2**20
 
 
 def _sightings(observation) -> list[Sighting]:

@@ -122,6 +122,7 @@ def statistics_of(cells, simulated_time, rejected=(), scenario=None, controller_
         "events": sum(c["detected_class"] is not None for c in cells),
         "sorted": sum(c["decision"] == "sort" for c in cells),
         "purity": (sum(c["true_class"] == TYPE_II for c in sorted_cells) / len(sorted_cells)) if sorted_cells else None,
+        "purity_of_sorting": _purity_of_sorting(sorted_cells),
         "yield": (sum(c["outlet"] == SORTED_OUTLET for c in targets) / offered_targets) if offered_targets else None,
         "abort_rate": (len(aborts) / len(detected_ii)) if detected_ii else None,
         "aborts": len(aborts),
@@ -131,11 +132,20 @@ def statistics_of(cells, simulated_time, rejected=(), scenario=None, controller_
         "undetected": sum(c["detected_class"] is None and c["outlet"] != "not_injected" for c in cells),
         "not_injected": len(cells) - len(injected),
         "throughput_cells_per_s": (len(injected) / (max(exits) * 1e-3)) if exits and max(exits) > 0 else None,
+        "event_rate_per_s": (sum(c["detected_class"] is not None for c in cells) / simulated_time)
+        if simulated_time > 0 else None,
         "outlets": {outlet: sum(c["outlet"] == outlet for c in cells)
                     for outlet in sorted({c["outlet"] for c in cells})},
         "outcomes": {name: sum(c.get("outcome") == name for c in cells)
                      for name in sorted({c.get("outcome") for c in cells} - {None})},
     }
+
+
+def _purity_of_sorting(sorted_cells):
+    """Purity of the sorted outlet among the cells the detector classified correctly (what the sort itself
+    achieves; misclassified cells are counted apart)."""
+    correct = [c for c in sorted_cells if c["detected_class"] == c["true_class"]]
+    return sum(c["true_class"] == TYPE_II for c in correct) / len(correct) if correct else None
 
 
 def _unexpected(co_deflected, cells, settings) -> int | None:
@@ -267,7 +277,8 @@ def sort_report_lines(result: dict) -> list[str]:
         f"sort report ({result.get('controller_mode', '?')} mode): {stats['offered']} offered, "
         f"{stats['rejected_at_inlet']} rejected at the inlet, {stats['events']} events, {stats['sorted']} sorted, "
         f"{stats['aborts']} aborted",
-        f"purity {_percent(stats['purity'])}, yield {_percent(stats['yield'])}{expected}, abort rate "
+        f"purity {_percent(stats['purity'])} ({_percent(stats['purity_of_sorting'])} of the correctly detected), "
+        f"yield {_percent(stats['yield'])}{expected}, abort rate "
         f"{_percent(stats['abort_rate'])}, co-deflected {stats['co_deflected']} (outside the envelope: "
         f"{stats['co_deflected_unexpected']}), misclassified {stats['misclassified']}, undetected "
         f"{stats['undetected']}, never injected {stats['not_injected']}",

@@ -60,7 +60,8 @@ SWEEP_KEYS = ("metrics", "plot", "sampling", "samples", "sampling_seed")
 RANGE_KEYS = ("start", "stop", "num", "step", "log")
 DISTRIBUTIONS = ("uniform", "log_uniform", "integers")
 STATISTICS = ("yield", "purity", "abort_rate", "aborts", "misclassified", "undetected", "throughput_cells_per_s",
-              "cells")
+              "cells", "purity_of_sorting", "offered", "events", "event_rate_per_s", "rejected_at_inlet", "sorted", "co_deflected",
+              "co_deflected_unexpected", "not_injected", "yield_estimate")
 RUN_FIGURES = ("simulated_time_ms", "idt_on_time_ms", "wall_time_s")
 DEFAULT_METRICS = ("yield", "purity", "abort_rate", "outlets")
 RESULTS, FIGURE, SUMMARY = "results.csv", "summary.png", "sweep.json"
@@ -403,8 +404,10 @@ def _metrics(names, scenario) -> tuple[str, ...]:
 
 def metric_value(result: dict, name: str):
     """The metric ``name`` of one ``run_stream`` result (None where it is undefined, e.g. purity of no sort)."""
+    if name == "yield_estimate":
+        return (result.get("yield_estimate") or {}).get("yield")
     if name in STATISTICS:
-        return result["statistics"][name]
+        return result["statistics"].get(name)
     if name in RUN_FIGURES:
         return result[name]
     outlets = result["statistics"]["outlets"]

@@ -113,12 +113,17 @@ def test_statistics_agree_with_counts_made_from_the_outcomes():
 
 def test_poisson_abort_rate_matches_the_coincidence_estimate(scenario, streamline_plant):
     """Pure Poisson arrivals (no dead time): a sort is aborted when a type-I cell's predicted arrival falls in the
-    controller's widened envelope, of width W, so the abort rate is 1 - exp(-rate * share_I * W)."""
+    controller's widened envelope before the pulse starts, a window of width W, so the abort rate is
+    1 - exp(-rate * share_I * W). W ends at the look-ahead: a cell detected after the pulse started cannot
+    abort it (detection to arrival about 0.55 ms, minus the 0.3 ms lead)."""
     rate, share_i = 1000.0, 0.5
     arrivals = Arrivals(count=500, mix=(("RBC", share_i), ("melanoma", 1 - share_i)), rate=rate, process="poisson",
                         min_spacing=0.0, first=0.0)
     result = stream(scenario, streamline_plant, arrivals=arrivals, seed=3)
     low, high = ControllerSettings().window()
+    rbcs = [c for c in result["cells"] if c["type"] == "RBC" and c["detection_time_ms"] is not None]
+    lookahead = np.median([c["predicted_arrival_ms"] - c["detection_time_ms"] for c in rbcs]) * 1e-3
+    high = min(high, lookahead - ControllerSettings().lead)
     sorts = [c for c in result["cells"] if c["detected_class"] == "II"]
     measured = result["statistics"]["abort_rate"]
     expected = 1 - math.exp(-rate * share_i * (high - low))

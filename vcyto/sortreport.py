@@ -18,7 +18,9 @@ window at an offset inside the mode's window [L, H]; a neighbour of type j injec
 arrives at g + (T_j - T_t) (-g + ...) with T the transit time to the window, measured in the run. The two
 sides are independent (the gaps are), and each side's probability that no counted neighbour falls in its
 window is computed exactly for the renewal process by a backward recursion (``_clear_probability``); the
-estimate is A times the mix-weighted mean over target types. Regular arrivals: the neighbours sit at k / r.
+estimate is A times the mix-weighted mean over target types. A neighbour detected after the target's pulse has
+started cannot abort it, so each window ends at the neighbour's look-ahead (its detection-to-arrival time minus
+the lead) if that comes first. Regular arrivals: the neighbours sit at k / r.
 """
 
 from __future__ import annotations
@@ -174,13 +176,18 @@ def yield_estimate(cells, scenario, settings) -> dict | None:
     low, high = controller.window(margin=SORTED_MODES.get(controller.mode, True))
     poisson = arrivals.process == "poisson"
     acceptance = 1.0 / (1.0 + arrivals.rate * arrivals.min_spacing) if poisson else 1.0
+    lookahead = _lookahead(cells)
     total, weight = 0.0, 0.0
     for target in targets:
-        counted = [(mix[other.name], transit[other.name] - transit[target.name]) for other in types
+        # a neighbour detected after the target's pulse started cannot abort it: offsets beyond its look-ahead
+        # (its detection-to-arrival time minus the lead) do not count
+        counted = [(mix[other.name], transit[other.name] - transit[target.name],
+                    min(high, lookahead[other.name] - controller.lead)) for other in types
                    if _counts(controller.mode, other)]
         keep = 1.0
         for side in (1, -1):       # neighbours injected after (+) and before (-) the target
-            windows = [(share, *sorted((side * (low - shift), side * (high - shift)))) for share, shift in counted]
+            windows = [(share, *sorted((side * (low - shift), side * (top - shift)))) for share, shift, top in counted
+                       if top > low]
             keep *= _clear_probability(windows, arrivals)
         total += mix[target.name] * keep
         weight += mix[target.name]
@@ -226,6 +233,15 @@ def _transit_times(cells) -> dict:
     for cell in cells:
         if cell["predicted_arrival_ms"] is not None and cell["detected_class"] is not None:
             times.setdefault(cell["type"], []).append((cell["predicted_arrival_ms"] - cell["arrival_ms"]) * 1e-3)
+    return {name: statistics.median(values) for name, values in times.items()}
+
+
+def _lookahead(cells) -> dict:
+    """Median time (s) from detection to the predicted arrival at the SAW window, per type, in this run."""
+    times = {}
+    for cell in cells:
+        if cell["predicted_arrival_ms"] is not None:
+            times.setdefault(cell["type"], []).append((cell["predicted_arrival_ms"] - cell["detection_time_ms"]) * 1e-3)
     return {name: statistics.median(values) for name, values in times.items()}
 
 

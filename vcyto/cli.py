@@ -489,6 +489,8 @@ def _report_stream(args, result, stopped, view, files):
     """Write the FCS events and the summary (partial ones marked), print the report and the paths; a stopped
     run then ends with its exit status (130 SIGINT, 143 SIGTERM, 1 numerical failure)."""
     from . import runfiles, stream
+    if stopped is not None and stopped.status == "interrupted":
+        result["reason"] = f"interrupted by {_signals_seen.get('last', 'SIGINT')}"
     lines = stream.report_lines(result) if result.get("cells") else []
     result["files"] = {}
     if files is not None and files.path("mcap") is not None:
@@ -548,10 +550,13 @@ def command_replay(args):
         view.path = outputs.unique_path(path.with_suffix(".replay.rrd"))
     try:
         result = replay(path, view.target())
-    except ReplayError as error:
-        if view.kind == "save" and view.path.exists() and not args.save:
-            view.path.unlink(missing_ok=True)
-        raise UsageError(str(error)) from None
+    except (ReplayError, KeyError, TypeError, ValueError, IndexError, AttributeError) as error:
+        if view.kind == "save" and view.path.exists():
+            view.path.unlink(missing_ok=True)          # ours: created for this replay
+        if isinstance(error, (ReplayError, ScenarioError)):
+            raise UsageError(str(error)) from None
+        raise UsageError(f"{path}: a message of the recording is malformed ({type(error).__name__}: "
+                         f"{' '.join(str(error).split())[:120]}); it was not written by this vcyto") from None
     lines = [f"replayed {result['steps']} steps ({result['messages']} messages, up to t = {result['last_time_ms']:.3f} ms)"
              f" from {path}"]
     if result["damaged"]:

@@ -34,7 +34,7 @@ class View:
 
     def describe(self, run_path=None) -> str:
         return f"streamed to the viewer at {self.url}" if self.kind == "connect" else \
-            f"saved to {self.path or run_path} (open it with: rerun {self.path or run_path})"
+            f"saved to {self.path or run_path}"
 
 
 def say(message: str) -> None:
@@ -110,8 +110,10 @@ class StreamFiles:
         """Write the FCS events and the JSON summary of ``result`` (complete or partial) into the reserved files."""
         from . import fcs
         fcs_path, summary_path = self.path("fcs"), self.path("json")
-        fcs.write_fcs(fcs_path, result, {"VCYTO_COMMAND": " ".join(sys.argv),
-                                         "VCYTO_STATUS": result.get("status", "complete")})
+        # an FCS keyword value must not begin or end with the delimiter "/" (a path would): the command as typed
+        command = " ".join(["vcyto", *sys.argv[1:]]).rstrip("/ ") or "vcyto"
+        fcs.write_fcs(fcs_path, result, {"VCYTO_COMMAND": command, "VCYTO_STATUS": result.get("status", "complete"),
+                                         "VCYTO_RUN_ID": self.run_id})
         outputs.write_into(summary_path, outputs.strict_json(result) + "\n")
         return fcs_path, summary_path
 

@@ -230,7 +230,8 @@ def finalised_mcap(path: Path) -> int:
 
 def test_a_desktop_without_a_usable_viewer_still_gets_every_file(tmp_path):
     """DISPLAY set, no X server: the installed viewer exits at once; the run says so, saves the .rrd, exits 0."""
-    result = vcyto("stream", "--cells", "RBC,melanoma", "--model", "rom", "--mesh-h", "10um", "--output", str(tmp_path), "--quiet",
+    result = vcyto("stream", "--cells", "RBC,melanoma", "--model", "rom", "--mesh-h", "10um", "--output", str(tmp_path),
+                   "--quiet",
                    env={"DISPLAY": ":99", "WAYLAND_DISPLAY": ""})
     assert result.returncode == 0, result.stderr
     assert "Traceback" not in result.stderr
@@ -249,7 +250,8 @@ def test_a_desktop_without_a_usable_viewer_still_gets_every_file(tmp_path):
 
 
 def test_two_streams_started_together_write_distinct_readable_files(tmp_path):
-    command = [sys.executable, "-m", "vcyto.cli", "stream", "--cells", "RBC", "--model", "streamline", "--mesh-h", "10um",
+    command = [sys.executable, "-m", "vcyto.cli", "stream", "--cells", "RBC", "--model", "streamline", "--mesh-h",
+               "10um",
                "--output", str(tmp_path), "--quiet", "--json"]
     processes = [subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
                  for _ in range(2)]

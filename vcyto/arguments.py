@@ -49,7 +49,8 @@ class _Checked:
 
     def _check(self, value, text, shown):
         if self.low is not None and (value < self.low or (self.low_open and value == self.low)):
-            bound = "positive" if self.low == 0 and self.low_open else f"{'>' if self.low_open else '>='} {shown(self.low)}"
+            bound = "positive" if self.low == 0 and self.low_open else \
+                f"{'>' if self.low_open else '>='} {shown(self.low)}"
             raise argparse.ArgumentTypeError(f"must be {bound}{self.what} (got {text})")
         if self.high is not None and value > self.high:
             raise argparse.ArgumentTypeError(f"must be at most {shown(self.high)}{self.what} (got {text})")

@@ -266,7 +266,7 @@ def _number_list(text: str, option: str, example: str, parse, valid, kind: str) 
     except ValueError:
         values = []
     if not values or not all(math.isfinite(v) and valid(v) for v in values):
-        raise UsageError(f"{option}: needs {kind} values separated by commas, such as {example} (got {text!r})")
+        raise UsageError(f"{option}: needs {kind} numbers separated by commas, such as {example} (got {text!r})")
     return values
 
 
@@ -358,7 +358,8 @@ def _detection_window(text: str, scenario) -> tuple[float, float]:
         raise UsageError(f"--detection-window: wants two lengths X0,X1 with 0 <= X0 < X1, e.g. 30,60 (um) "
                          f"(got {text!r})")
     if values[1] > scenario.channel.length:
-        raise UsageError(f"--detection-window: {text} lies outside the channel (0, {scenario.channel.length * 1e6:g}) um")
+        raise UsageError(f"--detection-window: {text} lies outside the channel "
+                         f"(0, {scenario.channel.length * 1e6:g}) um")
     return values[0], values[1]
 
 
@@ -613,7 +614,8 @@ def command_sweep(args):
     workers = args.workers or (len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count())
     progress = Progress(quiet=args.quiet or args.json)
     try:
-        with runfiles.signals_as_interrupt(_signals_seen), sweep.executor(args.scheduler, workers) as (pool, slots, where):
+        with runfiles.signals_as_interrupt(_signals_seen), \
+                sweep.executor(args.scheduler, workers) as (pool, slots, where):
             progress.note(f"{len(spec.points)} points on {where}; results in {output / sweep.RESULTS}")
             result = sweep.run_sweep(spec, output, pool, slots, progress, retry_failed=args.retry_failed,
                                      chunk=args.chunk, keep_old_rows=args.keep_old_rows)
@@ -668,7 +670,8 @@ def _stream_options(parser: argparse.ArgumentParser):
                         metavar="TIME", help="IDT pulse length (ms; default 1.2)")
     optics.add_argument("--mode", choices=("purity", "yield"), default="purity", help="sort mode (default purity)")
     optics.add_argument("--coincidence", type=Quantity("time", "ms", low=0, high=1.0), default="1.2", metavar="TIME",
-                        help="purity mode aborts a sort with a type-I cell predicted within half this (ms; default 1.2)")
+                        help="purity mode aborts a sort with a type-I cell predicted within half this "
+                             "(ms; default 1.2)")
     optics.add_argument("--no-controller", action="store_true", help="never switch the IDT on")
     parser.add_argument("--model", choices=("feib", "auto", "oneway", "rom", "streamline"), default="feib",
                         help="plant: full FE-IB (default); auto (rom, switching to feib while a melanoma "
@@ -680,7 +683,8 @@ def _stream_options(parser: argparse.ArgumentParser):
                         help="--model auto: mesh size of its feib windows (default 6.67um, or --mesh-h if coarser: "
                              "the coarsest mesh within tolerance on the tradeoff scenes; --window-h equal to "
                              "--mesh-h runs the windows at full resolution)")
-    parser.add_argument("--seed", type=Integer(low=0, high=2**63 - 1), default="0", help="random seed, >= 0 (default 0)")
+    parser.add_argument("--seed", type=Integer(low=0, high=2**63 - 1), default="0",
+                        help="random seed, >= 0 (default 0)")
     parser.add_argument("--max-time", type=Quantity("time", "ms", low=0, low_open=True, high=3600.0), default="50",
                         metavar="TIME", help="stop after this simulated time (ms; default 50)")
 
@@ -850,7 +854,8 @@ def build_parser() -> argparse.ArgumentParser:
     realtime_bench.add_argument("--rate", type=Quantity("frequency", "Hz", low=0, low_open=True), default="1000",
                                 help="arrival rate in cells/s (default 1000; e.g. 1kHz)")
     realtime_bench.add_argument("--duration", type=Quantity("time", "s", low=0, low_open=True), default="1s",
-                                metavar="TIME", help="device time of arrivals (s); count = rate x duration (default 1s)")
+                                metavar="TIME",
+                                help="device time of arrivals (s); count = rate x duration (default 1s)")
     realtime_bench.add_argument("--mix", default="RBC:0.9,melanoma:0.1", help="type mix (default RBC:0.9,melanoma:0.1)")
     realtime_bench.add_argument("--repeats", type=Integer(low=1, high=1000), default="3",
                                 help="runs of the same stream (default 3)")

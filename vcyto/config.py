@@ -133,7 +133,8 @@ def check_input_file(path: str | os.PathLike, what: str, field: str = "path", li
     except FileNotFoundError:
         raise ScenarioError(field, f"{what} '{name}' does not exist; check the path") from None
     except (OSError, ValueError) as error:
-        raise ScenarioError(field, f"cannot read {what} '{name}': {getattr(error, 'strerror', None) or error}") from None
+        reason = getattr(error, "strerror", None) or error
+        raise ScenarioError(field, f"cannot read {what} '{name}': {reason}") from None
     if not stat.S_ISREG(status.st_mode):
         raise ScenarioError(field, f"{what} '{name}' is not a regular file (a directory or a device); give a TOML file")
     if status.st_size > limit:
@@ -148,7 +149,7 @@ def _read_document(path: str | os.PathLike) -> dict:
         with open(path, "rb") as file:
             return tomllib.load(file)
     except RecursionError:
-        raise ScenarioError("path", f"scenario file '{name}' nests tables or arrays too deeply to be a scenario") from None
+        raise ScenarioError("path", f"scenario file '{name}' nests tables or arrays too deeply") from None
     except FileNotFoundError:
         raise ScenarioError("path", f"scenario file '{name}' does not exist; check the path") from None
     except OSError as error:

@@ -321,3 +321,25 @@ def test_a_numerical_failure_says_where_its_partial_record_is(tmp_path):
     assert summary["status"] == "failed" and summary["reason"]
     assert finalised_mcap(tmp_path / "boom.mcap") >= 0
     assert (tmp_path / "boom.fcs").stat().st_size > 0
+
+
+def test_a_disk_filling_up_mid_run_is_one_line_exit_1(tmp_path, monkeypatch):
+    """The MCAP writer hits ENOSPC after a few steps: the run stops with the cause in one line, exit 1."""
+    import errno
+    from guard import vcyto_inline
+    from vcyto import recording
+    written = {"steps": 0}
+    original = recording.McapRecorder.on_step
+
+    def filling(self, *args, **kwargs):
+        written["steps"] += 1
+        if written["steps"] > 20:
+            raise OSError(errno.ENOSPC, "No space left on device", str(self.path))
+        return original(self, *args, **kwargs)
+    monkeypatch.setattr(recording.McapRecorder, "on_step", filling)
+    monkeypatch.delenv("DISPLAY", raising=False)
+    status, _, stderr = vcyto_inline(["stream", "--cells", "RBC", "--model", "streamline", "--mesh-h", "10um",
+                                      "--output", str(tmp_path), "--no-viewer", "--quiet", "--name", "full"])
+    assert_one_line_refusal(status, stderr, allowed=(1,))
+    assert "No space left on device" in stderr and "full.mcap" in stderr
+    assert not (tmp_path / "full.json").exists()       # no summary claims a run that did not finish

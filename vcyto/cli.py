@@ -399,6 +399,10 @@ def stream_settings(args, scenario):
                 raise UsageError(f"--window-h sets the feib windows of --model auto (the model is {args.model}): "
                                  "drop it or add --model auto")
             limits.check_mesh(scenario.channel.length, scenario.channel.height, window, "--window-h")
+            try:
+                scenario.with_numerics(mesh_h=window)           # resolves every inlet and outlet
+            except ScenarioError as error:
+                raise UsageError(f"--window-h: {str(error).split(': ', 1)[1]}") from None
         return stream.StreamSettings(arrivals, detector, controller, args.model, args.seed,
                                      max_time=args.max_time, window_mesh_h=window)
     except ValueError as error:
@@ -475,14 +479,16 @@ def _run_with_sinks(args, scenario, settings, view, files):
                 stopped = stream.StreamStopped("interrupted", "interrupted while setting up, before the first step",
                                                runfiles.stopped_summary(settings, "interrupted while setting up"))
                 result = stopped.result
+        progress.close()
+        view.notes += runfiles.close_quietly(background)       # a sink's failure (a full disk) surfaces here too
     except BaseException:
         progress.close()
-        runfiles.close_quietly(background)
-        if files is not None:
-            files.discard_unwritten()
+        try:
+            runfiles.close_quietly(background)
+        finally:
+            if files is not None:
+                files.discard_unwritten()
         raise
-    progress.close()
-    view.notes += runfiles.close_quietly(background)
     return result, stopped
 
 

@@ -343,3 +343,93 @@ def test_a_disk_filling_up_mid_run_is_one_line_exit_1(tmp_path, monkeypatch):
     assert_one_line_refusal(status, stderr, allowed=(1,))
     assert "No space left on device" in stderr and "full.mcap" in stderr
     assert not (tmp_path / "full.json").exists()       # no summary claims a run that did not finish
+
+
+# --- the viewer: the installed one, bound to this machine, never breaking a run --------------------------
+
+def test_the_viewer_is_the_one_installed_with_rerun_sdk_not_the_first_on_path(tmp_path, monkeypatch):
+    from vcyto import viewer
+    impostor = tmp_path / "rerun"
+    impostor.write_text("#!/bin/sh\nexit 7\n")
+    impostor.chmod(0o755)
+    monkeypatch.setenv("PATH", f"{tmp_path}:{os.environ['PATH']}")
+    found = viewer.find_viewer()
+    assert found is not None and found != impostor and os.access(found, os.X_OK)
+    assert "rerun_cli" in str(found) or found.parent == Path(sys.executable).parent
+
+
+FAKE_VIEWER = """#!{python}
+import os, socket, sys, time
+args = sys.argv[1:]
+bind, port = args[args.index("--bind") + 1], int(args[args.index("--port") + 1])
+server = socket.socket()
+server.bind((bind, port))
+server.listen()
+open({record!r}, "w").write(" ".join(args) + "\\n" + str(os.getpid()))
+time.sleep(60)
+"""
+
+
+def test_a_started_viewer_listens_on_localhost_only_unless_asked(tmp_path, monkeypatch):
+    import socket
+    from vcyto import viewer
+    fake, record = tmp_path / "fake-rerun", tmp_path / "args.txt"
+    fake.write_text(FAKE_VIEWER.format(python=sys.executable, record=str(record)))
+    fake.chmod(0o755)
+    monkeypatch.setattr(viewer, "find_viewer", lambda: fake)
+    monkeypatch.setattr(viewer, "VIEWER_GRACE", 0.2)
+    with socket.socket() as probe:
+        probe.bind(("127.0.0.1", 0))
+        port = probe.getsockname()[1]
+    for asked, bind in ((None, "127.0.0.1"), ("0.0.0.0", "0.0.0.0")):
+        url, done = viewer.start_viewer(port=port) if asked is None else viewer.start_viewer(bind=asked, port=port)
+        try:
+            assert url == f"rerun+http://127.0.0.1:{port}/proxy" and bind in done
+            args = record.read_text().splitlines()[0]
+            assert f"--bind {bind}" in args and f"--port {port}" in args
+        finally:
+            os.kill(int(record.read_text().splitlines()[1]), signal.SIGTERM)
+        deadline = time.monotonic() + 10
+        while viewer.listening("127.0.0.1", port, 0.2) and time.monotonic() < deadline:
+            time.sleep(0.1)
+
+
+def test_an_unreachable_viewer_means_an_rrd_and_a_finished_run(tmp_path):
+    result = vcyto("stream", "--cells", "RBC", "--model", "streamline", "--mesh-h", "10um", "--quiet",
+                   "--connect", "rerun+http://127.0.0.1:9/proxy", "--output", str(tmp_path), "--name", "r")
+    assert result.returncode == 0, result.stderr
+    assert result.stderr.strip().splitlines() == ["vcyto: no Rerun viewer answers at rerun+http://127.0.0.1:9/proxy; "
+                                                  "saving the view to an .rrd file instead"]
+    assert (tmp_path / "r.rrd").stat().st_size > 1000 and finalised_mcap(tmp_path / "r.mcap") > 10
+
+
+def test_a_viewer_that_goes_away_mid_run_does_not_break_it(tmp_path):
+    """A real Rerun gRPC server (headless) receives the run and is killed half-way: the run still finishes."""
+    from vcyto import viewer
+    import socket
+    with socket.socket() as probe:
+        probe.bind(("127.0.0.1", 0))
+        port = probe.getsockname()[1]
+    server = subprocess.Popen([str(viewer.find_viewer()), "--serve-grpc", "--port", str(port), "--bind", "127.0.0.1"],
+                              stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    try:
+        deadline = time.monotonic() + 30
+        while not viewer.listening("127.0.0.1", port, 0.2) and time.monotonic() < deadline:
+            time.sleep(0.1)
+        run = subprocess.Popen([sys.executable, "-m", "vcyto.cli", "stream", "--count", "400", "--mix", "RBC:1",
+                                "--model", "rom", "--mesh-h", "10um", "--max-time", "1s", "--quiet", "--name", "v",
+                                "--connect", f"rerun+http://127.0.0.1:{port}/proxy", "--output", str(tmp_path)],
+                               stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        while time.monotonic() < deadline + 240:
+            mcap = tmp_path / "v.mcap"
+            if run.poll() is not None or (mcap.exists() and mcap.stat().st_size > 100_000):
+                break
+            time.sleep(0.2)
+    finally:
+        server.kill()
+        server.wait()
+    out, err = run.communicate(timeout=300)
+    assert run.returncode == 0, err
+    assert "Traceback" not in err and len(err.strip().splitlines()) <= 1
+    assert strict_load((tmp_path / "v.json").read_text())["status"] == "complete"
+    assert finalised_mcap(tmp_path / "v.mcap") > 1000

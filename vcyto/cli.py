@@ -480,7 +480,7 @@ def _run_with_sinks(args, scenario, settings, view, files):
                                                runfiles.stopped_summary(settings, "interrupted while setting up"))
                 result = stopped.result
         progress.close()
-        view.notes += runfiles.close_quietly(background)       # a sink's failure (a full disk) surfaces here too
+        view.notes += runfiles.close_quietly(background, files and files.path("mcap"))   # a full disk surfaces here too
     except BaseException:
         progress.close()
         try:

@@ -132,15 +132,15 @@ def _is_placeholder(path: Path) -> bool:
         return False
 
 
-def close_quietly(sink) -> list[str]:
+def close_quietly(sink, recording=None) -> list[str]:
     """Close ``sink`` (the sinks of a run); a failure of the live view is a note, others propagate."""
     if sink is None:
         return []
     try:
         sink.close()
     except (RuntimeError, ConnectionError) as problem:      # the viewer went away: the MCAP has everything
-        return [f"the Rerun viewer stopped receiving ({' '.join(str(problem).split())[:160]}); "
-                "vcyto replay FILE.mcap shows the run again"]
+        again = f"vcyto replay {recording} shows the run again" if recording else "the view of the run is incomplete"
+        return [f"the Rerun viewer stopped receiving ({' '.join(str(problem).split())[:160]}); {again}"]
     return []
 
 

@@ -24,6 +24,9 @@ import numpy as np
 from sim.scenario import UM, Scenario
 
 TYPE_COLOURS = {"RBC": (220, 40, 40), "melanoma": (250, 200, 30)}
+# the Rerun SDK logs connection trouble as multi-line Rust log records; vcyto reports it in one line instead
+# (set RUST_LOG to see them)
+os.environ.setdefault("RUST_LOG", "off")
 
 
 def has_display() -> bool:

@@ -345,6 +345,9 @@ class Scenario:
 
     def __post_init__(self):
         object.__setattr__(self, "cell_types", tuple(self.cell_types))
+        if not self.cell_types:
+            raise ScenarioError("cell_types", "at least one cell type is needed (omit cell_types for the paper's "
+                                              "RBC and melanoma)")
         names = [cell.name for cell in self.cell_types]
         if len(set(names)) != len(names):
             raise ScenarioError("cell_types", f"names must be unique (got {names})")

@@ -52,6 +52,7 @@ BAD_INPUTS = {
     "inf delay": ["stream", "--delay", "inf"],
     "a cell wider than the inlet": ["stream", "--set", "cell_types.1.semi_axes=[250um, 250um]"],
     "no cell types": ["stream", "--scenario", "EMPTY_TYPES"],
+    "no cell types (flow)": ["flow", "--scenario", "EMPTY_TYPES"],
     "count 0": ["stream", "--count", "0"],
     "negative flush interval": ["stream", "--flush-every", "-5"],
     # units

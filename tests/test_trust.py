@@ -434,3 +434,16 @@ def test_a_viewer_that_goes_away_mid_run_does_not_break_it(tmp_path):
     assert "Traceback" not in err and len(err.strip().splitlines()) <= 1
     assert strict_load((tmp_path / "v.json").read_text())["status"] == "complete"
     assert finalised_mcap(tmp_path / "v.mcap") > 1000
+
+
+def test_no_viewer_binary_at_all_means_an_rrd(monkeypatch, capsys):
+    import argparse
+    from vcyto import runfiles, viewer
+    monkeypatch.setenv("DISPLAY", ":99")
+    monkeypatch.setattr(viewer, "find_viewer", lambda: None)
+    monkeypatch.setattr(viewer, "listening", lambda *args, **kwargs: False)
+    args = argparse.Namespace(no_viewer=False, save=None, connect=None, spawn=False, viewer_bind="127.0.0.1")
+    view = runfiles.choose_view(args, True, spawn_by_default=True, error=ValueError)
+    assert view.kind == "save" and view.path is None                 # the run's own NAME.rrd
+    assert capsys.readouterr().err.strip() == ("vcyto: cannot start a Rerun viewer: the rerun-sdk installation has no "
+                                               "viewer binary; saving the view to an .rrd file instead")

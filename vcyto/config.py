@@ -107,7 +107,8 @@ def scenario_to_toml(scenario: Scenario) -> str:
 
 
 def parse_quantity(text: str) -> float:
-    """The SI value of ``text``, a number with an optional unit suffix from ``UNITS`` ("25 us" -> 2.5e-05).
+    """The SI value of ``text``, a number with an optional unit suffix from ``UNITS`` ("25 us" -> 2.5e-05), for
+    display only (sweep plot axes): every input is read by ``vcyto.units.parse_quantity``, which checks its dimension.
 
     Raises ``ValueError`` with a one-line explanation when ``text`` is not such a number.
     """

@@ -463,9 +463,7 @@ def _run_with_sinks(args, scenario, settings, view, files):
         sinks.append(McapRecorder(files.path("mcap"), _run_metadata(scenario, settings),
                                   flush_every=args.flush_every, field_every=args.field_every))
     if view.kind is not None and (view.kind == "connect" or view.path or files is not None):
-        from .viewer import RerunSink
-        sinks.append(RerunSink(scenario, settings.detector.window, view.target(files and files.path("rrd")),
-                               field_every=args.field_every))
+        sinks += _rerun_sink(args, scenario, settings, view, files)
     progress = Progress(quiet=args.quiet or args.json)
     background = BackgroundSinks(sinks) if sinks else None      # their work overlaps the plant's solve
     stopped = None
@@ -490,6 +488,25 @@ def _run_with_sinks(args, scenario, settings, view, files):
                 files.discard_unwritten()
         raise
     return result, stopped
+
+
+def _rerun_sink(args, scenario, settings, view, files) -> list:
+    """The Rerun sink of ``view``; if Rerun refuses it (a viewer gone between the check and the connection, a
+    file it cannot create), one line says so and the view goes to a new .rrd, else there is none."""
+    from . import runfiles
+    from .viewer import RerunSink
+    try:
+        return [RerunSink(scenario, settings.detector.window, view.target(files and files.path("rrd")),
+                          field_every=args.field_every)]
+    except (RuntimeError, OSError) as problem:
+        reason = " ".join(str(problem).split())[:160]
+        if view.kind == "connect" and files is not None:
+            view.kind, view.path = "save", outputs.unique_path(files.directory / f"{files.run_id}.rrd")
+            runfiles.say(f"the Rerun viewer refused the connection ({reason}); saving the view to {view.path}")
+            return _rerun_sink(args, scenario, settings, view, files)
+        runfiles.say(f"cannot write the Rerun view ({reason}); the run goes on without it")
+        view.kind = None
+        return []
 
 
 def _report_stream(args, result, stopped, view, files):

@@ -354,6 +354,9 @@ class Scenario:
 
     def __post_init__(self):
         object.__setattr__(self, "cell_types", tuple(self.cell_types))
+        if not self.cell_types:
+            raise ScenarioError("cell_types", "at least one cell type is needed (omit cell_types for the paper's "
+                                              "RBC and melanoma)")
         names = [cell.name for cell in self.cell_types]
         if not names:
             raise ScenarioError("cell_types", "needs at least one [[cell_types]] entry (or none at all for the defaults)")

@@ -89,14 +89,14 @@ def test_stability_rejects_bad_input(args, words):
 
 
 @pytest.mark.parametrize("args, words", [
-    (["--coupling", "0,2"], "--coupling needs positive numbers"),
-    (["--coupling", "two"], "--coupling needs positive numbers"),
+    (["--coupling", "0,2"], "--coupling: needs positive numbers"),
+    (["--coupling", "two"], "--coupling: needs positive numbers"),
     (["--pair-gap", "3"], "gaps below 2 ms"),
-    (["--pair-gap", "-1"], "--pair-gap needs positive numbers"),
+    (["--pair-gap", "-1"], "--pair-gap: needs positive numbers"),
     (["--lone-rbc", "2.5"], "injection times below 2 ms"),
-    (["--lone-rbc", "0,1"], "--lone-rbc needs positive numbers"),
-    (["--stiff-capillary", "-1"], "--stiff-capillary needs non-negative numbers"),
-    (["--stiff-capillary", "inf"], "--stiff-capillary needs non-negative numbers"),
+    (["--lone-rbc", "0,1"], "--lone-rbc: needs positive numbers"),
+    (["--stiff-capillary", "-1"], "--stiff-capillary: needs non-negative numbers"),
+    (["--stiff-capillary", "inf"], "--stiff-capillary: needs non-negative numbers"),
 ])
 def test_tradeoff_rejects_bad_levels_and_scenes(args, words, tmp_path):
     result = vcyto("tradeoff", "--output", str(tmp_path), *args)

@@ -274,7 +274,7 @@ def test_unknown_override_key_gives_the_same_message():
     ('[[channel.inlets]]\nname = "a"\nspan = [1e-5, 2e-5]\n', "channel.inlets[0].v_hat", "missing"),
     ('[fluid]\ndensity = "heavy"\n', "fluid.density", "cannot read 'heavy' as a number"),
     ('[fluid]\ndensity = true\n', "fluid.density", "must be a number"),
-    ('[numerics]\ndt = "25 parsec"\n', "numerics.dt", "unknown unit 'parsec'"),
+    ('[numerics]\ndt = "25 parsec"\n', "numerics.dt", "is a length, but numerics.dt is a time"),
     ('[numerics]\nmax_nonlinear_iterations = "many"\n', "numerics.max_nonlinear_iterations", "integer"),
     ('[numerics]\nconvection = 3\n', "numerics.convection", "must be a string"),
     ('[channel.saw_window]\nspan = ["140 um"]\n', "channel.saw_window.span", "must have 2 entries"),

@@ -151,13 +151,15 @@ def test_arrivals_keep_the_minimum_spacing():
 @pytest.mark.parametrize("args, words", [
     (["--cells", "RBC,platelet"], "unknown cell type 'platelet'"),
     (["--cells", ","], "--cells needs at least one"),
-    (["--count", "5", "--mix", "RBC:1", "--rate", "-3"], "rate must be positive"),
+    (["--count", "5", "--mix", "RBC:1", "--rate", "-3"], "--rate: must be positive"),
     (["--envelope", "0.1"], "--envelope wants two offsets"),
     (["--controller", "/nonexistent.toml"], "is not a file"),
+    (["--mode", "greedy"], "--mode"),
     (["--detection-window", "30,400"], "outside the channel"),
     (["--window-h", "5um"], "add --model auto"),
-    (["--model", "auto", "--window-h=0"], "--window-h must be a positive length"),
-    (["--model", "auto", "--window-h", "5 furlongs"], "unknown unit"),
+    (["--model", "auto", "--window-h=0"], "--window-h: must be positive"),
+    (["--model", "auto", "--window-h", "5 bogons"], "unknown unit"),
+    (["--model", "auto", "--window-h", "5 furlongs"], "--window-h: "),
 ])
 def test_stream_rejects_bad_input_in_one_line(args, words):
     result = subprocess.run([sys.executable, "-m", "vcyto.cli", "stream", *args], capture_output=True, text=True)

@@ -110,7 +110,7 @@ def test_points_sharing_a_plant_are_chunked_at_most_an_even_share_per_worker():
     ("[parameters]\nlead = {start = 0, stop = 1, num = 0}", ["parameters.lead.num: empty range"]),
     ("[parameters]\nlead = []", ["parameters.lead: empty list"]),
     ("[parameters]\nlead = [1]\n[sweep]\nmetrics = ['yeld']", ["unknown metric 'yeld'", "purity"]),
-    ("[parameters]\nrate = [100, -5]", ["rate=-5", "rate must be positive"]),
+    ("[parameters]\nrate = [100, -5]", ["parameters.rate: must be positive", "-5"]),
     ("[parameters]\nlead = {uniform = [0, 1]}", ['needs sampling = "random"']),
     ("[base]\nmodel = 'nonsense'\n[parameters]\nlead = [1]", ["base.model: must be one of", "streamline"]),
     ("[parameters]\nlead = [", ["is not valid TOML"]),

@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import json
 import math
 import os
 import shutil
@@ -20,16 +19,34 @@ from sim.fluid import NumericalBlowUp
 from sim.linalg import SolverError
 from sim.scenario import CONVECTIONS, MEMBRANE_METHODS, SAW_MODELS, ScenarioError
 
+from . import arguments as limits
+from . import units
+from .arguments import Integer, Number, Parser, Quantity
 from .config import load_scenario
+from . import outputs
+from .outputs import strict_json
 
 EXIT_INPUT = 2
 EXIT_NUMERICAL = 1
 EXIT_INTERNAL = 3
+EXIT_SIGINT = 130           # 128 + SIGINT, as shells report it
+EXIT_SIGTERM = 143          # 128 + SIGTERM
 MIN_FREE_BYTES = 100e6
 
 
 class UsageError(ValueError):
     """Bad command-line input that is not a scenario field."""
+
+
+class RunStopped(Exception):
+    """A run that stopped early and has said so (files written, paths printed); ``status`` is the exit status."""
+
+    def __init__(self, status: int):
+        super().__init__(status)
+        self.status = status
+
+
+_signals_seen: dict[str, str] = {}      # "last": the name of the last signal turned into KeyboardInterrupt
 
 
 def _progress(quiet: bool):
@@ -71,7 +88,9 @@ def _scenario(args, membrane: str | None = None):
         value = getattr(args, option, None)
         if value is not None:
             overrides.append(f"{field}={value}")
-    return load_scenario(args.scenario, overrides)
+    scenario = load_scenario(args.scenario, overrides)
+    limits.check_mesh(scenario.channel.length, scenario.channel.height, scenario.numerics.mesh_h)
+    return scenario
 
 
 def _output_path(path: str | None) -> Path | None:
@@ -87,16 +106,9 @@ def _output_path(path: str | None) -> Path | None:
     return target
 
 
-def _plain(value):
-    """JSON fallback for numpy scalars and arrays."""
-    if hasattr(value, "tolist"):
-        return value.tolist()
-    raise TypeError(f"cannot write {type(value).__name__} as JSON")
-
-
 def _emit(args, result: dict, lines: list[str]):
     if args.json:
-        print(json.dumps(result, indent=2, default=_plain))
+        print(strict_json(result))
     else:
         print("\n".join(lines))
 
@@ -125,8 +137,6 @@ def command_bench(args):
     from . import bench
     progress = _progress(args.quiet or args.json)
     if args.target == "controller":
-        if args.events < 1:
-            raise UsageError(f"--events must be at least 1 (got {args.events})")
         result = bench.bench_controller(args.events)
         _emit(args, result, bench.controller_lines(result))
         return
@@ -147,23 +157,18 @@ def command_bench(args):
         return
     if args.target == "recording":
         from .progress import Progress
-        if args.repeats < 1:
-            raise UsageError(f"--repeats must be at least 1 (got {args.repeats})")
         result = bench.bench_recording(scenario, repeats=args.repeats, progress=Progress(quiet=args.quiet or args.json))
         _emit(args, result, bench.recording_lines(result))
         return
     if args.target == "auto":
         from .progress import Progress
-        if args.count < 1:
-            raise UsageError(f"--count must be at least 1 (got {args.count})")
+        limits.check_cells(args.count)
         result = bench.bench_auto(scenario, args.count, args.rate, _mix(args.mix), args.seed,
                                   progress=Progress(quiet=args.quiet or args.json))
         _emit(args, result, bench.auto_lines(result))
         return
     if args.target == "membrane":
         from .progress import Progress
-        if args.repeats < 1:
-            raise UsageError(f"--repeats must be at least 1 (got {args.repeats})")
         result = bench.bench_membrane(scenario, args.repeats, progress=Progress(quiet=args.quiet or args.json))
         _emit(args, result, bench.membrane_lines(result))
         return
@@ -173,34 +178,19 @@ def command_bench(args):
         _emit(args, result, bench.paper_treatment_lines(result))
         return
     if args.target == "treatments":
-        if args.steps < 1:
-            raise UsageError(f"--steps must be at least 1 (got {args.steps})")
         result = bench.bench_treatments(scenario, args.steps, progress)
         _emit(args, result, bench.treatment_lines(result))
         return
-    if args.repeats < 2:
-        raise UsageError(f"--repeats must be at least 2 (got {args.repeats})")
     result = bench.bench_fluid(scenario, args.repeats, progress)
     _emit(args, result, bench.report_lines(result))
 
 
 def _bench_realtime(args, bench, scenario, progress):
-    from .config import parse_quantity
-    if args.repeats < 1 or args.rate <= 0:
-        raise UsageError("--repeats must be at least 1 and --rate positive")
-    try:
-        duration = parse_quantity(args.duration)
-        period = parse_quantity(args.control_period) if args.control_period else None
-    except ValueError as error:
-        raise UsageError(f"--duration/--control-period: {error}") from None
-    if not duration > 0 or (period is not None and not period > 0):
-        raise UsageError("--duration and --control-period must be positive times such as 1s or 10us")
     mix = _mix(args.mix)
-    for name, _ in mix:
-        scenario.cell_type(name)
-    if any(weight < 0 for _, weight in mix) or sum(weight for _, weight in mix) <= 0:
-        raise UsageError(f"--mix weights must be >= 0 with a positive sum (got {args.mix!r})")
-    result = bench.bench_realtime(scenario, args.rate, duration, mix, args.repeats, period, args.seed, progress)
+    _check_cells_fit(scenario, [name for name, _ in mix])
+    limits.check_cells(math.ceil(args.rate * args.duration), "--rate x --duration")
+    result = bench.bench_realtime(scenario, args.rate, args.duration, mix, args.repeats, args.control_period,
+                                  args.seed, progress)
     _emit(args, result, bench.realtime_lines(result))
 
 
@@ -229,11 +219,9 @@ def command_paper(args):
     from .progress import Progress
     scenario = paper.paper_scenario(args.number, _scenario(args, membrane="paper"), dt_given=args.dt is not None)
     png = _output_path(args.png if args.png else f"recordings/paper{args.number}.png") if not args.no_png else None
-    if args.max_time <= 0:
-        raise UsageError(f"--max-time must be positive (got {args.max_time} ms)")
     progress = Progress(quiet=args.quiet or args.json)
     try:
-        result = paper.run_paper(args.number, scenario, args.max_time * 1e-3, progress)
+        result = paper.run_paper(args.number, scenario, args.max_time, progress)
     finally:
         progress.close()
     lines = paper.report_lines(result)
@@ -245,13 +233,9 @@ def command_paper(args):
 
 
 def _lengths(text: str) -> list[float]:
-    from .config import parse_quantity
-    try:
-        values = [parse_quantity(part) for part in text.split(",") if part.strip()]
-    except ValueError as error:
-        raise UsageError(f"--mesh-sizes: {error}") from None
+    values = units.parse_list(text, "length", field="--mesh-sizes")
     if not values or any(v <= 0 for v in values):
-        raise UsageError(f"--mesh-sizes needs positive lengths such as 6.67um,3.33um (got {text!r})")
+        raise UsageError(f"--mesh-sizes: needs positive lengths such as 6.67um,3.33um (got {text!r})")
     return values
 
 
@@ -267,6 +251,7 @@ def command_stability(args):
     sizes = _lengths(args.mesh_sizes)
     for h in sizes:
         scenario.with_numerics(mesh_h=h)          # validates that each mesh resolves the inlets
+        limits.check_mesh(scenario.channel.length, scenario.channel.height, h, "--mesh-sizes")
     progress = Progress(quiet=args.quiet or args.json)
     try:
         result = stabilitymap.stability_map(scenario, cells, sizes, progress)
@@ -280,22 +265,26 @@ def _positive_list(text: str, option: str, example: str, parse) -> list[float]:
 
 
 def _non_negative_list(text: str, option: str, example: str) -> list[float]:
-    return _number_list(text, option, example, float, lambda v: v >= 0, "non-negative")
+    return _number_list(text, option, example, _plain_number(option), lambda v: v >= 0, "non-negative")
+
+
+def _plain_number(option: str):
+    return lambda part: units.parse_quantity(part, "dimensionless", field=option)
 
 
 def _number_list(text: str, option: str, example: str, parse, valid, kind: str) -> list[float]:
     try:
-        values = [parse(part) for part in text.split(",") if part.strip()]
+        values = [parse(part) for part in text.split(",")]
     except ValueError:
         values = []
     if not values or not all(math.isfinite(v) and valid(v) for v in values):
-        raise UsageError(f"{option} needs {kind} numbers separated by commas, such as {example} (got {text!r})")
+        raise UsageError(f"{option}: needs {kind} numbers separated by commas, such as {example} (got {text!r})")
     return values
 
 
 def _times_before_pulse_end(text: str, option: str, example: str, what: str) -> list[float]:
-    """Times in ms (returned in s) for the extra tradeoff scenes: positive and below 2 ms."""
-    times = _positive_list(text, option, example, lambda part: float(part) * 1e-3)
+    """Times (bare numbers in ms; returned in s) for the extra tradeoff scenes: positive and below 2 ms."""
+    times = _positive_list(text, option, example, lambda part: units.parse_quantity(part, "time", "ms", option))
     if max(times) >= 2e-3:
         raise UsageError(f"{option} takes {what} below 2 ms (the scenes' pulse ends at 2.1 ms; got {text})")
     return times
@@ -310,7 +299,7 @@ def command_tradeoff(args):
     ladder, scenes = tradeoff.FAST_LADDER if args.fast else tradeoff.LADDER, tradeoff.SCENES
     base = next(level for level in ladder if level.model == "auto" and level.window is None)
     if args.coupling:
-        values = _positive_list(args.coupling, "--coupling", "2,2.5,3", float)
+        values = _positive_list(args.coupling, "--coupling", "2,2.5,3", _plain_number("--coupling"))
         ladder += tuple(dataclasses.replace(base, coupling=value) for value in values)
     if args.stiff_capillary:
         values = _non_negative_list(args.stiff_capillary, "--stiff-capillary", "0,100")
@@ -360,43 +349,72 @@ def _cell_list(text: str) -> tuple[str, ...]:
 
 
 def _mix(text: str) -> tuple[tuple[str, float], ...]:
+    """TYPE:WEIGHT pairs; every weight finite and >= 0, their sum positive."""
     pairs = []
     for part in text.split(","):
         name, _, weight = part.partition(":")
         try:
-            pairs.append((name.strip(), float(weight)))
-        except ValueError:
-            raise UsageError(f"--mix wants TYPE:WEIGHT pairs such as RBC:0.9,melanoma:0.1 (got {text!r})") from None
+            pairs.append((name.strip(), units.parse_quantity(weight, "dimensionless", field="--mix")))
+        except units.QuantityError:
+            raise UsageError(f"--mix: wants TYPE:WEIGHT pairs with finite weights, such as RBC:0.9,melanoma:0.1 "
+                             f"(got {text!r})") from None
+    if any(weight < 0 for _, weight in pairs) or not sum(weight for _, weight in pairs) > 0:
+        raise UsageError(f"--mix: weights must be >= 0 with a positive sum (got {text!r})")
     return tuple(pairs)
 
 
+def _detection_window(text: str, scenario) -> tuple[float, float]:
+    """The detection window (x0, x1) in m from "30,60" (um) or "30um,60um"; inside the channel, x0 < x1."""
+    values = units.parse_list(text, "length", "um", field="--detection-window")
+    if len(values) != 2 or not 0 <= values[0] < values[1]:
+        raise UsageError(f"--detection-window: wants two lengths X0,X1 with 0 <= X0 < X1, e.g. 30,60 (um) "
+                         f"(got {text!r})")
+    if values[1] > scenario.channel.length:
+        raise UsageError(f"--detection-window: {text} lies outside the channel "
+                         f"(0, {scenario.channel.length * 1e6:g}) um")
+    return values[0], values[1]
+
+
+def _check_cells_fit(scenario, names) -> None:
+    """Every cell type of the stream is known and fits through the injection inlet."""
+    inlet = scenario.channel.inlet(scenario.channel.injection_inlet)
+    width = inlet.span[1] - inlet.span[0]
+    for name in sorted(set(names)):
+        cell = scenario.cell_type(name)
+        if cell.diameter >= width:
+            raise ScenarioError("cell_types", f"a {name} {cell.diameter * 1e6:.4g} um across does not fit through "
+                                              f"the injection inlet {inlet.name!r} ({width * 1e6:.4g} um wide)")
+
+
 def stream_settings(args, scenario):
-    """The ``StreamSettings`` of the stream options in ``args`` (vcyto stream, and each point of vcyto sweep)."""
+    """The ``StreamSettings`` of the stream options in ``args`` (vcyto stream, and each point of vcyto sweep);
+    the quantities in ``args`` are SI (the option types convert them)."""
     from sim.arrivals import Arrivals
     from . import stream
     try:
+        if args.count is not None:
+            limits.check_cells(args.count)
         cells = args.cells if args.cells is not None else ("" if args.count else "RBC,melanoma")
         arrivals = Arrivals(cells=_cell_list(cells) if cells else (), count=args.count or 0,
                             mix=_mix(args.mix) if args.mix else (), rate=args.rate, process=args.arrivals,
-                            min_spacing=args.min_spacing * 1e-3)
-        for name in set(arrivals.cells) | {name for name, _ in arrivals.mix}:
-            scenario.cell_type(name)
+                            min_spacing=args.min_spacing)
+        _check_cells_fit(scenario, set(arrivals.cells) | {name for name, _ in arrivals.mix})
         detector = _detector_settings(args, scenario)
         controller = _controller_settings(args)
         window = getattr(args, "window_h", None)
         if window is not None:
-            from .config import parse_quantity
             if args.model != "auto":
                 raise UsageError(f"--window-h sets the feib windows of --model auto (the model is {args.model}): "
                                  "drop it or add --model auto")
-            text, window = window, parse_quantity(window)
-            if not window > 0:
-                raise UsageError(f"--window-h must be a positive length such as 6.67um (got {text!r})")
-        max_time = args.max_time * 1e-3 if args.max_time is not None else None
+            limits.check_mesh(scenario.channel.length, scenario.channel.height, window, "--window-h")
+            try:
+                scenario.with_numerics(mesh_h=window)           # resolves every inlet and outlet
+            except ScenarioError as error:
+                raise UsageError(f"--window-h: {str(error).split(': ', 1)[1]}") from None
         return stream.StreamSettings(arrivals, detector, controller, args.model, args.seed,
-                                     max_time=max_time, window_mesh_h=window)
+                                     max_time=args.max_time, window_mesh_h=window)
     except ValueError as error:
-        if isinstance(error, (UsageError, ScenarioError)):
+        if isinstance(error, (UsageError, ScenarioError, units.QuantityError)):
             raise
         raise UsageError(str(error)) from None
 
@@ -404,12 +422,9 @@ def stream_settings(args, scenario):
 
 def _detector_settings(args, scenario):
     from controller.detector import DetectorSettings
-    low, high = (v * 1e-6 for v in _pair(args.detection_window, "--detection-window"))
-    if high > scenario.channel.length:
-        raise UsageError(f"--detection-window {args.detection_window} um lies outside the channel "
-                         f"(0, {scenario.channel.length * 1e6:g}) um")
     try:
-        return DetectorSettings(window=(low, high), gate=args.gate, noise_cv=args.noise)
+        return DetectorSettings(window=_detection_window(args.detection_window, scenario), gate=args.gate,
+                                noise_cv=args.noise)
     except ValueError as error:
         raise UsageError(f"--detection-window/--gate/--noise: {error}") from None
 
@@ -422,18 +437,16 @@ def _controller_settings(args):
     if getattr(args, "controller", None):
         from .controllerfile import load_controller
         base = load_controller(args.controller)
-    changes = {name: getattr(args, name) * 1e-3 for name in ("delay", "lead", "pulse", "timing_error")
-               if getattr(args, name, None) is not None}
+    changes = {name: getattr(args, name) for name in ("delay", "lead", "pulse", "timing_error")
+               if getattr(args, name, None) is not None}          # SI: the option types convert them
     if getattr(args, "mode", None):
         changes["mode"] = args.mode
     if getattr(args, "envelope", None):
-        parts = args.envelope.split(",")
-        try:
-            changes["envelope"] = tuple(float(part) * 1e-3 for part in parts)
-        except ValueError:
-            parts = []
-        if len(parts) != 2:
-            raise UsageError(f"--envelope wants two offsets in ms, LO,HI, such as -0.08,0.14 (got {args.envelope!r})")
+        values = units.parse_list(args.envelope, "time", "ms", field="--envelope")
+        if len(values) != 2 or values[0] > values[1]:
+            raise UsageError(f"--envelope wants two offsets LO,HI with LO <= HI, such as -0.236,0.27 (ms) "
+                             f"(got {args.envelope!r})")
+        changes["envelope"] = tuple(values)
     if args.no_controller:
         changes["enabled"] = False
     return replace(base, **changes)
@@ -454,61 +467,127 @@ def stream_run(args):
 
 
 def command_stream(args):
-    from . import stream
-    from .progress import Progress
+    from . import runfiles
     scenario = _scenario(args)
     settings = stream_settings(args, scenario)
     output = _output_directory(args.output)
-    run_id = time.strftime("stream-%Y%m%d-%H%M%S")
-    sinks = []
-    if output is not None and not args.no_record:
-        from .recording import McapRecorder
-        sinks.append(McapRecorder(output / f"{run_id}.mcap", _run_metadata(scenario, settings),
-                                  flush_every=args.flush_every, field_every=args.field_every))
-    target = _viewer_target(args, output / f"{run_id}.rrd" if output is not None else None, spawn_by_default=True)
-    if target is not None:
-        from .viewer import RerunSink
-        sinks.append(RerunSink(scenario, settings.detector.window, target, field_every=args.field_every))
-    progress = Progress(quiet=args.quiet or args.json)
-    from .sinks import BackgroundSinks
-    background = BackgroundSinks(sinks) if sinks else None      # their work overlaps the plant's solve
-    try:
-        with _sigterm_as_interrupt():
-            result = stream.run_stream(scenario, settings, progress, sinks=[background] if background else [])
-    except KeyboardInterrupt:
-        progress.close()
-        if background:
-            background.close()
-        for sink in sinks:
-            if hasattr(sink, "path"):
-                print(f"vcyto: interrupted; the recording up to now is in {sink.path}", file=sys.stderr)
-        raise
-    finally:
-        progress.close()
-        if background:
-            background.close()
-    lines = stream.report_lines(result)
-    result["files"] = {}
-    for sink in sinks:
-        if hasattr(sink, "path"):
-            result["files"]["mcap"] = str(sink.path)
-            lines.append(f"recording: {sink.path} (MCAP; replay with: vcyto replay {sink.path})")
-    if target is not None:
-        result["files"]["rerun"] = target[0] if target[0] != "save" else str(target[1])
-        lines.append(f"Rerun: {'saved to ' + str(target[1]) if target[0] == 'save' else target[0]}")
+    if args.name is not None:
+        if output is None:
+            raise UsageError("--name: names the run's files in --output, which is '' (nothing is written)")
+        try:
+            outputs.check_name(args.name)
+        except ValueError as error:
+            raise UsageError(str(error)) from None
+    _signals_seen.clear()
+    view = runfiles.choose_view(args, output is not None, spawn_by_default=True, error=UsageError)
+    files = None
     if output is not None:
-        from . import fcs, gatingml
-        fcs_path = fcs.write_fcs(output / f"{run_id}.fcs", result, {"VCYTO_COMMAND": " ".join(sys.argv)},
-                                 settings=settings, scenario=scenario)
-        gate_path = gatingml.write_gatingml(output / f"{run_id}.gating.xml", settings.detector.gate)
-        summary_path = output / f"{run_id}.json"
-        summary_path.write_text(json.dumps(result, indent=2, default=_plain))
-        result.setdefault("files", {}).update({"fcs": str(fcs_path), "gatingml": str(gate_path),
-                                               "summary": str(summary_path)})
-        lines.append(f"detector events: {fcs_path} (FCS 3.1; classification gate: {gate_path}, Gating-ML 2.0); "
-                     f"summary: {summary_path}")
-    _emit(args, result, lines)
+        try:
+            files = runfiles.StreamFiles(output, args.name, record=not args.no_record,
+                                         rrd=view.kind == "save" and view.path is None)
+        except outputs.NameTaken as error:
+            raise UsageError(str(error)) from None
+    result, stopped = _run_with_sinks(args, scenario, settings, view, files)
+    _report_stream(args, result, stopped, view, files, settings, scenario)
     return _partial_status(args, result)
+
+
+def _run_with_sinks(args, scenario, settings, view, files):
+    """Run the loop with the MCAP and Rerun sinks; (summary, StreamStopped or None). The sinks are closed
+    whatever happens; a run stopped by Ctrl-C, SIGTERM or a numerical failure returns its partial summary."""
+    from . import runfiles, stream
+    from .progress import Progress
+    from .sinks import BackgroundSinks
+    sinks = []
+    if files is not None and files.path("mcap") is not None:
+        from .recording import McapRecorder
+        sinks.append(McapRecorder(files.path("mcap"), _run_metadata(scenario, settings),
+                                  flush_every=args.flush_every, field_every=args.field_every))
+    if view.kind is not None and (view.kind == "connect" or view.path or files is not None):
+        sinks += _rerun_sink(args, scenario, settings, view, files)
+    progress = Progress(quiet=args.quiet or args.json)
+    background = BackgroundSinks(sinks) if sinks else None      # their work overlaps the plant's solve
+    stopped = None
+    try:
+        with runfiles.signals_as_interrupt(_signals_seen):
+            try:
+                result = stream.run_stream(scenario, settings, progress, sinks=[background] if background else [])
+            except stream.StreamStopped as error:
+                stopped, result = error, error.result
+            except KeyboardInterrupt:                      # before the loop began (setting up the plant)
+                stopped = stream.StreamStopped("interrupted", "interrupted while setting up, before the first step",
+                                               runfiles.stopped_summary(settings, "interrupted while setting up"))
+                result = stopped.result
+        progress.close()
+        view.notes += runfiles.close_quietly(background, files and files.path("mcap"))   # a full disk surfaces here too
+    except BaseException:
+        progress.close()
+        try:
+            runfiles.close_quietly(background)
+        finally:
+            if files is not None:
+                files.discard_unwritten()
+        raise
+    return result, stopped
+
+
+def _rerun_sink(args, scenario, settings, view, files) -> list:
+    """The Rerun sink of ``view``; if Rerun refuses it (a viewer gone between the check and the connection, a
+    file it cannot create), one line says so and the view goes to a new .rrd, else there is none."""
+    from . import runfiles
+    from .viewer import RerunSink
+    try:
+        return [RerunSink(scenario, settings.detector.window, view.target(files and files.path("rrd")),
+                          field_every=args.field_every)]
+    except (RuntimeError, OSError) as problem:
+        reason = " ".join(str(problem).split())[:160]
+        if view.kind == "connect" and files is not None:
+            view.kind, view.path = "save", outputs.unique_path(files.directory / f"{files.run_id}.rrd")
+            runfiles.say(f"the Rerun viewer refused the connection ({reason}); saving the view to {view.path}")
+            return _rerun_sink(args, scenario, settings, view, files)
+        runfiles.say(f"cannot write the Rerun view ({reason}); the run goes on without it")
+        view.kind = None
+        return []
+
+
+def _report_stream(args, result, stopped, view, files, settings, scenario):
+    """Write the FCS events and the summary (partial ones marked), print the report and the paths; a stopped
+    run then ends with its exit status (130 SIGINT, 143 SIGTERM, 1 numerical failure)."""
+    from . import runfiles, stream
+    if stopped is not None and stopped.status == "interrupted":
+        result["reason"] = f"interrupted by {_signals_seen.get('last', 'SIGINT')}"
+    lines = stream.report_lines(result) if result.get("cells") else []
+    result["files"] = {}
+    if files is not None and files.path("mcap") is not None:
+        mcap = files.path("mcap")
+        result["files"]["mcap"] = str(mcap)
+        lines.append(f"recording: {mcap} (MCAP; replay with: vcyto replay {mcap})")
+    if view.kind is not None and (view.kind == "connect" or view.path or files is not None):
+        rrd = files.path("rrd") if files is not None else None
+        result["files"]["rerun"] = view.url if view.kind == "connect" else str(view.path or rrd)
+        lines.append(f"Rerun: {view.describe(rrd)}")
+    if files is not None:
+        result["run_id"] = files.run_id
+        result["files"].update({"fcs": str(files.path("fcs")), "gatingml": str(files.path("gating.xml")),
+                                "summary": str(files.path("json"))})
+        files.finish(result, settings, scenario)
+        lines.append(f"detector events: {files.path('fcs')} (FCS 3.1; classification gate: "
+                     f"{files.path('gating.xml')}, Gating-ML 2.0); summary: {files.path('json')}")
+    for note in view.notes:
+        runfiles.say(note)
+    _emit(args, result, lines)
+    if stopped is None:
+        return
+    written = ", ".join(result["files"].get(key) for key in ("mcap", "summary", "fcs") if key in result["files"])
+    kept = f"; what ran is in {written}" if written else ""
+    if stopped.status == "failed":
+        runfiles.say(f"error: the run failed at t = {result.get('simulated_time_ms', 0):.3f} ms: "
+                     f"{' '.join(stopped.reason.split())}{kept}")
+        raise RunStopped(EXIT_NUMERICAL)
+    signal_name = _signals_seen.get("last", "SIGINT")
+    runfiles.say(f"interrupted by {signal_name} at t = {result.get('simulated_time_ms', 0):.3f} ms{kept} "
+                 "(the summary's status is \"interrupted\")")
+    raise RunStopped(EXIT_SIGTERM if signal_name == "SIGTERM" else EXIT_SIGINT)
 
 
 def _partial_status(args, result) -> int:
@@ -549,87 +628,76 @@ def command_calibrate(args):
     record = dict(result.as_dict(), model=args.model, saw_model=scenario.saw.model,
                   wall_time_s=time.perf_counter() - started, files={})
     if output is not None:
-        stem = output / time.strftime(f"calibration-{args.model}-%Y%m%d-%H%M%S")
+        run_id = outputs.reserve_run(output, ("toml", "json", "png"), None,
+                                     prefix=f"calibration-{args.model}")
+        stem = output / run_id
         provenance = {"command": " ".join(sys.argv), "model": args.model, "saw_model": scenario.saw.model,
                       "mesh_h_um": scenario.numerics.mesh_h * 1e6, "dt_us": scenario.numerics.dt * 1e6,
                       "date": time.strftime("%Y-%m-%d %H:%M:%S")}
         paths = {"controller": stem.with_suffix(".toml"), "summary": stem.with_suffix(".json"),
                  "figure": stem.with_suffix(".png")}
-        paths["controller"].write_text(controller_toml(result.settings, provenance))
+        outputs.write_into(paths["controller"], controller_toml(result.settings, provenance))
         calibrate.save_figure(result, paths["figure"])
         record["files"] = {kind: str(path) for kind, path in paths.items()}
-        paths["summary"].write_text(json.dumps(record, indent=2, default=_plain))
+        outputs.write_into(paths["summary"], strict_json(record) + "\n")
     _emit(args, record, calibrate.report_lines(record))
 
 
 def _calibration_grid(args):
     from .calibrate import Grid
-    low, high = (float(v) * 1e-3 for v in _pair(args.pulse_range, "--pulse-range"))
-    steps = {"lead_step": args.lead_step, "offset_step": args.offset_step, "offset_range": args.offset_range,
-             "resolution": args.resolution}
-    for name, value in dict(steps, pulse_low=low, pulse_high=high).items():
-        if not (math.isfinite(value) and value > 0):
-            raise UsageError(f"--{name.replace('_', '-')}: must be a positive number of ms (got {value!r})")
-    if high < low:
-        raise UsageError(f"--pulse-range: the shortest pulse comes first (got {args.pulse_range!r})")
-    pulses = tuple(float(v) for v in np.round(np.arange(low, high + 1e-12, args.pulse_step * 1e-3), 9))
-    return Grid(pulses=pulses, **{name: value * 1e-3 for name, value in steps.items()})
+    values = units.parse_list(args.pulse_range, "time", "ms", field="--pulse-range")
+    if len(values) != 2 or not 0 < values[0] <= values[1] <= 10e-3:
+        raise UsageError(f"--pulse-range: wants LO,HI with 0 < LO <= HI <= 10 ms, e.g. 0.02,2 (got {args.pulse_range!r})")
+    pulses = tuple(float(v) for v in np.round(np.arange(values[0], values[1] + 1e-12, args.pulse_step), 9))
+    if len(pulses) > 2000:
+        raise UsageError(f"--pulse-step: {len(pulses)} pulse lengths to try; use a coarser step or a narrower range")
+    return Grid(pulses=pulses, lead_step=args.lead_step, offset_step=args.offset_step,
+                offset_range=args.offset_range, resolution=args.resolution)
 
 
-def _pair(text: str, option: str):
-    parts = text.split(",")
-    try:
-        values = [float(part) for part in parts]
-    except ValueError:
-        values = []
-    if len(values) != 2:
-        raise UsageError(f"{option} wants two numbers LO,HI (got {text!r})")
-    return values
-
-
-def _viewer_target(args, default_save: Path | None, spawn_by_default: bool):
-    """Where a Rerun view goes: --save, --connect, --spawn, else a viewer (if ``spawn_by_default`` and there is a
-    display) or ``default_save``. Spawning without a display would block, so it falls back to the file."""
-    from .viewer import has_display
-    if getattr(args, "no_viewer", False):
-        return None
-    if args.save:
-        return ("save", _output_path(args.save))
-    if args.connect is not None:
-        return ("connect", args.connect)
-    if (args.spawn or spawn_by_default) and has_display():
-        return ("spawn",)
-    if args.spawn:
-        print("vcyto: no display for --spawn; saving the Rerun view to a file instead", file=sys.stderr)
-    return ("save", default_save) if default_save is not None else None
-
-
-def _viewer_options(parser: argparse.ArgumentParser):
-    group = parser.add_argument_group("Rerun viewer (default: spawn one if there is a display, else save an .rrd)")
-    group.add_argument("--spawn", action="store_true", help="start a Rerun viewer and stream to it")
+def _viewer_options(parser: argparse.ArgumentParser, live: bool = True):
+    group = parser.add_argument_group("Rerun viewer (default: " + ("start the viewer installed with rerun-sdk if "
+                                      "there is a display, else " if live else "") + "save an .rrd)")
+    group.add_argument("--spawn", action="store_true",
+                       help="start the Rerun viewer installed with rerun-sdk and stream to it (if it cannot start: "
+                            "an .rrd instead)")
     group.add_argument("--connect", nargs="?", const="", metavar="URL",
-                       help="stream to a running viewer (default rerun+http://127.0.0.1:9876/proxy)")
-    group.add_argument("--save", metavar="FILE.rrd", help="write the Rerun view to a file")
+                       help="stream to a running viewer (default rerun+http://127.0.0.1:9876/proxy; unreachable: "
+                            "an .rrd instead)")
+    group.add_argument("--viewer-bind", metavar="ADDRESS", default="127.0.0.1",
+                       help="address a viewer started by vcyto listens on (default 127.0.0.1: this machine only; "
+                            "0.0.0.0 opens port 9876 to the network)")
+    group.add_argument("--save", metavar="FILE.rrd", help="write the Rerun view to this new file")
     group.add_argument("--no-viewer", action="store_true", help="no Rerun output")
 
 
 def command_replay(args):
+    from . import runfiles
     from .replay import ReplayError, replay
     path = Path(args.file)
     if not path.is_file():
-        raise UsageError(f"recording {args.file} does not exist")
-    target = _viewer_target(args, path.with_suffix(".replay.rrd"), spawn_by_default=False)
+        raise UsageError(f"recording {args.file} does not exist or is not a file")
+    view = runfiles.choose_view(args, True, spawn_by_default=False, error=UsageError)
+    if view.kind == "save" and view.path is None:
+        view.path = outputs.unique_path(path.with_suffix(".replay.rrd"))
     try:
-        result = replay(path, target)
-    except ReplayError as error:
-        raise UsageError(str(error)) from None
+        result = replay(path, view.target())
+    except (ReplayError, KeyError, TypeError, ValueError, IndexError, AttributeError) as error:
+        if view.kind == "save" and view.path.exists():
+            view.path.unlink(missing_ok=True)          # ours: created for this replay
+        if isinstance(error, (ReplayError, ScenarioError)):
+            raise UsageError(str(error)) from None
+        raise UsageError(f"{path}: a message of the recording is malformed ({type(error).__name__}: "
+                         f"{' '.join(str(error).split())[:120]}); it was not written by this vcyto") from None
     lines = [f"replayed {result['steps']} steps ({result['messages']} messages, up to t = {result['last_time_ms']:.3f} ms)"
              f" from {path}"]
     if result["damaged"]:
         lines.append(f"  the file is damaged or truncated ({result['problem']}): everything before the damage "
                      "was replayed, the rest is lost")
-    lines.append(f"  Rerun: {'saved to ' + str(target[1]) if target[0] == 'save' else target[0]}")
-    result["target"] = str(target[1]) if target[0] == "save" else target[0]
+    lines.append(f"  Rerun: {view.describe()}")
+    result["target"] = view.url if view.kind == "connect" else str(view.path)
+    for note in view.notes:
+        runfiles.say(note)
     _emit(args, result, lines)
 
 
@@ -643,26 +711,6 @@ def _run_metadata(scenario, settings) -> dict:
             "arrivals": settings.arrivals, "detector": settings.detector, "controller": settings.controller,
             "command_line": " ".join(sys.argv), "vcyto": __version__, "numpy": numpy.__version__,
             "scipy": scipy.__version__, "scikit-fem": skfem.__version__, "python": sys.version.split()[0]}
-
-
-class _sigterm_as_interrupt:
-    """Within the block, SIGTERM raises KeyboardInterrupt so files are finalised as on Ctrl-C."""
-
-    def __enter__(self):
-        import signal
-        def interrupt(signum, frame):
-            raise KeyboardInterrupt
-        try:
-            self._previous = signal.signal(signal.SIGTERM, interrupt)
-        except ValueError:          # not the main thread
-            self._previous = None
-        return self
-
-    def __exit__(self, *exc):
-        import signal
-        if self._previous is not None:
-            signal.signal(signal.SIGTERM, self._previous)
-        return False
 
 
 def _output_directory(path: str | None) -> Path | None:
@@ -686,11 +734,10 @@ def _output_directory(path: str | None) -> Path | None:
 def command_sweep(args):
     from . import sweep
     from .progress import Progress
-    if args.workers is not None and args.workers < 1:
-        raise UsageError(f"--workers must be at least 1 (got {args.workers})")
-    if args.chunk < 1:
-        raise UsageError(f"--chunk must be at least 1 (got {args.chunk})")
+    from . import runfiles
     try:
+        if args.scheduler is not None:
+            sweep.check_scheduler(args.scheduler)
         spec = sweep.load_sweep(args.spec)
     except sweep.SweepError as error:
         raise UsageError(str(error)) from None
@@ -698,10 +745,11 @@ def command_sweep(args):
     workers = args.workers or (len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count())
     progress = Progress(quiet=args.quiet or args.json)
     try:
-        with _sigterm_as_interrupt(), sweep.executor(args.scheduler, workers) as (pool, slots, where):
+        with runfiles.signals_as_interrupt(_signals_seen), \
+                sweep.executor(args.scheduler, workers) as (pool, slots, where):
             progress.note(f"{len(spec.points)} points on {where}; results in {output / sweep.RESULTS}")
             result = sweep.run_sweep(spec, output, pool, slots, progress, retry_failed=args.retry_failed,
-                                     chunk=args.chunk)
+                                     chunk=args.chunk, keep_old_rows=args.keep_old_rows)
     except sweep.SweepError as error:
         raise UsageError(str(error)) from None
     except KeyboardInterrupt:
@@ -716,7 +764,7 @@ def command_sweep(args):
         sweep.save_plot(output / sweep.FIGURE, spec, result["rows"])
         result["files"]["figure"] = str(output / sweep.FIGURE)
     result["files"]["summary"] = str(output / sweep.SUMMARY)
-    (output / sweep.SUMMARY).write_text(json.dumps(result, indent=2, default=_plain))
+    outputs.write_into(output / sweep.SUMMARY, strict_json(result) + "\n")
     _emit(args, result, sweep.report_lines(result))
 
 
@@ -726,40 +774,44 @@ def command_scenario(args):
 
 
 def _stream_options(parser: argparse.ArgumentParser):
-    """The options of one closed-loop run: arrivals, detector, controller, plant model, seed, duration."""
+    """The options of one closed-loop run: arrivals, detector, controller, plant model, seed, duration.
+    Quantities take a unit (``--lead 500us``); a bare number is in the unit the help names."""
     arrivals = parser.add_argument_group("cell arrivals (through the injection inlet)")
     arrivals.add_argument("--cells", help="explicit ordered list, e.g. RBC,melanoma,RBC (default RBC,melanoma "
                                           "unless --count is given)")
-    arrivals.add_argument("--count", type=int, help="number of cells drawn from --mix")
+    arrivals.add_argument("--count", type=Integer(low=1), help="number of cells drawn from --mix (at least 1)")
     arrivals.add_argument("--mix", help="type mix for --count, e.g. RBC:0.9,melanoma:0.1")
-    arrivals.add_argument("--rate", type=float, default=500.0, help="arrival rate in cells/s (default 500)")
+    arrivals.add_argument("--rate", type=Quantity("frequency", "Hz", low=0, low_open=True), default="500",
+                          metavar="RATE", help="arrival rate, cells/s (default 500; e.g. 1kHz)")
     arrivals.add_argument("--arrivals", choices=("regular", "poisson"), default="regular",
                           help="arrival process (default regular)")
-    arrivals.add_argument("--min-spacing", type=float, default=0.5, metavar="MS",
-                          help="minimum time between arrivals in ms (default 0.5)")
+    arrivals.add_argument("--min-spacing", type=Quantity("time", "ms", low=0), default="0.5", metavar="TIME",
+                          help="minimum time between arrivals (ms; default 0.5)")
     optics = parser.add_argument_group("detector and controller")
     optics.add_argument("--detection-window", default="30,60", metavar="X0,X1",
-                        help="detection window along the channel in um (default 30,60)")
-    optics.add_argument("--gate", type=float, default=0.5, help="fluorescence gate for type II (default 0.5)")
-    optics.add_argument("--noise", type=float, default=0.2, help="fluorescence noise CV (default 0.2)")
+                        help="detection window along the channel (um; default 30,60; e.g. 30um,60um)")
+    optics.add_argument("--gate", type=Number(low=0), default="0.5", help="fluorescence gate for type II (default 0.5)")
+    optics.add_argument("--noise", type=Number(low=0, high=10), default="0.2",
+                        help="fluorescence noise CV, 0-10 (default 0.2)")
     optics.add_argument("--controller", metavar="FILE",
                         help="controller settings file written by vcyto calibrate (default: the shipped calibration, "
-                             "README 'Sort envelope'); the options below override it")
-    optics.add_argument("--delay", type=float, metavar="MS",
-                        help="sort delay: detection to the SAW window at the reference velocity (default 0.548)")
-    optics.add_argument("--lead", type=float, metavar="MS",
-                        help="IDT on this long before the predicted arrival (default 0.3)")
-    optics.add_argument("--pulse", type=float, metavar="MS", help="IDT pulse length (default 0.4)")
+                             "README 'Sorting like a sorter'); the options below override it")
+    optics.add_argument("--delay", type=Quantity("time", "ms", low=0, low_open=True, high=10.0), metavar="TIME",
+                        help="sort delay: detection to the SAW window at the reference velocity (ms; default 0.548)")
+    optics.add_argument("--lead", type=Quantity("time", "ms", low=0, high=10.0), metavar="TIME",
+                        help="IDT on this long before the predicted arrival (ms; default 0.3)")
+    optics.add_argument("--pulse", type=Quantity("time", "ms", low=0, low_open=True, high=10.0), metavar="TIME",
+                        help="IDT pulse length (ms; default 0.4)")
     optics.add_argument("--mode", choices=MODES,
                         help="sort mode: purity (abort when a type-I cell is predicted in the widened envelope; "
                              "the default), enrichment (abort only inside the envelope itself), yield (never abort), "
                              "single (purity, and abort two type-II cells in each other's envelope)")
     optics.add_argument("--envelope", metavar="LO,HI",
-                        help="offsets in ms from a sorted cell's arrival at which another cell is deflected too "
-                             "(default -0.236,0.27: vcyto calibrate on rom and feib, README 'Sort envelope')")
-    optics.add_argument("--timing-error", type=float, metavar="MS",
+                        help="offsets from a sorted cell's arrival at which another cell is deflected too (ms; default "
+                             "-0.236,0.27: vcyto calibrate on rom and feib, README 'Sorting like a sorter')")
+    optics.add_argument("--timing-error", type=Quantity("time", "ms", low=0, high=10.0), metavar="TIME",
                         help="uncertainty of one predicted arrival; the purity window is the envelope widened by twice "
-                             "this (default 0.027)")
+                             "this (ms; default 0.027)")
     optics.add_argument("--no-controller", action="store_true", help="never switch the IDT on")
     parser.add_argument("--model", choices=("feib", "auto", "oneway", "rom", "streamline"), default="feib",
                         help="plant: full FE-IB (default); auto (rom, switching to feib while a melanoma "
@@ -767,13 +819,14 @@ def _stream_options(parser: argparse.ArgumentParser):
                              "the blended steady flows, no feedback); "
                              "rom (cells as finite-size bodies in the blended steady flows, >10x faster than real "
                              "time without recording); or the streamline stand-in")
-    parser.add_argument("--window-h", metavar="LENGTH",
+    parser.add_argument("--window-h", type=Quantity("length", "", low=0, low_open=True), metavar="LENGTH",
                         help="--model auto: mesh size of its feib windows (default 6.67um, or --mesh-h if coarser: "
                              "the coarsest mesh within tolerance on the tradeoff scenes; --window-h equal to "
                              "--mesh-h runs the windows at full resolution)")
-    parser.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
-    parser.add_argument("--max-time", type=float, metavar="MS",
-                        help="cap the run at this simulated time; by default it runs until every cell has left "
+    parser.add_argument("--seed", type=Integer(low=0, high=2**63 - 1), default="0",
+                        help="random seed, >= 0 (default 0)")
+    parser.add_argument("--max-time", type=Quantity("time", "ms", low=0, low_open=True, high=3.6e6), metavar="TIME",
+                        help="cap the run at this simulated time (ms); by default it runs until every cell has left "
                              "(a capped run says so, its statistics are marked partial and cells never injected are "
                              "counted as such); exit status 1 unless --allow-partial")
     parser.add_argument("--allow-partial", action="store_true",
@@ -785,27 +838,31 @@ def _calibration_options(parser: argparse.ArgumentParser):
                         help="plant the calibration cells go through (default rom: about 1 s; feib: minutes to hours, "
                              "coarsen --pulse-step/--lead-step/--offset-step or give --pulse and --lead)")
     parser.add_argument("--detection-window", default="30,60", metavar="X0,X1", help="as for vcyto stream (um)")
-    parser.add_argument("--gate", type=float, default=0.5, help="fluorescence gate for type II (default 0.5)")
-    parser.add_argument("--noise", type=float, default=0.2, help="fluorescence noise CV (default 0.2)")
+    parser.add_argument("--gate", type=Number(low=0), default="0.5", help="fluorescence gate for type II (default 0.5)")
+    parser.add_argument("--noise", type=Number(low=0, high=10), default="0.2", help="fluorescence noise CV (default 0.2)")
     parser.add_argument("--controller", metavar="FILE", help="start from this controller file (mode and fields not "
                                                              "measured are kept)")
     parser.add_argument("--mode", choices=MODES, help="sort mode written to the controller file (default purity)")
     for name in ("delay", "envelope", "timing_error"):
         parser.set_defaults(**{name: None})
     parser.set_defaults(no_controller=False)
-    parser.add_argument("--pulse", type=float, metavar="MS", help="with --lead: skip the pulse search and measure "
-                                                                  "the envelope of this pulse")
-    parser.add_argument("--lead", type=float, metavar="MS", help="with --pulse: its lead")
-    parser.add_argument("--pulse-range", default="0.02,2", metavar="LO,HI", help="pulse lengths searched, ms "
-                                                                                  "(default 0.02,2)")
-    parser.add_argument("--pulse-step", type=float, default=0.02, metavar="MS", help="pulse search step (default 0.02)")
-    parser.add_argument("--lead-step", type=float, default=0.01, metavar="MS", help="lead search step (default 0.01)")
-    parser.add_argument("--offset-step", type=float, default=0.02, metavar="MS",
-                        help="envelope scan step (default 0.02); its edges are bisected to --resolution")
-    parser.add_argument("--offset-range", type=float, default=1.5, metavar="MS",
-                        help="envelope scan from -this to +this (default 1.5)")
-    parser.add_argument("--resolution", type=float, default=0.0025, metavar="MS",
-                        help="envelope edge resolution (default 0.0025)")
+    time = Quantity("time", "ms", low=0, low_open=True, high=10.0)
+    parser.add_argument("--pulse", type=time, metavar="TIME", help="with --lead: skip the pulse search and measure "
+                                                                    "the envelope of this pulse (ms)")
+    parser.add_argument("--lead", type=Quantity("time", "ms", low=0, high=10.0), metavar="TIME",
+                        help="with --pulse: its lead (ms)")
+    parser.add_argument("--pulse-range", default="0.02,2", metavar="LO,HI", help="pulse lengths searched (ms; "
+                                                                                  "default 0.02,2)")
+    parser.add_argument("--pulse-step", type=time, default="0.02", metavar="TIME",
+                        help="pulse search step (ms; default 0.02)")
+    parser.add_argument("--lead-step", type=time, default="0.01", metavar="TIME", help="lead search step (ms; "
+                                                                                         "default 0.01)")
+    parser.add_argument("--offset-step", type=time, default="0.02", metavar="TIME",
+                        help="envelope scan step (ms; default 0.02); its edges are bisected to --resolution")
+    parser.add_argument("--offset-range", type=time, default="1.5", metavar="TIME",
+                        help="envelope scan from -this to +this (ms; default 1.5)")
+    parser.add_argument("--resolution", type=time, default="0.0025", metavar="TIME",
+                        help="envelope edge resolution (ms; default 0.0025)")
     parser.add_argument("--output", default="recordings", metavar="DIR",
                         help="where the controller file (.toml), the record (.json) and the plot (.png) go "
                              "(default recordings/; '' writes nothing)")
@@ -813,8 +870,12 @@ def _calibration_options(parser: argparse.ArgumentParser):
 
 
 def build_parser() -> argparse.ArgumentParser:
+    parser = Parser(prog="vcyto", description="A virtual cytometer: a simulated SAW cell sorter. Quantities take a "
+                                               "unit (25us, 0.5ms, 1kHz, 30um); a bare number is in the unit each "
+                                               "option names. Exit status: 0 done, 1 numerical failure or a "
+                                               "file that cannot be written, 2 bad input, 130/143 interrupted "
+                                               "(SIGINT/SIGTERM).")
     from . import __version__
-    parser = argparse.ArgumentParser(prog="vcyto", description="A virtual cytometer: a simulated SAW cell sorter.")
     parser.add_argument("--version", action="version", version=f"vcyto {__version__}")
     commands = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
@@ -831,8 +892,8 @@ def build_parser() -> argparse.ArgumentParser:
     _scenario_options(paper)
     paper.add_argument("--png", metavar="FILE", help="where to save the path over the flow (default recordings/paperN.png)")
     paper.add_argument("--no-png", action="store_true", help="do not save a PNG")
-    paper.add_argument("--max-time", type=float, default=20.0, metavar="MS",
-                       help="give up (outlet 'lost') after this much simulated time in ms (default 20)")
+    paper.add_argument("--max-time", type=Quantity("time", "ms", low=0, low_open=True, high=3600.0), default="20",
+                       metavar="TIME", help="give up (outlet 'lost') after this much simulated time (ms; default 20)")
     _output_options(paper)
     paper.set_defaults(handler=command_paper)
 
@@ -842,10 +903,13 @@ def build_parser() -> argparse.ArgumentParser:
     stream.add_argument("--output", default="recordings", metavar="DIR",
                         help="where the run's files go: the MCAP recording, FCS 3.1 detector events, the gate "
                              "(Gating-ML 2.0) and a JSON summary (default recordings/; --output '' writes nothing)")
+    stream.add_argument("--name", metavar="NAME",
+                        help="name the run's files NAME.mcap, NAME.json, NAME.fcs, NAME.gating.xml, NAME.rrd (default "
+                             "stream-DATE-TIME-MILLISECONDS-PID); a name whose files exist is refused")
     stream.add_argument("--no-record", action="store_true", help="no MCAP recording")
-    stream.add_argument("--flush-every", type=int, default=50, metavar="N",
+    stream.add_argument("--flush-every", type=Integer(low=1), default="50", metavar="N",
                         help="flush the recording every N control periods: a crash loses at most N (default 50)")
-    stream.add_argument("--field-every", type=int, default=200, metavar="N",
+    stream.add_argument("--field-every", type=Integer(low=0), default="200", metavar="N",
                         help="record the velocity field every N control periods, 0 = never (default 200)")
     _viewer_options(stream)
     _output_options(stream)
@@ -885,11 +949,15 @@ def build_parser() -> argparse.ArgumentParser:
     sweep.add_argument("spec", metavar="SPEC", help="sweep spec (TOML): [base] run, [parameters], [sweep] metrics")
     sweep.add_argument("--output", metavar="DIR", help="where results.csv, summary.png and sweep.json go; a re-run "
                                                        "skips the points already there (default recordings/sweeps/SPEC)")
-    sweep.add_argument("--workers", type=int, metavar="N", help="worker processes (default: the CPU count)")
+    sweep.add_argument("--workers", type=Integer(low=1, high=1024), metavar="N",
+                       help="worker processes (default: the CPU count)")
     sweep.add_argument("--scheduler", metavar="ADDRESS", help="run on the Dask scheduler at ADDRESS (e.g. "
                                                               "tcp://host:8786), or 'local' to start a LocalCluster")
     sweep.add_argument("--retry-failed", action="store_true", help="run the points recorded as failed again")
-    sweep.add_argument("--chunk", type=int, default=8, metavar="N",
+    sweep.add_argument("--keep-old-rows", action="store_true",
+                       help="reuse rows computed by another vcyto version for the same inputs (by default an "
+                            "upgrade recomputes every point; the summary counts the rows kept)")
+    sweep.add_argument("--chunk", type=Integer(low=1), default="8", metavar="N",
                        help="points sharing a plant go to one worker N at a time (default 8)")
     _output_options(sweep)
     sweep.set_defaults(handler=command_sweep)
@@ -922,12 +990,14 @@ def build_parser() -> argparse.ArgumentParser:
     targets = bench.add_subparsers(dest="target", required=True, metavar="TARGET")
     fluid = targets.add_parser("fluid", help="set-up and per-step cost of the fluid solver, per convection treatment")
     _scenario_options(fluid)
-    fluid.add_argument("--repeats", type=int, default=40, help="timed repetitions per median (default 40)")
+    fluid.add_argument("--repeats", type=Integer(low=2, high=100_000), default="40",
+                       help="timed repetitions per median, >= 2 (default 40)")
     _output_options(fluid)
     fluid.set_defaults(handler=command_bench)
     treatments = targets.add_parser("treatments", help="how far imex, oseen and stokes steps differ from implicit ones")
     _scenario_options(treatments)
-    treatments.add_argument("--steps", type=int, default=20, help="steps after switching the IDT on (default 20)")
+    treatments.add_argument("--steps", type=Integer(low=1, high=1_000_000), default="20",
+                            help="steps after switching the IDT on (default 20)")
     _output_options(treatments)
     treatments.set_defaults(handler=command_bench)
     paper_bench = targets.add_parser("paper", help="a paper scenario with imex and with implicit convection: "
@@ -937,21 +1007,24 @@ def build_parser() -> argparse.ArgumentParser:
     _output_options(paper_bench)
     paper_bench.set_defaults(handler=command_bench)
     auto_bench = targets.add_parser("auto", help="a mixed stream with --model auto and with feib: outcomes and wall time")
-    auto_bench.add_argument("--count", type=int, default=100, help="cells (default 100)")
-    auto_bench.add_argument("--rate", type=float, default=500.0, help="Poisson arrival rate, cells/s (default 500)")
+    auto_bench.add_argument("--count", type=Integer(low=1), default="100", help="cells (default 100)")
+    auto_bench.add_argument("--rate", type=Quantity("frequency", "Hz", low=0, low_open=True), default="500",
+                            help="Poisson arrival rate, cells/s (default 500)")
     auto_bench.add_argument("--mix", default="RBC:0.8,melanoma:0.2", help="type mix (default RBC:0.8,melanoma:0.2)")
-    auto_bench.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+    auto_bench.add_argument("--seed", type=Integer(low=0, high=2**63 - 1), default="0", help="random seed (default 0)")
     _scenario_options(auto_bench)
     _output_options(auto_bench)
     auto_bench.set_defaults(handler=command_bench)
     membrane_bench = targets.add_parser("membrane", help="the paper's literal membrane method against the conserving "
                                                          "one: area kept, point spacing, outlets, cost per step")
-    membrane_bench.add_argument("--repeats", type=int, default=2, help="interleaved runs per scenario (default 2)")
+    membrane_bench.add_argument("--repeats", type=Integer(low=1, high=1000), default="2",
+                                help="interleaved runs per scenario (default 2)")
     _scenario_options(membrane_bench)
     _output_options(membrane_bench)
     membrane_bench.set_defaults(handler=command_bench)
     recording_bench = targets.add_parser("recording", help="wall-time overhead of recording (MCAP + Rerun) an FE-IB stream")
-    recording_bench.add_argument("--repeats", type=int, default=3, help="interleaved pairs without/with (default 3)")
+    recording_bench.add_argument("--repeats", type=Integer(low=1, high=1000), default="3",
+                                 help="interleaved pairs without/with (default 3)")
     _scenario_options(recording_bench)
     _output_options(recording_bench)
     recording_bench.set_defaults(handler=command_bench)
@@ -959,7 +1032,8 @@ def build_parser() -> argparse.ArgumentParser:
     sweep_bench.add_argument("spec", nargs="?", metavar="SPEC",
                              help="sweep spec (default examples/sweeps/bench-rom.toml: 8 rom plants, 200 cells each)")
     sweep_bench.add_argument("--workers", default="1,2", metavar="N,M", help="pool sizes to compare (default 1,2)")
-    sweep_bench.add_argument("--repeats", type=int, default=1, help="runs per pool size; medians (default 1)")
+    sweep_bench.add_argument("--repeats", type=Integer(low=1, high=1000), default="1",
+                             help="runs per pool size; medians (default 1)")
     _output_options(sweep_bench)
     sweep_bench.set_defaults(handler=command_bench)
     sort_bench = targets.add_parser("sort", help="long rom sorting runs with recording: loop cost per event, "
@@ -977,17 +1051,23 @@ def build_parser() -> argparse.ArgumentParser:
     realtime_bench = targets.add_parser("realtime", help="real-time factor of the closed loop with the rom plant: "
                                                          "a Poisson stream, detector and controller, no recording")
     _scenario_options(realtime_bench)
-    realtime_bench.add_argument("--rate", type=float, default=1000.0, help="arrival rate in cells/s (default 1000)")
-    realtime_bench.add_argument("--duration", default="1s", metavar="TIME",
-                                help="device time of arrivals; count = rate x duration (default 1s)")
+    realtime_bench.add_argument("--rate", type=Quantity("frequency", "Hz", low=0, low_open=True), default="1000",
+                                help="arrival rate in cells/s (default 1000; e.g. 1kHz)")
+    realtime_bench.add_argument("--duration", type=Quantity("time", "s", low=0, low_open=True), default="1s",
+                                metavar="TIME",
+                                help="device time of arrivals (s); count = rate x duration (default 1s)")
     realtime_bench.add_argument("--mix", default="RBC:0.9,melanoma:0.1", help="type mix (default RBC:0.9,melanoma:0.1)")
-    realtime_bench.add_argument("--repeats", type=int, default=3, help="runs of the same stream (default 3)")
-    realtime_bench.add_argument("--control-period", metavar="TIME", help="control period (default: the plant's, 10us)")
-    realtime_bench.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+    realtime_bench.add_argument("--repeats", type=Integer(low=1, high=1000), default="3",
+                                help="runs of the same stream (default 3)")
+    realtime_bench.add_argument("--control-period", type=Quantity("time", "s", low=0, low_open=True, high=1.0),
+                                metavar="TIME", help="control period (s; default: the plant's, 20us)")
+    realtime_bench.add_argument("--seed", type=Integer(low=0, high=2**63 - 1), default="0",
+                                help="random seed (default 0)")
     _output_options(realtime_bench)
     realtime_bench.set_defaults(handler=command_bench)
     controller_bench = targets.add_parser("controller", help="decision latency of the sorting controller")
-    controller_bench.add_argument("--events", type=int, default=20_000, help="synthetic events (default 20000)")
+    controller_bench.add_argument("--events", type=Integer(low=1, high=10_000_000), default="20000",
+                                  help="synthetic events (default 20000)")
     _output_options(controller_bench)
     controller_bench.set_defaults(handler=command_bench)
     return parser
@@ -998,18 +1078,26 @@ def main(argv=None) -> int:
     args = parser.parse_args(argv)
     try:
         status = args.handler(args)
-    except (ScenarioError, UsageError) as error:
+    except (ScenarioError, UsageError, units.QuantityError) as error:
         return _fail(error, EXIT_INPUT)
     except (NumericalBlowUp, SolverError) as error:
         return _fail(error, EXIT_NUMERICAL)
+    except RunStopped as stopped:
+        return stopped.status
     except KeyboardInterrupt:
         print("vcyto: interrupted", file=sys.stderr)
-        return 130
+        return EXIT_SIGTERM if _signals_seen.get("last") == "SIGTERM" else EXIT_SIGINT
+    except MemoryError:
+        return _fail(MemoryError("out of memory: the run needs more memory than this machine has; use a coarser "
+                                 "mesh, fewer cells or fewer sweep points"), EXIT_NUMERICAL)
+    except OSError as error:          # a disk that fills up, a file that vanished: the environment, not a bug
+        where = f" {error.filename}" if getattr(error, "filename", None) else ""
+        return _fail(OSError(f"cannot write or read{where}: {error.strerror or error}"), EXIT_NUMERICAL)
     except Exception as error:  # a bug, not bad input: say so in one line, keep the traceback on request
         if os.environ.get("VCYTO_DEBUG"):
             raise
-        print(f"vcyto: internal error: {type(error).__name__}: {error} (set VCYTO_DEBUG=1 for the traceback; "
-              "please report it)", file=sys.stderr)
+        print(f"vcyto: internal error: {type(error).__name__}: {' '.join(str(error).split())} (set VCYTO_DEBUG=1 for "
+              "the traceback; please report it)", file=sys.stderr)
         return EXIT_INTERNAL
     return status or 0
 
@@ -1017,7 +1105,7 @@ def main(argv=None) -> int:
 def _fail(error: Exception, status: int) -> int:
     if os.environ.get("VCYTO_DEBUG"):
         raise error
-    print(f"vcyto: error: {error}", file=sys.stderr)
+    print(f"vcyto: error: {' '.join(str(error).split())}", file=sys.stderr)
     return status
 
 

@@ -22,6 +22,7 @@ import math
 import numbers
 import os
 import re
+import stat
 import sys
 import types
 import typing
@@ -33,6 +34,24 @@ else:  # pragma: no cover - exercised on Python 3.10 only
     import tomli as tomllib
 
 from sim.scenario import Scenario, ScenarioError, as_dict
+
+from . import units
+
+# the dimension of every float field of the scenario dataclasses ("Class.field"); a bare number is SI
+FIELD_DIMENSIONS = {
+    "Channel.length": "length", "Channel.height": "length",
+    "Inlet.span": "length", "Inlet.v_hat": "speed", "Inlet.tilt": "angle", "Inlet.cutoff": "length",
+    "Outlet.span": "length", "SawWindow.span": "length", "SawWindow.cutoff": "length",
+    "Fluid.density": "density", "Fluid.viscosity": "viscosity",
+    "Saw.amplitude": "length", "Saw.frequency": "frequency", "Saw.streaming_force": "force density",
+    "Saw.attenuation_length": "length", "Saw.spin_up_time": "time",
+    "Numerics.mesh_h": "length", "Numerics.dt": "time", "Numerics.nonlinear_tolerance": "dimensionless",
+    "Numerics.membrane_spacing": "dimensionless", "Numerics.max_area_change": "dimensionless",
+    "Numerics.spacing_band": "dimensionless", "Numerics.max_stretch": "dimensionless",
+    "CellType.kappa_e": "tension", "CellType.kappa_b": "bending modulus", "CellType.semi_axes": "length",
+    "CellType.fluorescence": "dimensionless",
+}
+MAX_FILE_BYTES = 1_000_000          # a scenario or sweep spec larger than this is refused before it is parsed
 
 # unit suffix -> factor to SI (angles to radians); whitespace inside a suffix is not significant
 UNITS = {
@@ -63,7 +82,10 @@ def load_scenario(path: str | os.PathLike | None = None, overrides: Sequence[str
     if path is not None:
         _merge(tree, _read_document(path))
     for override in overrides:
-        _apply_override(tree, override)
+        try:
+            _apply_override(tree, override)
+        except RecursionError:
+            raise ScenarioError(override.partition("=")[0].strip() or "override", "nested too deeply") from None
     return _build(Scenario, _inherit_sort_class(tree), "")
 
 
@@ -97,7 +119,8 @@ def scenario_to_toml(scenario: Scenario) -> str:
 
 
 def parse_quantity(text: str) -> float:
-    """The SI value of ``text``, a number with an optional unit suffix from ``UNITS`` ("25 us" -> 2.5e-05).
+    """The SI value of ``text``, a number with an optional unit suffix from ``UNITS`` ("25 us" -> 2.5e-05), for
+    display only (sweep plot axes): every input is read by ``vcyto.units.parse_quantity``, which checks its dimension.
 
     Raises ``ValueError`` with a one-line explanation when ``text`` is not such a number.
     """
@@ -115,12 +138,31 @@ def parse_quantity(text: str) -> float:
 # --- reading the file ---------------------------------------------------------------------------
 
 
+def check_input_file(path: str | os.PathLike, what: str, field: str = "path", limit: int = MAX_FILE_BYTES) -> None:
+    """Refuse, before it is read, an input file that is missing, not a regular file or larger than ``limit``."""
+    name = os.fspath(path)
+    try:
+        status = os.stat(name)
+    except FileNotFoundError:
+        raise ScenarioError(field, f"{what} '{name}' does not exist; check the path") from None
+    except (OSError, ValueError) as error:
+        reason = getattr(error, "strerror", None) or error
+        raise ScenarioError(field, f"cannot read {what} '{name}': {reason}") from None
+    if not stat.S_ISREG(status.st_mode):
+        raise ScenarioError(field, f"{what} '{name}' is not a regular file (a directory or a device); give a TOML file")
+    if status.st_size > limit:
+        raise ScenarioError(field, f"{what} '{name}' is {status.st_size:,} bytes; a {what} is at most {limit:,} bytes")
+
+
 def _read_document(path: str | os.PathLike) -> dict:
     """The parsed contents of the TOML scenario file at ``path``."""
     name = os.fspath(path)
+    check_input_file(path, "scenario file")
     try:
         with open(path, "rb") as file:
             return tomllib.load(file)
+    except RecursionError:
+        raise ScenarioError("path", f"scenario file '{name}' nests tables or arrays too deeply") from None
     except FileNotFoundError:
         raise ScenarioError("path", f"scenario file '{name}' does not exist; check the path") from None
     except OSError as error:
@@ -239,24 +281,26 @@ def _build(cls: type, data, where: str):
         if name not in data:
             raise ScenarioError(_join(where, name), f"missing; each {cls.__name__} needs {', '.join(required)}")
     hints = typing.get_type_hints(cls)
-    values = {name: _coerce(data[name], hints[name], _join(where, name)) for name in known if name in data}
+    values = {name: _coerce(data[name], hints[name], _join(where, name), FIELD_DIMENSIONS.get(f"{cls.__name__}.{name}"))
+              for name in known if name in data}
     try:
         return cls(**values)
     except ScenarioError as error:
         raise (error.within(where) if where else error) from None
 
 
-def _coerce(value, hint, where: str):
-    """``value`` (plain TOML data) converted to the type ``hint``; ``where`` is its dotted path for errors."""
+def _coerce(value, hint, where: str, dimension: str | None = None):
+    """``value`` (plain TOML data) converted to the type ``hint``; ``where`` is its dotted path for errors and
+    ``dimension`` (of ``units.DIMENSIONS``) that of a float field."""
     if _is_dataclass_type(hint):
         return _build(hint, value, where)
     origin = typing.get_origin(hint)
     if origin in (tuple, list):
-        return _coerce_sequence(value, hint, where)
+        return _coerce_sequence(value, hint, where, dimension)
     if origin is typing.Union or origin is types.UnionType:
-        return _coerce_union(value, hint, where)
+        return _coerce_union(value, hint, where, dimension)
     if hint is float:
-        return _coerce_float(value, where)
+        return _coerce_float(value, where, dimension)
     if hint is bool:
         return _checked(value, bool, where, "true or false")
     if hint is int:
@@ -266,39 +310,38 @@ def _coerce(value, hint, where: str):
     return value
 
 
-def _coerce_sequence(value, hint, where: str):
+def _coerce_sequence(value, hint, where: str, dimension: str | None = None):
     """The array ``value`` as the tuple or list type ``hint``, each entry converted to its item type."""
     if not isinstance(value, (list, tuple)):
         raise ScenarioError(where, f"must be an array, e.g. [1, 2] (got {_shown(value)})")
     item_hints = _item_hints(hint, len(value))
     if len(item_hints) != len(value):
         raise ScenarioError(where, f"must have {len(item_hints)} entries (got {len(value)})")
-    items = [_coerce(item, item_hint, f"{where}[{index}]")
+    items = [_coerce(item, item_hint, f"{where}[{index}]", dimension)
              for index, (item, item_hint) in enumerate(zip(value, item_hints))]
     return tuple(items) if typing.get_origin(hint) is tuple else items
 
 
-def _coerce_union(value, hint, where: str):
+def _coerce_union(value, hint, where: str, dimension: str | None = None):
     """``value`` as the first member of the union ``hint`` (NoneType aside) that accepts it."""
     members = [member for member in typing.get_args(hint) if member is not type(None)]
     for member in members[:-1]:
         try:
-            return _coerce(value, member, where)
+            return _coerce(value, member, where, dimension)
         except ScenarioError:
             continue
-    return _coerce(value, members[-1], where)
+    return _coerce(value, members[-1], where, dimension)
 
 
-def _coerce_float(value, where: str) -> float:
-    """``value`` as a float in SI units: a number, or a string with an optional unit suffix."""
-    if isinstance(value, str):
-        try:
-            return parse_quantity(value)
-        except ValueError as error:
-            raise ScenarioError(where, str(error)) from None
-    if isinstance(value, bool) or not isinstance(value, numbers.Real):
+def _coerce_float(value, where: str, dimension: str | None = None) -> float:
+    """``value`` as a finite float in SI units: a number, or a string with a unit of the field's ``dimension``."""
+    if isinstance(value, bool) or not isinstance(value, (str, numbers.Real)):
         raise ScenarioError(where, f"must be a number, optionally with a unit such as '2.5 us' (got {_shown(value)})")
-    return float(value)
+    try:
+        return units.parse_quantity(value if isinstance(value, str) else float(value), dimension or "dimensionless",
+                                    field=where)
+    except units.QuantityError as error:
+        raise ScenarioError(where, str(error).split(": ", 1)[1]) from None
 
 
 def _checked(value, kind: type, where: str, description: str, reject_bool: bool = False):

@@ -26,6 +26,8 @@ import argparse
 import contextlib
 import copy
 import csv
+import dataclasses
+import functools
 import hashlib
 import io
 import itertools
@@ -45,8 +47,9 @@ from pathlib import Path
 
 import numpy as np
 
+from .arguments import MAX_SWEEP_POINTS, Integer, Quantity
 from .cli import stream_run, stream_run_options
-from .config import parse_quantity, scenario_to_toml
+from .config import check_input_file, parse_quantity, scenario_to_toml
 from .stream import MODELS, make_plant, run_stream
 
 if sys.version_info >= (3, 11):
@@ -67,6 +70,8 @@ DEFAULT_METRICS = ("yield", "purity", "abort_rate", "outlets")
 RESULTS, FIGURE, SUMMARY = "results.csv", "summary.png", "sweep.json"
 PLANTS_PER_WORKER = 2
 FAILURES_SHOWN = 5
+SCHEDULER_SCHEMES = ("tcp", "tls", "ucx", "ws", "wss")
+CONNECT_TIMEOUT_S = 10
 THREAD_VARIABLES = ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS", "NUMBA_NUM_THREADS")
 
 
@@ -102,7 +107,8 @@ class Point:
     values: tuple                      # ((parameter name, value as given), ...)
     scenario: object                   # sim.scenario.Scenario
     settings: object                   # vcyto.stream.StreamSettings
-    id: str
+    id: str                            # digest of the inputs and of the code (version, schema)
+    inputs: str = ""                   # digest of the inputs alone (scenario TOML and settings)
 
     @property
     def label(self) -> str:
@@ -126,14 +132,21 @@ class Sweep:
     def columns(self) -> list[str]:
         names = [parameter.name for parameter in self.parameters]
         metrics = [metric for metric in self.metrics if metric != "wall_time_s"]
-        return ["point", "status", *names, *([] if "seed" in names else ["seed"]), *metrics, "wall_time_s", "error"]
+        return ["point", "status", *names, *([] if "seed" in names else ["seed"]), *metrics, "wall_time_s", "error",
+                "inputs", "vcyto"]
 
 
 def load_sweep(path: str | os.PathLike) -> Sweep:
     """The sweep the spec file at ``path`` describes, every point built and checked (no plant is built)."""
     try:
+        check_input_file(path, "sweep spec", field="spec")
+    except ValueError as error:
+        raise SweepError(str(error)) from None
+    try:
         with open(path, "rb") as file:
             document = tomllib.load(file)
+    except RecursionError:
+        raise SweepError(f"sweep spec '{os.fspath(path)}' nests tables or arrays too deeply") from None
     except FileNotFoundError:
         raise SweepError(f"sweep spec '{os.fspath(path)}' does not exist; check the path") from None
     except OSError as error:
@@ -156,6 +169,7 @@ def parse_sweep(document: dict, directory: Path = Path("."), name: str = "spec")
     sampling = sweep.get("sampling", "grid")
     if sampling not in SAMPLINGS:
         raise SweepError(f"sweep.sampling: must be one of {', '.join(SAMPLINGS)} (got {sampling!r})")
+    _check_size(parameters, sampling, sweep)
     combinations = _grid(parameters) if sampling == "grid" else _random(parameters, sweep)
     points = _points(combinations, base, options)
     metrics = _metrics(sweep.get("metrics", list(DEFAULT_METRICS)), points[0].scenario)
@@ -201,8 +215,8 @@ def _base_arguments(table: dict, options: dict, directory: Path) -> argparse.Nam
     for key, value in table.items():
         if key not in options:
             raise SweepError(f"base.{key}: unknown option; known: {', '.join(sorted(options))}")
-        if key in ("scenario", "controller"):          # files named relative to the spec
-            setattr(arguments, key, str(directory / _checked_text(value, f"base.{key}")))
+        if key in ("scenario", "controller"):          # files beside (or below) the spec
+            setattr(arguments, key, str(_beside_spec(_checked_text(value, f"base.{key}"), directory)))
         elif key == "set":
             if not isinstance(value, list) or not all(isinstance(item, str) for item in value):
                 raise SweepError('base.set: must be a list of "FIELD=VALUE" strings, e.g. ["saw.model=streaming"]')
@@ -210,6 +224,30 @@ def _base_arguments(table: dict, options: dict, directory: Path) -> argparse.Nam
         else:
             setattr(arguments, key, _option_value(options[key], value, f"base.{key}"))
     return arguments
+
+
+def _beside_spec(text: str, directory: Path) -> Path:
+    """The scenario file ``text`` names, relative to the spec's folder and inside it (a spec shared with you
+    cannot make vcyto read files elsewhere)."""
+    path = (directory / text).resolve()
+    if Path(text).is_absolute() or not path.is_relative_to(directory.resolve()):
+        raise SweepError(f"base.scenario: must name a file in the spec's folder or below it, relative to the spec "
+                         f"(got {text!r}); copy the scenario next to the spec")
+    return path
+
+
+def _check_size(parameters, sampling: str, sweep: dict) -> None:
+    """Refuse, before any point is built, a sweep of more than ``MAX_SWEEP_POINTS`` points, saying how many."""
+    if sampling == "random":
+        count = sweep.get("samples")
+        count = count if isinstance(count, int) and not isinstance(count, bool) else 0
+    else:
+        count = math.prod(len(p.values) for p in parameters if p.distribution is None)
+    if count > MAX_SWEEP_POINTS:
+        per_point = 0.5 if DEFAULT_MODEL == "rom" else 30.0
+        raise SweepError(f"{'sweep.samples' if sampling == 'random' else 'parameters'}: {count:,} points (at "
+                         f"least ~{count * per_point / 3600:,.0f} CPU hours); a sweep has at most "
+                         f"{MAX_SWEEP_POINTS:,} points: use fewer values or a random sample")
 
 
 def _checked_text(value, where: str) -> str:
@@ -226,22 +264,30 @@ def _option_value(action: argparse.Action, value, where: str):
         return value
     if isinstance(value, bool):
         raise SweepError(f"{where}: must not be true or false (got {value!r})")
-    if action.type is int:
+    if isinstance(action.type, Integer):
         if isinstance(value, float) and value.is_integer():
             value = int(value)
         if not isinstance(value, int):
             raise SweepError(f"{where}: must be an integer (got {value!r})")
-        return value
-    if action.type is float:
-        if not isinstance(value, (int, float)):
+        return _typed(action, value, where)
+    if isinstance(action.type, Quantity):
+        if not isinstance(value, (int, float, str)):
             raise SweepError(f"{where}: must be a number in the unit of vcyto stream's --{action.dest.replace('_', '-')}"
-                             f" (got {value!r})")
-        return float(value)
+                             f" or a text with a unit (got {value!r})")
+        return _typed(action, value, where)
     text = _option_text(value)
     choices = MODELS if action.dest == "model" else action.choices
     if choices and text not in choices:
         raise SweepError(f"{where}: must be one of {', '.join(choices)} (got {value!r})")
     return text
+
+
+def _typed(action: argparse.Action, value, where: str):
+    """``value`` read by the option's type (``vcyto.arguments``): SI for quantities, range-checked."""
+    try:
+        return action.type(value)
+    except argparse.ArgumentTypeError as error:
+        raise SweepError(f"{where}: {error}") from None
 
 
 def _option_text(value) -> str:
@@ -303,12 +349,20 @@ def _range(spec: dict, where: str, allow_units: bool) -> tuple:
         num = spec["num"]
         if isinstance(num, bool) or not isinstance(num, int) or num < 1:
             raise SweepError(f"{where}.num: empty range; num must be an integer >= 1 (got {num!r})")
+        if num > MAX_SWEEP_POINTS:
+            raise SweepError(f"{where}.num: {num:,} values; a sweep has at most {MAX_SWEEP_POINTS:,} points")
         values = np.geomspace(start, stop, num) if log else np.linspace(start, stop, num)
         return tuple(_rounded(value) for value in values)
     step = _number(spec["step"], f"{where}.step", allow_units)
     if log:
         raise SweepError(f"{where}: a log range takes num, not step")
-    count = math.floor((stop - start) / step + 1e-9) + 1 if step else 0
+    ratio = (stop - start) / step if step else -1.0
+    if not math.isfinite(ratio) or ratio > MAX_SWEEP_POINTS:
+        raise SweepError(f"{where}.step: more than {MAX_SWEEP_POINTS:,} values; a sweep has at most "
+                         f"{MAX_SWEEP_POINTS:,} points")
+    count = math.floor(ratio + 1e-9) + 1
+    if count > MAX_SWEEP_POINTS:
+        raise SweepError(f"{where}.step: {count:,} values; a sweep has at most {MAX_SWEEP_POINTS:,} points")
     if count < 1:
         raise SweepError(f"{where}: empty range: step {step:g} never goes from {start:g} to {stop:g}")
     integers = all(isinstance(spec[key], int) for key in ("start", "stop", "step"))
@@ -373,7 +427,38 @@ def _point(values: tuple, base: argparse.Namespace, options: dict) -> Point:
     except ValueError as error:
         raise SweepError(f"point {label}: {_one_line(error)}") from None
     identity = json.dumps({"scenario": scenario_to_toml(scenario), "settings": repr(settings)})
-    return Point(values, scenario, settings, hashlib.sha256(identity.encode()).hexdigest()[:16])
+    inputs = hashlib.sha256(identity.encode()).hexdigest()[:16]
+    return Point(values, scenario, settings, _point_id(inputs), inputs)
+
+
+def code_identity() -> str:
+    """The vcyto version and a digest of the scenario and stream-settings schema (field names and types):
+    part of every point's id, so results of other code are not taken for this code's."""
+    from sim.scenario import Scenario
+    from . import __version__
+    from .stream import StreamSettings
+    return f"{__version__}/{_schema_digest((Scenario, StreamSettings))}"
+
+
+@functools.lru_cache(maxsize=4)
+def _schema_digest(roots) -> str:
+    seen, lines, todo = set(), [], list(roots)
+    while todo:
+        cls = todo.pop(0)
+        if cls in seen or not dataclasses.is_dataclass(cls):
+            continue
+        seen.add(cls)
+        for spec in dataclasses.fields(cls):
+            lines.append(f"{cls.__name__}.{spec.name}:{spec.type}")
+            default = spec.default if spec.default is not dataclasses.MISSING else None
+            if spec.default_factory is not dataclasses.MISSING:
+                default = spec.default_factory()
+            todo += [type(item) for item in (default if isinstance(default, tuple) else (default,))]
+    return hashlib.sha256("\n".join(lines).encode()).hexdigest()[:8]
+
+
+def _point_id(inputs: str) -> str:
+    return hashlib.sha256(f"{inputs}/{code_identity()}".encode()).hexdigest()[:16]
 
 
 def _override_text(value) -> str:
@@ -492,8 +577,8 @@ class ResultTable:
         lines = text.splitlines(keepends=True)
         header = next(csv.reader([lines[0]]))
         if header != self.columns:
-            raise SweepError(f"{self.path} holds the results of a different sweep (columns {', '.join(header)}); "
-                             "choose another --output or remove the file")
+            raise SweepError(f"{self.path} holds the results of a different sweep or of an older vcyto (columns "
+                             f"{', '.join(header)}); choose another --output or remove the file")
         rows = {}
         for line in lines[1:]:
             fields = next(csv.reader([line]), [])
@@ -535,18 +620,22 @@ def _cell(value) -> str:
 
 
 def run_sweep(sweep: Sweep, output: Path, executor, slots: int = 1, progress=None, retry_failed: bool = False,
-              simulator=None, chunk: int = 8) -> dict:
+              simulator=None, chunk: int = 8, keep_old_rows: bool = False) -> dict:
     """Run the points of ``sweep`` not yet in ``output/results.csv`` on ``executor`` (``slots`` workers);
     a JSON-ready summary. Points sharing a plant go in chunks of up to ``chunk`` points, no more than an even
-    share per worker. ``simulator(scenario, settings) -> run_stream result`` replaces the closed loop (tests)."""
+    share per worker. ``simulator(scenario, settings) -> run_stream result`` replaces the closed loop (tests).
+    A row counts for a point when its id matches: same inputs and same code (vcyto version, schema); with
+    ``keep_old_rows`` an ok row of the same inputs computed by other code counts too (the summary says how many)."""
     started = time.perf_counter()
     table = ResultTable(output / RESULTS, sweep.columns)
     previous = table.load()
     if retry_failed and any(row["status"] != "ok" for row in previous.values()):
         previous = {key: row for key, row in previous.items() if row["status"] == "ok"}
         table.rewrite(previous.values())
-    todo = [point for point in sweep.points if point.id not in previous]
     rows = dict(previous)
+    kept = _old_rows(sweep, previous) if keep_old_rows else {}
+    rows.update(kept)
+    todo = [point for point in sweep.points if point.id not in rows]
     tracker = _Tracker(len(sweep.points), len(sweep.points) - len(todo), progress)
     futures = {executor.submit(evaluate, [(p.scenario, p.settings) for p in chunk_points], sweep.metrics, simulator):
                chunk_points for chunk_points in _chunks(todo, slots, chunk)}
@@ -559,8 +648,21 @@ def run_sweep(sweep: Sweep, output: Path, executor, slots: int = 1, progress=Non
     finally:
         tracker.close()
     order = {point.id: index for index, point in enumerate(sweep.points)}
-    table.rewrite(sorted(rows.values(), key=lambda row: order.get(row["point"], len(order))))
-    return _summary(sweep, output, rows, len(todo), table.repaired, time.perf_counter() - started)
+    table.rewrite(sorted((row for key, row in rows.items() if key not in kept),
+                         key=lambda row: order.get(row["point"], len(order))))
+    summary = _summary(sweep, output, {key: row for key, row in rows.items()}, len(todo), table.repaired,
+                       time.perf_counter() - started)
+    summary["kept_old_rows"] = len(kept)
+    summary["stale_rows"] -= len(kept)
+    return summary
+
+
+def _old_rows(sweep: Sweep, previous: dict) -> dict:
+    """Rows of other code (another vcyto version or schema) whose inputs equal those of a point of ``sweep``
+    that has no row of its own, by that point's id."""
+    by_inputs = {row.get("inputs"): row for row in previous.values() if row.get("status") == "ok"}
+    return {point.id: {**by_inputs[point.inputs], "point": point.id} for point in sweep.points
+            if point.id not in previous and point.inputs in by_inputs}
 
 
 def _chunks(points, slots: int, chunk: int) -> list[list[Point]]:
@@ -585,7 +687,9 @@ def _outcomes(future, futures) -> list[dict]:
 
 
 def _row(point: Point, outcome: dict) -> dict:
-    return {"point": point.id, **dict(point.values), "seed": point.settings.seed, **outcome}
+    from . import __version__
+    return {"point": point.id, **dict(point.values), "seed": point.settings.seed, **outcome, "inputs": point.inputs,
+            "vcyto": __version__}
 
 
 class _Tracker:
@@ -651,8 +755,11 @@ def report_lines(result: dict) -> list[str]:
              f"{result['done_before']} done before) in {result['wall_time_s']:.1f} s"]
     if result["repaired_rows"]:
         lines.append(f"  {result['repaired_rows']} torn row(s) of an interrupted run dropped; those points ran again")
+    if result.get("kept_old_rows"):
+        lines.append(f"  {result['kept_old_rows']} row(s) computed by another vcyto version reused (--keep-old-rows)")
     if result["stale_rows"]:
-        lines.append(f"  {result['stale_rows']} row(s) of the table belong to no point of this spec (kept, ignored)")
+        lines.append(f"  {result['stale_rows']} row(s) of the table belong to no point of this spec or were computed "
+                     "by another vcyto version (kept in the table, ignored; --keep-old-rows reuses the latter)")
     best = result["highest"]
     if best:
         where = ", ".join(f"{name}={best[name]}" for name in result["parameters"])
@@ -730,6 +837,31 @@ def _process_pool(workers: int):
         pool.shutdown(wait=True)
 
 
+def check_scheduler(address: str) -> str:
+    """``address`` if it is ``local`` or a Dask address (tcp://, tls://, ucx://, ws://, wss:// HOST:PORT)."""
+    from urllib.parse import urlsplit
+    if address == "local":
+        return address
+    parts = urlsplit(address)
+    try:
+        port = parts.port
+    except ValueError:
+        port = None
+    if parts.scheme not in SCHEDULER_SCHEMES or not parts.hostname or port is None or parts.path not in ("", "/"):
+        raise SweepError(f"--scheduler: {address!r} is not a Dask scheduler address; write tcp://HOST:PORT (tls:// for "
+                         "an encrypted cluster) or 'local'")
+    return address
+
+
+def _connect(Client, scheduler: str):
+    """A client of the scheduler at ``scheduler``, or an error within ``CONNECT_TIMEOUT_S``. A server that is not a
+    Dask scheduler can answer with bytes that Dask reads as an absurd message length: that is a MemoryError here,
+    reported as "cannot reach", not a crash."""
+    import dask
+    with dask.config.set({"distributed.comm.timeouts.connect": f"{CONNECT_TIMEOUT_S}s"}):
+        return Client(scheduler, timeout=f"{CONNECT_TIMEOUT_S}s")
+
+
 @contextlib.contextmanager
 def _dask_executor(scheduler: str, workers: int):
     try:
@@ -744,11 +876,12 @@ def _dask_executor(scheduler: str, workers: int):
                                        silence_logs=logging.ERROR)
             client = Client(cluster)
         else:
-            client = Client(scheduler, timeout="10s")
-    except (OSError, ValueError) as error:
+            client = _connect(Client, scheduler)
+    except (OSError, ValueError, MemoryError, TimeoutError) as error:
         if cluster is not None:
             cluster.close()
-        raise SweepError(f"--scheduler {scheduler}: cannot reach the Dask scheduler: {_one_line(error)}") from None
+        raise SweepError(f"--scheduler: cannot reach a Dask scheduler at {scheduler} within {CONNECT_TIMEOUT_S} s "
+                         f"({type(error).__name__}: {_one_line(error)[:200]})") from None
     try:
         slots = max(1, sum(client.nthreads().values()))
         where = "a local Dask cluster" if cluster is not None else f"the Dask scheduler at {scheduler}"

@@ -19,7 +19,12 @@ from __future__ import annotations
 import collections
 import math
 import os
+import socket
+import subprocess
 import sys
+import time
+from pathlib import Path
+from urllib.parse import urlsplit
 
 import numpy as np
 
@@ -29,10 +34,93 @@ from .classes import CLASS_COLOURS, CLASS_IDS, CLASS_NAMES, CellClasses
 from .foxglove import speed_grid
 
 RECENT_EVENTS = 16                     # markers shown with each new detector event
+# the Rerun SDK logs connection trouble as multi-line Rust log records; vcyto reports it in one line instead
+# (set RUST_LOG to see them)
+os.environ.setdefault("RUST_LOG", "off")
 
 
 def has_display() -> bool:
     return bool(os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")) or sys.platform in ("darwin", "win32")
+
+
+# --- finding, starting and reaching a viewer (the view itself is below) -------------------------------
+
+VIEWER_PORT = 9876
+VIEWER_START_TIMEOUT = 15.0     # s until the spawned viewer listens
+VIEWER_GRACE = 1.0              # s it must then stay alive (a viewer without a usable display exits at once)
+URL_SCHEMES = ("rerun", "rerun+http", "rerun+https")
+
+
+class ViewerUnavailable(Exception):
+    """No viewer could be started or reached; ``str(error)`` says why in a few words."""
+
+
+def find_viewer() -> Path | None:
+    """The Rerun viewer binary that belongs to the installed rerun-sdk (its ``rerun_cli`` package, else the
+    ``rerun`` script beside this Python), never whatever ``rerun`` comes first on PATH."""
+    import importlib.util
+    suffix = ".exe" if sys.platform.startswith("win") else ""
+    candidates = []
+    spec = importlib.util.find_spec("rerun_cli")
+    if spec is not None and spec.origin:
+        package = Path(spec.origin).parent
+        candidates += [package / "Rerun.app" / "Contents" / "MacOS" / "Rerun", package / f"rerun{suffix}"]
+    candidates.append(Path(sys.executable).parent / f"rerun{suffix}")
+    return next((path for path in candidates if path.is_file() and os.access(path, os.X_OK)), None)
+
+
+def parse_viewer_url(url: str) -> tuple[str, int]:
+    """(host, port) of a viewer URL such as rerun+http://127.0.0.1:9876/proxy; ValueError in one line if not one."""
+    parts = urlsplit(url.strip())
+    try:
+        port = parts.port
+    except ValueError:
+        port = -1
+    if parts.scheme not in URL_SCHEMES or not parts.hostname or parts.path != "/proxy" or port == -1:
+        raise ValueError(f"not a Rerun viewer URL: {url!r}; write e.g. rerun+http://127.0.0.1:9876/proxy")
+    return parts.hostname, port or (443 if parts.scheme == "rerun+https" else VIEWER_PORT)
+
+
+def listening(host: str, port: int, timeout: float = 2.0) -> bool:
+    """Whether something accepts TCP connections at host:port."""
+    try:
+        with socket.create_connection((host, port), timeout=timeout):
+            return True
+    except (OSError, ValueError):
+        return False
+
+
+def start_viewer(bind: str = "127.0.0.1", port: int = VIEWER_PORT) -> tuple[str, str]:
+    """Start the installed Rerun viewer listening on ``bind``:``port`` (detached: it outlives the run), or find
+    the one already listening there; (its URL, what was done). Raises ``ViewerUnavailable`` if it cannot be
+    started, does not listen within ``VIEWER_START_TIMEOUT`` or exits at once (no usable display)."""
+    url = f"rerun+http://127.0.0.1:{port}/proxy"
+    if listening("127.0.0.1", port, timeout=0.5):
+        return url, f"streaming to the viewer already listening on port {port}"
+    binary = find_viewer()
+    if binary is None:
+        raise ViewerUnavailable("the rerun-sdk installation has no viewer binary")
+    command = [str(binary), "--port", str(port), "--bind", bind, "--memory-limit", "75%", "--hide-welcome-screen"]
+    try:
+        process = subprocess.Popen(command, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
+                                   stderr=subprocess.DEVNULL, start_new_session=True,
+                                   env={**os.environ, "RERUN_APP_ONLY": "true"})
+    except OSError as error:
+        raise ViewerUnavailable(f"cannot start {binary}: {error.strerror or error}") from None
+    deadline = time.monotonic() + VIEWER_START_TIMEOUT
+    while not listening("127.0.0.1", port, timeout=0.2):
+        if process.poll() is not None:
+            raise ViewerUnavailable(f"the viewer exited at once (status {process.returncode}; no usable display?)")
+        if time.monotonic() > deadline:
+            process.terminate()
+            raise ViewerUnavailable(f"the viewer did not listen on port {port} within {VIEWER_START_TIMEOUT:g} s")
+        time.sleep(0.05)
+    grace = time.monotonic() + VIEWER_GRACE
+    while time.monotonic() < grace:
+        if process.poll() is not None:
+            raise ViewerUnavailable(f"the viewer exited at once (status {process.returncode}; no usable display?)")
+        time.sleep(0.05)
+    return url, f"started the Rerun viewer (pid {process.pid}, listening on {bind}:{port})"
 
 
 def blueprint():

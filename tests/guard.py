@@ -1,0 +1,61 @@
+"""Run ``vcyto`` in this process with every expensive entry point replaced by a sentinel, so that input that
+passes validation stops there instead of building a plant: tests of bad input stay fast and never start a run."""
+
+import contextlib
+import io
+
+from vcyto import cli
+
+
+class WouldRun(BaseException):
+    """Raised where real work would begin: the input was accepted."""
+
+
+HEAVY = {
+    "vcyto.stream": ["run_stream"],
+    "vcyto.flowtool": ["solve_paths", "calibrate"],
+    "vcyto.paper": ["run_paper"],
+    "vcyto.stabilitymap": ["stability_map"],
+    "vcyto.extremes": ["run_cases"],
+    "vcyto.tradeoff": ["tradeoff"],
+    "vcyto.sweep": ["run_sweep", "executor"],
+    "vcyto.bench": ["bench_controller", "bench_sweep", "bench_realtime", "bench_recording", "bench_auto",
+                    "bench_membrane", "bench_paper_treatments", "bench_treatments", "bench_fluid"],
+}
+
+
+def _stop(*args, **kwargs):
+    raise WouldRun()
+
+
+def patch_heavy(monkeypatch):
+    import importlib
+    for module, names in HEAVY.items():
+        loaded = importlib.import_module(module)
+        for name in names:
+            monkeypatch.setattr(loaded, name, _stop)
+    monkeypatch.delenv("DISPLAY", raising=False)
+    monkeypatch.delenv("WAYLAND_DISPLAY", raising=False)
+    monkeypatch.delenv("VCYTO_DEBUG", raising=False)
+
+
+def vcyto_inline(argv) -> tuple[int | None, str, str]:
+    """(exit status or None if the input was accepted, stdout, stderr) of ``vcyto argv`` run in-process."""
+    out, err = io.StringIO(), io.StringIO()
+    status = None
+    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+        try:
+            status = cli.main(list(argv))
+        except SystemExit as leaving:              # argparse
+            status = leaving.code
+        except WouldRun:
+            status = None
+    return status, out.getvalue(), err.getvalue()
+
+
+def assert_one_line_refusal(status, stderr, allowed=(1, 2)):
+    lines = stderr.strip().splitlines()
+    assert status in allowed, (status, stderr)
+    assert len(lines) == 1, stderr
+    assert lines[0].startswith("vcyto: error: "), stderr
+    assert "Traceback" not in stderr and "internal error" not in stderr

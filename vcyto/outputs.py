@@ -1,0 +1,109 @@
+"""The files a run writes: unique names created exclusively (never overwriting another run's), strict JSON.
+
+- ``strict_json``: JSON without NaN or infinity (undefined values are ``null``), numpy values as plain ones;
+  every JSON vcyto prints or writes goes through it, so any strict parser reads it.
+- ``reserve_run``: a run id unique to this process and moment (``stream-YYYYmmdd-HHMMSS-mmm-PID``, or the
+  user's ``--name``) whose files are all created at once with O_EXCL before any work; a clash (the same
+  name, or two runs in one millisecond in one process) takes the next free suffix ``-2``, ``-3``, ... (a
+  ``--name`` that is taken is refused instead). The summary starts as ``{"status": "running"}``, so a
+  killed run's summary says it never finished.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import re
+import time
+from pathlib import Path
+
+PLACEHOLDER_SUMMARY = {"status": "running", "reason": "the run has not finished (or was killed before it could "
+                                                      "write its summary)"}
+NAME_PATTERN = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]{0,119}")
+
+
+def plain(value):
+    """``value`` as plain JSON data: NaN and infinities as None, numpy scalars and arrays as numbers and lists,
+    tuples as lists, other objects as their text."""
+    if isinstance(value, float):
+        return value if math.isfinite(value) else None
+    if value is None or isinstance(value, (bool, int, str)):
+        return value
+    if isinstance(value, dict):
+        return {str(key): plain(item) for key, item in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [plain(item) for item in value]
+    if hasattr(value, "tolist"):                        # numpy scalars and arrays
+        return plain(value.tolist())
+    if isinstance(value, Path):
+        return str(value)
+    return str(value)
+
+
+def strict_json(value, indent: int | None = 2) -> str:
+    """``value`` as strict JSON text (``allow_nan=False`` after ``plain``)."""
+    return json.dumps(plain(value), indent=indent, allow_nan=False)
+
+
+class NameTaken(ValueError):
+    """A ``--name`` whose files already exist."""
+
+
+def check_name(name: str) -> str:
+    if not NAME_PATTERN.fullmatch(name) or name.endswith((".mcap", ".json", ".fcs", ".rrd")):
+        raise ValueError(f"--name: {name!r} is not a usable file name; use letters, digits, '.', '_' and '-' "
+                         "(at most 120, no directory and no extension), e.g. --name melanoma-lead-0.5")
+    return name
+
+
+def default_run_id(prefix: str = "stream") -> str:
+    now = time.time()
+    stamp = time.strftime("%Y%m%d-%H%M%S", time.localtime(now))
+    return f"{prefix}-{stamp}-{int(now * 1000) % 1000:03d}-{os.getpid()}"
+
+
+def reserve_run(directory: Path, suffixes, name: str | None = None, attempts: int = 1000,
+                prefix: str = "stream") -> str:
+    """A run id whose files ``directory/ID.SUFFIX`` (one per suffix) did not exist and are now created, empty
+    (the ``.json`` with the "running" placeholder). Raises ``NameTaken`` if ``name`` is given and taken."""
+    base = name or default_run_id(prefix)
+    for attempt in range(attempts):
+        run_id = base if attempt == 0 else f"{base}-{attempt + 1}"
+        created = []
+        try:
+            for suffix in suffixes:
+                path = directory / f"{run_id}.{suffix}"
+                descriptor = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o644)
+                created.append(path)
+                with os.fdopen(descriptor, "w") as file:
+                    if suffix == "json":
+                        file.write(strict_json({**PLACEHOLDER_SUMMARY, "run_id": run_id}) + "\n")
+            return run_id
+        except FileExistsError as error:
+            for path in created:
+                path.unlink(missing_ok=True)
+            if name is not None:
+                raise NameTaken(f"--name: {error.filename} already exists (a run never overwrites another's "
+                                "files); choose another --name or --output") from None
+    raise OSError(f"no free run id in {directory} after {attempts} attempts")
+
+
+def write_into(path: Path, text: str) -> None:
+    """Replace the contents of ``path`` (a file this run reserved) by ``text``, durably."""
+    with open(path, "w") as file:
+        file.write(text)
+        file.flush()
+        os.fsync(file.fileno())
+
+
+def unique_path(path: Path) -> Path:
+    """``path`` if no file is there, else ``stem-2.suffix``, ``stem-3.suffix``, ... (created exclusively)."""
+    for attempt in range(1000):
+        candidate = path if attempt == 0 else path.with_name(f"{path.stem}-{attempt + 1}{path.suffix}")
+        try:
+            os.close(os.open(candidate, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o644))
+            return candidate
+        except FileExistsError:
+            continue
+    raise OSError(f"no free file name like {path}")

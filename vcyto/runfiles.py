@@ -1,0 +1,178 @@
+"""Where a run's view and files go, and how they are finished whatever way the run ends.
+
+- ``choose_view``: the Rerun target of ``--save`` / ``--connect`` / ``--spawn`` / the default. A viewer that
+  cannot be started or reached is said in one line on stderr and the view is saved to an ``.rrd`` instead;
+  the viewer vcyto starts is the one installed with rerun-sdk and listens on 127.0.0.1 unless
+  ``--viewer-bind`` says otherwise.
+- ``StreamFiles``: the files of one ``vcyto stream`` run, reserved exclusively before any work
+  (``vcyto.outputs.reserve_run``) and written at the end, complete or not (the summary's ``status`` says).
+- ``close_quietly``: closes the sinks, turning a viewer that went away into a note instead of a crash.
+"""
+
+from __future__ import annotations
+
+import signal
+import sys
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from . import outputs
+
+
+@dataclass
+class View:
+    kind: str | None                  # "save", "connect" or None (no Rerun output)
+    url: str = ""                     # connect: the viewer's URL
+    path: Path | None = None          # save: the .rrd (None: the run's own NAME.rrd, reserved with its files)
+    notes: list = field(default_factory=list)
+
+    def target(self, run_path=None):
+        """The ``RerunLogger`` target tuple."""
+        if self.kind == "connect":
+            return ("connect", self.url)
+        return ("save", self.path or run_path)
+
+    def describe(self, run_path=None) -> str:
+        return f"streamed to the viewer at {self.url}" if self.kind == "connect" else \
+            f"saved to {self.path or run_path}"
+
+
+def say(message: str) -> None:
+    print(f"vcyto: {message}", file=sys.stderr, flush=True)
+
+
+def choose_view(args, have_default_file: bool, spawn_by_default: bool, error) -> View:
+    """The view ``args`` ask for; ``error`` is the exception class for bad input. ``have_default_file``: an
+    .rrd can be saved when no viewer is reached (else the view is dropped, with a note)."""
+    from . import viewer
+    if getattr(args, "no_viewer", False):
+        return View(None)
+    if args.save:
+        return View("save", path=_new_file(args.save, "--save", error))
+    fallback = View("save") if have_default_file else View(None)
+    if args.connect is not None:
+        url = args.connect or f"rerun+http://127.0.0.1:{viewer.VIEWER_PORT}/proxy"
+        try:
+            host, port = viewer.parse_viewer_url(url)
+        except ValueError as problem:
+            raise error(f"--connect: {problem}") from None
+        if viewer.listening(host, port):
+            return View("connect", url=url)
+        return _fall_back(fallback, f"no Rerun viewer answers at {url}")
+    if not (args.spawn or spawn_by_default):
+        return fallback
+    if not viewer.has_display():
+        if args.spawn:
+            return _fall_back(fallback, "no display for --spawn (DISPLAY and WAYLAND_DISPLAY are unset)")
+        return fallback
+    try:
+        url, done = viewer.start_viewer(bind=getattr(args, "viewer_bind", None) or "127.0.0.1")
+    except viewer.ViewerUnavailable as problem:
+        return _fall_back(fallback, f"cannot start a Rerun viewer: {problem}")
+    return View("connect", url=url, notes=[done])
+
+
+def _fall_back(fallback: View, why: str) -> View:
+    where = "saving the view to an .rrd file instead" if fallback.kind == "save" else "no view is kept"
+    say(f"{why}; {where}")
+    return fallback
+
+
+def _new_file(text: str, option: str, error) -> Path:
+    """An explicit output file: its directory exists and it does not (a run never overwrites a file)."""
+    path = Path(text)
+    if path.is_dir():
+        raise error(f"{option}: {text} is a directory; give a file name such as {Path(text) / 'run.rrd'}")
+    if path.exists():
+        raise error(f"{option}: {text} already exists; vcyto never overwrites a file: choose another name")
+    directory = path.parent if str(path.parent) else Path(".")
+    if not directory.is_dir():
+        raise error(f"{option}: cannot write {text}: directory {directory} does not exist")
+    if path.suffix != ".rrd":
+        raise error(f"{option}: {text} should end in .rrd (a Rerun recording)")
+    return path
+
+
+class StreamFiles:
+    """The files of one stream run in ``directory``: ``ID.mcap`` (when recording), ``ID.rrd`` (when the view is
+    saved there), ``ID.fcs`` and ``ID.json``, all created exclusively up front."""
+
+    def __init__(self, directory: Path, name: str | None, record: bool, rrd: bool):
+        suffixes = (["mcap"] if record else []) + (["rrd"] if rrd else []) + ["fcs", "gating.xml", "json"]
+        self.directory = directory
+        self.run_id = outputs.reserve_run(directory, suffixes, name)
+        self.suffixes = suffixes
+
+    def path(self, suffix: str) -> Path | None:
+        return self.directory / f"{self.run_id}.{suffix}" if suffix in self.suffixes else None
+
+    def finish(self, result: dict, settings=None, scenario=None) -> tuple[Path, Path]:
+        """Write the FCS events, the classification gate (Gating-ML 2.0) and the JSON summary of ``result``
+        (complete or partial) into the reserved files."""
+        from . import fcs, gatingml
+        fcs_path, summary_path = self.path("fcs"), self.path("json")
+        # an FCS keyword value must not begin or end with the delimiter "/" (a path would): the command as typed
+        command = " ".join(["vcyto", *sys.argv[1:]]).rstrip("/ ") or "vcyto"
+        fcs.write_fcs(fcs_path, result, {"VCYTO_COMMAND": command, "VCYTO_STATUS": result.get("status", "complete"),
+                                         "VCYTO_RUN_ID": self.run_id}, settings=settings, scenario=scenario)
+        if settings is not None:
+            gatingml.write_gatingml(self.path("gating.xml"), settings.detector.gate)
+        outputs.write_into(summary_path, outputs.strict_json(result) + "\n")
+        return fcs_path, summary_path
+
+    def discard_unwritten(self) -> None:
+        """Remove the reserved summary and events that were never written (a run that failed before it ran)."""
+        for suffix in ("fcs", "gating.xml", "json"):
+            path = self.path(suffix)
+            if path is not None and path.exists() and (path.stat().st_size == 0 or _is_placeholder(path)):
+                path.unlink()
+
+
+def _is_placeholder(path: Path) -> bool:
+    try:
+        return '"status": "running"' in path.read_text()[:200]
+    except (OSError, UnicodeDecodeError):
+        return False
+
+
+def close_quietly(sink, recording=None) -> list[str]:
+    """Close ``sink`` (the sinks of a run); a failure of the live view is a note, others propagate."""
+    if sink is None:
+        return []
+    try:
+        sink.close()
+    except (RuntimeError, ConnectionError) as problem:      # the viewer went away: the MCAP has everything
+        again = f"vcyto replay {recording} shows the run again" if recording else "the view of the run is incomplete"
+        return [f"the Rerun viewer stopped receiving ({' '.join(str(problem).split())[:160]}); {again}"]
+    return []
+
+
+class signals_as_interrupt:
+    """Within the block SIGTERM raises KeyboardInterrupt, as Ctrl-C does, so files are finished the same way;
+    ``seen`` (a dict) gets "last" = the name of the signal that arrived."""
+
+    def __init__(self, seen: dict):
+        self.seen = seen
+
+    def __enter__(self):
+        def interrupt(signum, frame):
+            self.seen["last"] = signal.Signals(signum).name
+            raise KeyboardInterrupt
+        self._previous = {}
+        for number in (signal.SIGTERM, signal.SIGINT):
+            try:
+                self._previous[number] = signal.signal(number, interrupt)
+            except ValueError:          # not the main thread
+                pass
+        return self
+
+    def __exit__(self, *exc):
+        for number, previous in self._previous.items():
+            signal.signal(number, previous)
+        return False
+
+
+def stopped_summary(settings, reason: str) -> dict:
+    """The summary of a run stopped before its loop began (no cell has moved)."""
+    return {"status": "interrupted", "reason": reason, "cells": [], "statistics": {"cells": 0},
+            "model": settings.model, "seed": settings.seed, "simulated_time_ms": 0.0}

@@ -1,0 +1,164 @@
+"""One unit rule for every physical quantity vcyto reads (options, scenario fields, sweep specs).
+
+A quantity is a number with an optional unit: ``25us``, ``0.5 ms``, ``1kHz``, ``30um``, ``25µs``, ``6 mPa s``.
+A bare number means the field's documented default unit (``ms`` for ``--lead``, SI for scenario fields). A
+unit of another dimension than the field's (``--dt 3um``) is an error naming the field and the expected
+dimension; so are NaN, infinity and text that is not a number.
+
+Units are read with pint (names, SI prefixes, products and quotients such as ``N/m^3``); the number itself is
+read here (a plain decimal, never an expression), so ``10**10**10`` or ``1e999`` cannot run away.
+"""
+
+from __future__ import annotations
+
+import decimal
+import functools
+import math
+import re
+
+# dimension name -> (an SI unit of it, as pint writes it, the example shown in messages)
+DIMENSIONS = {
+    "length": ("m", "30um"),
+    "time": ("s", "25us"),
+    "frequency": ("Hz", "1kHz"),
+    "speed": ("m/s", "20 mm/s"),
+    "angle": ("rad", "30deg"),
+    "density": ("kg/m^3", "1000 kg/m^3"),
+    "viscosity": ("Pa*s", "6 mPa s"),
+    "force density": ("N/m^3", "5.7e7 N/m^3"),
+    "tension": ("N/m", "6e-6 N/m"),
+    "bending modulus": ("N*m", "2e-19 N m"),
+    "dimensionless": ("", "0.5"),
+}
+
+_NUMBER = re.compile(r"\s*([-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?|[-+]?(?:nan|inf|infinity))\s*(.*?)\s*",
+                     re.IGNORECASE)
+_DECIMAL = decimal.Context(prec=34, traps=[])   # overflow gives inf (refused below), not an exception
+_SUFFIX_OK = re.compile(r"[A-Za-zµμΩ°%][A-Za-z0-9µμΩ°%*/^ .\-()]*")
+_MAX_UNIT_CHARS = 40
+
+
+class QuantityError(ValueError):
+    """A quantity that cannot be read; ``str(error)`` is one line naming the field."""
+
+
+def parse_quantity(text, dimension: str, default_unit: str = "", field: str = "value") -> float:
+    """The SI value of ``text`` (a string, or a number in ``default_unit``) for a ``dimension`` of ``DIMENSIONS``.
+
+    ``default_unit`` is the unit of a bare number ("" or the SI unit: SI). Raises ``QuantityError`` whose
+    message names ``field``, the expected dimension and an example when ``text`` is not a finite quantity of
+    that dimension.
+    """
+    if dimension not in DIMENSIONS:
+        raise KeyError(f"unknown dimension {dimension!r}")
+    if isinstance(text, bool) or not isinstance(text, (str, int, float)):
+        raise QuantityError(f"{field}: must be a {_kind(dimension)} (got {text!r})")
+    number, unit = _split(str(text), dimension, field) if isinstance(text, str) else (decimal.Decimal(repr(text)), "")
+    factor = _factor(unit or default_unit, dimension, field, text)
+    value = float(_DECIMAL.multiply(number, decimal.Decimal(repr(factor))))
+    if not math.isfinite(value):
+        raise QuantityError(f"{field}: {text!r} is not a finite {_kind(dimension)}; give a number such as "
+                            f"{DIMENSIONS[dimension][1]}")
+    return value
+
+
+def parse_list(text: str, dimension: str, default_unit: str = "", field: str = "value") -> list[float]:
+    """Comma-separated quantities (``30um,60um`` or ``30,60``), each as ``parse_quantity``."""
+    if not isinstance(text, str):
+        raise QuantityError(f"{field}: must be comma-separated values such as "
+                            f"{DIMENSIONS[dimension][1]},{DIMENSIONS[dimension][1]} (got {text!r})")
+    return [parse_quantity(part, dimension, default_unit, field) for part in text.split(",")]
+
+
+def unit_factor(unit: str, dimension: str) -> float:
+    """The SI value of one ``unit`` of ``dimension`` (``unit_factor("ms", "time")`` = 0.001)."""
+    return _factor(unit, dimension, "unit", unit)
+
+
+def _kind(dimension: str) -> str:
+    return "number" if dimension == "dimensionless" else f"{dimension}"
+
+
+def _split(text: str, dimension: str, field: str) -> tuple[decimal.Decimal, str]:
+    match = _NUMBER.fullmatch(text)
+    if match is None:
+        example = DIMENSIONS[dimension][1]
+        raise QuantityError(f"{field}: cannot read {_shown(text)} as a number"
+                            + (f"; a {dimension} is a number with an optional unit, e.g. {example}"
+                               if dimension != "dimensionless" else f", e.g. {example}"))
+    number, unit = match.groups()
+    if number.strip("+-").lower() in ("nan", "inf", "infinity"):
+        raise QuantityError(f"{field}: {_shown(text)} is not a finite {_kind(dimension)}; give a number such as "
+                            f"{DIMENSIONS[dimension][1]}")
+    return decimal.Decimal(number), unit
+
+
+def _factor(unit: str, dimension: str, field: str, text) -> float:
+    """SI factor of ``unit`` after checking that it has ``dimension``."""
+    unit = unit.strip()
+    if not unit:
+        return 1.0
+    if dimension == "dimensionless":
+        raise QuantityError(f"{field}: is a plain number and takes no unit (got {_shown(text)})")
+    if len(unit) > _MAX_UNIT_CHARS or not _SUFFIX_OK.fullmatch(unit):
+        raise QuantityError(f"{field}: cannot read the unit {unit!r}; expected a {dimension} such as "
+                            f"{DIMENSIONS[dimension][1]}")
+    try:
+        return _si_factor(unit, dimension)
+    except _WrongDimension as error:
+        raise QuantityError(f"{field}: {_shown(text)} is a {error.found}, but {field} is a {dimension} "
+                            f"(e.g. {DIMENSIONS[dimension][1]})") from None
+    except _UnknownUnit:
+        raise QuantityError(f"{field}: unknown unit {unit!r}; expected a {dimension} such as "
+                            f"{DIMENSIONS[dimension][1]}") from None
+
+
+class _WrongDimension(Exception):
+    def __init__(self, found: str):
+        super().__init__(found)
+        self.found = found
+
+
+class _UnknownUnit(Exception):
+    pass
+
+
+@functools.lru_cache(maxsize=None)
+def _registry():
+    import pint
+    registry = pint.UnitRegistry()
+    registry.define("cell = [] = cells")          # "500 cells/s" is a rate
+    return registry
+
+
+@functools.lru_cache(maxsize=512)
+def _si_factor(unit: str, dimension: str) -> float:
+    import pint
+    registry = _registry()
+    try:
+        parsed = registry.parse_units(unit.replace("·", "*"))
+    except (pint.errors.UndefinedUnitError, pint.errors.DefinitionSyntaxError, AttributeError, ValueError,
+            TypeError, SyntaxError, AssertionError, KeyError):
+        raise _UnknownUnit() from None
+    expected = registry.parse_units(DIMENSIONS[dimension][0]) if DIMENSIONS[dimension][0] else None
+    quantity = registry.Quantity(1, parsed)
+    found = quantity.dimensionality
+    angle = dimension == "angle"
+    if (angle and (found or str(parsed) not in ("radian", "degree", "arcminute", "arcsecond", "turn"))) or \
+            (not angle and found != registry.Quantity(1, expected).dimensionality):
+        raise _WrongDimension(_describe(found, parsed))
+    return float(quantity.to(expected).magnitude) if not angle else float(quantity.to("radian").magnitude)
+
+
+def _describe(found, parsed) -> str:
+    """The dimension name of a pint dimensionality (or its pint form)."""
+    registry = _registry()
+    for name, (si, _) in DIMENSIONS.items():
+        if si and registry.Quantity(1, registry.parse_units(si)).dimensionality == found and name != "angle":
+            return name
+    return f"quantity of dimension {found}" if found else f"plain number ({parsed})"
+
+
+def _shown(text) -> str:
+    text = str(text)
+    return repr(text if len(text) <= 40 else text[:37] + "...")

@@ -240,7 +240,7 @@ def test_a_desktop_without_a_usable_viewer_still_gets_every_file(tmp_path):
     found = run_files(tmp_path)
     assert all(len(paths) == 1 for paths in found.values()), found
     assert "saved to " + str(found["rrd"][0]) in result.stdout
-    assert finalised_mcap(found["mcap"][0]) > 100
+    assert finalised_mcap(found["mcap"][0]) > 30          # rom: a step every 0.25 ms of device time
     summary = strict_load(found["json"][0].read_text())
     assert summary["status"] == "complete" and [c["outlet"] for c in summary["cells"]] == ["lower", "upper"]
     from rerun.chunk import RrdReader

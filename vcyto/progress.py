@@ -7,8 +7,9 @@ import time
 
 
 class Progress:
-    def __init__(self, quiet: bool = False, interval: float = 0.25, stream=sys.stderr):
+    def __init__(self, quiet: bool = False, interval: float = 0.25, stream=None):
         self.quiet = quiet
+        stream = stream if stream is not None else sys.stderr      # the stderr of now, not of the import
         self.stream = stream
         self.live = stream.isatty()
         self.interval = interval if self.live else 5.0

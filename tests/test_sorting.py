@@ -66,13 +66,18 @@ def vcyto(*args, timeout=600):
     return subprocess.run([sys.executable, "-m", "vcyto.cli", *args], capture_output=True, text=True, timeout=timeout)
 
 
-def test_a_capped_run_says_so_and_exits_non_zero_unless_allowed():
+def test_a_capped_run_says_so_and_exits_non_zero_unless_allowed(tmp_path):
     args = ["stream", "--model", "rom", "--count", "40", "--mix", "RBC:0.9,melanoma:0.1", "--rate", "1000",
-            "--max-time", "10", "--output", "", "--no-viewer", "--json"]
-    capped = vcyto(*args)
+            "--max-time", "10", "--output", str(tmp_path), "--no-viewer", "--json"]
+    capped = vcyto(*args, "--name", "capped")
     assert capped.returncode == 1 and "partial" in capped.stderr and "Traceback" not in capped.stderr
     summary = json.loads(capped.stdout)
     assert summary["status"] == "truncated" and summary["statistics"]["not_injected"] > 0
+    from mcap.reader import make_reader                  # the recording says so too
+    with open(tmp_path / "capped.mcap", "rb") as handle:
+        ending = {m.name: dict(m.metadata) for m in make_reader(handle).iter_metadata()}["run_end"]
+    assert ending["status"] == "truncated" and "max-time" in ending["reason"]
+    assert int(ending["not_injected"]) == summary["statistics"]["not_injected"]
     assert vcyto(*args, "--allow-partial").returncode == 0
 
 
@@ -139,3 +144,18 @@ def test_rom_and_feib_envelopes_at_a_handful_of_offsets(paper_scenario, rom_plan
     assert not fates["rom"][0.16] and fates["feib"][0.16] and fates["feib"][0.2]
     low, high = shipped.envelope
     assert all(low <= offset * 1e-3 <= high for offset, hit in fates["feib"].items() if hit)
+
+
+@pytest.mark.slow
+def test_auto_gives_rom_s_outcomes_on_the_first_100_events(paper_scenario, rom_plant):
+    """The purity-mode stream of the 1,000 events/s test, its first 100 cells, on auto (feib windows while a
+    melanoma shares the channel): the outcome classes agree with rom's for all but a few cells, as the tradeoff
+    table's close-pair scenes lead one to expect (rom and auto differ on RBCs right behind a melanoma)."""
+    arrivals = Arrivals(count=200, mix=(("RBC", 0.9), ("melanoma", 0.1)), rate=2000.0, process="poisson")
+    rom = run_stream(paper_scenario, StreamSettings(arrivals, model="rom", seed=3), plant=rom_plant)
+    auto = run_stream(paper_scenario, StreamSettings(arrivals, model="auto", seed=3))
+    first = [c for c in rom["cells"] if c["detected_class"] is not None][:100]
+    by_key = {c["key"]: c for c in auto["cells"]}
+    differing = [c["key"] for c in first if by_key[c["key"]]["outcome"] != c["outcome"]]
+    assert len(differing) <= 3, differing
+    assert sum(c["outcome"] == "sorted" for c in first) >= 5

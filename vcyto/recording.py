@@ -226,6 +226,11 @@ class McapRecorder:
                 "spacing_min_h": _rounded(shape.get("spacing_min", float("nan")), 4),
                 "spacing_max_h": _rounded(shape.get("spacing_max", float("nan")), 4)}
 
+    def on_end(self, ending: dict):
+        """How the run ended (complete, truncated, interrupted, failed; why; its sort figures): the metadata record
+        ``run_end``, so that a recording of a partial run says so."""
+        self._writer.add_metadata("run_end", plain_metadata(ending))
+
     def close(self):
         if not self.closed:
             self.closed = True

@@ -21,6 +21,7 @@ import queue
 import threading
 
 _STOP = object()
+_END = object()
 
 
 class BackgroundSinks:
@@ -37,7 +38,11 @@ class BackgroundSinks:
             try:
                 if item is _STOP:
                     return
-                if self._failure is None:
+                if self._failure is None and isinstance(item, tuple) and item and item[0] is _END:
+                    for sink in self.sinks:
+                        if hasattr(sink, "on_end"):
+                            sink.on_end(item[1])
+                elif self._failure is None:
                     for sink in self.sinks:
                         sink.on_step(*item)
             except BaseException as error:     # reported to the loop's thread at its next step
@@ -56,6 +61,11 @@ class BackgroundSinks:
         else:
             fields = None
         self._queue.put((step, observation, truth, actuation, list(events), list(decisions), fields, diagnostics))
+
+    def on_end(self, ending: dict):
+        """The run's end (status, reason, the sort report's figures), after its last step."""
+        self._raise_failure()
+        self._queue.put((_END, ending))
 
     def drain(self):
         """Wait until every queued step is written; re-raise a sink's failure."""

@@ -127,6 +127,7 @@ def run_stream(scenario: Scenario, settings: StreamSettings, progress=None, plan
     result.update(status=status, reason=reason, wall_time_s=time.perf_counter() - started, setup_time_s=setup,
                   idt_on_time_ms=run.idt_time * 1e3, steps=run.steps, memory_mb={"after_setup": rss_setup,
                                                                                   "peak": _peak_rss_mb()})
+    _announce_end(sinks, result)
     if hasattr(plant, "switches"):             # the auto plant: what it picked, when and why
         result["auto"] = {"switches": [{"time_ms": t * 1e3, "model": model, "reason": why}
                                        for t, model, why in plant.switches],
@@ -136,6 +137,17 @@ def run_stream(scenario: Scenario, settings: StreamSettings, progress=None, plan
     if status == "failed":
         raise StreamStopped(status, reason, result) from failure
     return result
+
+
+def _announce_end(sinks, result):
+    """Tell the sinks how the run ended (a partial run's recording must say it is partial)."""
+    stats = result["statistics"]
+    ending = {"status": result["status"], "reason": result["reason"], "simulated_time_ms": result["simulated_time_ms"],
+              **{key: stats.get(key) for key in ("offered", "events", "sorted", "aborts", "purity", "yield",
+                                                 "not_injected")}}
+    for sink in sinks:
+        if hasattr(sink, "on_end"):
+            sink.on_end(ending)
 
 
 def _truncation(plant, settings, cap, drain_cap) -> str:

@@ -17,6 +17,8 @@ import numpy as np
 from controller.sorter import MODES
 from sim.fluid import NumericalBlowUp
 from sim.linalg import SolverError
+
+from .stream import StreamStopped
 from sim.scenario import CONVECTIONS, MEMBRANE_METHODS, SAW_MODELS, ScenarioError
 
 from . import arguments as limits
@@ -1084,6 +1086,11 @@ def main(argv=None) -> int:
         return _fail(error, EXIT_NUMERICAL)
     except RunStopped as stopped:
         return stopped.status
+    except StreamStopped as stopped:            # a loop run by another command than stream (bench, tradeoff)
+        if stopped.status != "interrupted":
+            return _fail(stopped, EXIT_NUMERICAL)
+        print("vcyto: interrupted", file=sys.stderr)
+        return EXIT_SIGTERM if _signals_seen.get("last") == "SIGTERM" else EXIT_SIGINT
     except KeyboardInterrupt:
         print("vcyto: interrupted", file=sys.stderr)
         return EXIT_SIGTERM if _signals_seen.get("last") == "SIGTERM" else EXIT_SIGINT

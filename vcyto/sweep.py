@@ -550,6 +550,8 @@ def evaluate(jobs, metrics, simulator=None) -> list[dict]:
             else:
                 row = {"status": "ok", "error": "", **{name: metric_value(result, name) for name in metrics}}
         except Exception as error:  # noqa: BLE001 - a failed point is data, not the end of the sweep
+            if getattr(error, "status", None) == "interrupted":       # Ctrl-C inside the loop: not a result
+                raise KeyboardInterrupt from error
             row = {"status": "failed", "error": _one_line(f"{type(error).__name__}: {error}")}
         row["wall_time_s"] = time.perf_counter() - started
         rows.append(row)

@@ -19,6 +19,8 @@ HEAVY = {
     "vcyto.extremes": ["run_cases"],
     "vcyto.tradeoff": ["tradeoff"],
     "vcyto.sweep": ["run_sweep", "executor"],
+    "vcyto.calibrate": ["make_calibration_plant", "calibrate"],
+    "vcyto.benchsort": ["bench_sort"],
     "vcyto.bench": ["bench_controller", "bench_sweep", "bench_realtime", "bench_recording", "bench_auto",
                     "bench_membrane", "bench_paper_treatments", "bench_treatments", "bench_fluid"],
 }

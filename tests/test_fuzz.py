@@ -32,7 +32,8 @@ quantities = st.one_of(st.tuples(numbers, st.sampled_from(UNITS)).map(lambda pai
                        st.text(max_size=12))
 values = st.one_of(quantities, st.lists(quantities, min_size=0, max_size=4).map(",".join))
 
-STREAM_OPTIONS = ["--rate", "--min-spacing", "--max-time", "--delay", "--lead", "--pulse", "--coincidence", "--gate",
+STREAM_OPTIONS = ["--rate", "--min-spacing", "--max-time", "--delay", "--lead", "--pulse", "--envelope", "--gate",
+                  "--timing-error", "--mode", "--controller",
                   "--noise", "--count", "--seed", "--detection-window", "--mix", "--cells", "--dt", "--mesh-h",
                   "--flush-every", "--field-every", "--window-h", "--name", "--arrivals", "--model"]
 SET_FIELDS = ["fluid.viscosity", "fluid.density", "numerics.dt", "numerics.mesh_h", "channel.length",
@@ -51,6 +52,9 @@ OTHER_COMMANDS = {
     ("bench", "fluid"): ["--repeats"],
     ("bench", "treatments"): ["--steps"],
     ("bench", "sweep"): ["--workers", "--repeats"],
+    ("bench", "sort"): ["--counts", "--rate", "--seed"],
+    ("calibrate", "--output", ""): ["--model", "--pulse", "--lead", "--pulse-range", "--pulse-step", "--lead-step",
+                                    "--offset-step", "--offset-range", "--resolution", "--controller", "--gate"],
     ("sweep", "SPEC"): ["--workers", "--chunk", "--scheduler"],
 }
 

@@ -148,8 +148,11 @@ def command_bench(args):
     scenario = _scenario(args)
     if args.target == "sort":
         from . import benchsort
-        counts = [int(v) for v in args.counts.split(",") if v.strip()]
-        if not counts or min(counts) < 1:
+        try:
+            counts = [int(v) for v in args.counts.split(",") if v.strip()]
+        except ValueError:
+            counts = []
+        if not counts or min(counts) < 1 or max(counts) > 10**7:
             raise UsageError(f"--counts wants positive cell counts such as 1000,10000 (got {args.counts!r})")
         result = benchsort.bench_sort(counts, args.rate, not args.no_record, not args.no_rerun, args.seed, progress)
         _emit(args, result, benchsort.report_lines(result))
@@ -650,9 +653,17 @@ def _calibration_grid(args):
     values = units.parse_list(args.pulse_range, "time", "ms", field="--pulse-range")
     if len(values) != 2 or not 0 < values[0] <= values[1] <= 10e-3:
         raise UsageError(f"--pulse-range: wants LO,HI with 0 < LO <= HI <= 10 ms, e.g. 0.02,2 (got {args.pulse_range!r})")
+    count = (values[1] - values[0]) / args.pulse_step + 1
+    if count > 2000:
+        raise UsageError(f"--pulse-step: {count:.3g} pulse lengths to try (at most 2,000); use a coarser step or a "
+                         "narrower --pulse-range")
+    leads = (values[1] + 0.4e-3) / args.lead_step
+    offsets = 2 * args.offset_range / args.offset_step
+    for option, runs in (("--lead-step", leads), ("--offset-step", offsets)):
+        if runs > 5000:
+            raise UsageError(f"{option}: {runs:.3g} calibration cells per scan (at most 5,000); use a coarser step "
+                             "(the envelope's edges are bisected to --resolution anyway)")
     pulses = tuple(float(v) for v in np.round(np.arange(values[0], values[1] + 1e-12, args.pulse_step), 9))
-    if len(pulses) > 2000:
-        raise UsageError(f"--pulse-step: {len(pulses)} pulse lengths to try; use a coarser step or a narrower range")
     return Grid(pulses=pulses, lead_step=args.lead_step, offset_step=args.offset_step,
                 offset_range=args.offset_range, resolution=args.resolution)
 

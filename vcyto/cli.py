@@ -17,6 +17,7 @@ from sim.fluid import NumericalBlowUp
 from sim.linalg import SolverError
 from sim.scenario import CONVECTIONS, MEMBRANE_METHODS, SAW_MODELS, ScenarioError
 
+from .cache import install_default as install_cache
 from .config import load_scenario
 
 EXIT_INPUT = 2
@@ -603,6 +604,29 @@ def command_scenario(args):
     print(scenario_to_toml(_scenario(args)), end="")
 
 
+def command_cache(args):
+    """`vcyto cache [clear]`: where the set-up cache is and what it holds; `clear` empties it."""
+    from .cache import clear, usage
+    removed = clear() if args.action == "clear" else None
+    result = usage()
+    if removed is not None:
+        result["removed"] = removed
+    lines = [f"set-up cache: {result['directory']} ({'on' if result['enabled'] else 'off: VCYTO_CACHE=off'}), "
+             f"{result['entries']} entries, {result['bytes'] / 1e6:.1f} MB"]
+    if removed is not None:
+        lines.append(f"removed {removed} files")
+    _emit(args, result, lines)
+
+
+def _cache_command(commands):
+    cache = commands.add_parser("cache", help="the disk cache of set-up results (steady flows, solver couplings): "
+                                "where it is, its size; 'clear' empties it")
+    cache.add_argument("action", nargs="?", choices=("info", "clear"), default="info",
+                       help="info (default): directory and size; clear: delete every entry")
+    cache.add_argument("--json", action="store_true", help="print the result as JSON")
+    cache.set_defaults(handler=command_cache)
+
+
 def _stream_options(parser: argparse.ArgumentParser):
     """The options of one closed-loop run: arrivals, detector, controller, plant model, seed, duration."""
     arrivals = parser.add_argument_group("cell arrivals (through the injection inlet)")
@@ -741,6 +765,7 @@ def build_parser() -> argparse.ArgumentParser:
     _scenario_options(scenario)
     scenario.set_defaults(handler=command_scenario)
 
+    _cache_command(commands)
     bench = commands.add_parser("bench", help="benchmarks")
     targets = bench.add_subparsers(dest="target", required=True, metavar="TARGET")
     fluid = targets.add_parser("fluid", help="set-up and per-step cost of the fluid solver, per convection treatment")
@@ -808,6 +833,7 @@ def main(argv=None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     try:
+        install_cache()
         args.handler(args)
     except (ScenarioError, UsageError) as error:
         return _fail(error, EXIT_INPUT)

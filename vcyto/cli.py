@@ -63,13 +63,41 @@ def _scenario(args, membrane: str | None = None):
     method = getattr(args, "membrane", None) or membrane
     overrides = [f"numerics.{field}={str(value).lower()}" for field, value in MEMBRANE_METHODS[method].items()] \
         if method else []
-    overrides += list(args.overrides)
+    overrides += list(args.overrides) + _tolerance_override(args)
     for option, field in (("mesh_h", "numerics.mesh_h"), ("dt", "numerics.dt"), ("convection", "numerics.convection"),
                           ("saw_model", "saw.model"), ("solver", "numerics.linear_solver")):
         value = getattr(args, option, None)
         if value is not None:
             overrides.append(f"{field}={value}")
     return load_scenario(args.scenario, overrides)
+
+
+LENGTH_UNITS = ("", "m", "mm", "um", "nm")
+
+
+def _tolerance_options(parser: argparse.ArgumentParser):
+    group = parser.add_argument_group("time steps chosen by a tolerance (README: 'Fast at the limit')")
+    group.add_argument("--tolerance", metavar="LENGTH",
+                       help="pick each FE-IB step from dt, 2dt, 4dt, 8dt (dt = --dt, default 2.5us) by an error "
+                            "estimate on the membranes, for at most this centroid path error per transit against "
+                            "fixed steps of dt, e.g. 1um; never above the cells' stability limit (default: fixed dt)")
+
+
+def _tolerance_override(args) -> list[str]:
+    """``--tolerance LENGTH`` as the override numerics.tolerance=VALUE (a length: m, mm, um or nm)."""
+    text = getattr(args, "tolerance", None)
+    if text is None:
+        return []
+    from .config import _QUANTITY, parse_quantity
+    match = _QUANTITY.fullmatch(text)
+    unit = " ".join(match.group(2).split()) if match else ""
+    try:
+        value = parse_quantity(text)
+    except ValueError as error:
+        raise UsageError(f"--tolerance: {error}") from None
+    if unit not in LENGTH_UNITS or not (math.isfinite(value) and value > 0):
+        raise UsageError(f"--tolerance: must be a positive length such as 1um or 0.5um (got {text!r})")
+    return [f"numerics.tolerance={value!r}"]
 
 
 def _output_path(path: str | None) -> Path | None:
@@ -217,7 +245,9 @@ def _bench_sweep(args, bench):
 def command_paper(args):
     from . import paper
     from .progress import Progress
-    scenario = paper.paper_scenario(args.number, _scenario(args, membrane="paper"), dt_given=args.dt is not None)
+    # with --tolerance the finest level is --dt or 2.5 us, the step the tolerance is stated against
+    scenario = paper.paper_scenario(args.number, _scenario(args, membrane="paper"),
+                                    dt_given=args.dt is not None or args.tolerance is not None)
     png = _output_path(args.png if args.png else f"recordings/paper{args.number}.png") if not args.no_png else None
     if args.max_time <= 0:
         raise UsageError(f"--max-time must be positive (got {args.max_time} ms)")
@@ -682,6 +712,7 @@ def build_parser() -> argparse.ArgumentParser:
     paper = commands.add_parser("paper", help="run the paper's scenario 1 (RBC, IDT off) or 2 (melanoma, IDT on)")
     paper.add_argument("number", type=int, choices=(1, 2), help="1: RBC, IDT off, dt 2.5 us; 2: melanoma, IDT on, dt 25 us")
     _scenario_options(paper)
+    _tolerance_options(paper)
     paper.add_argument("--png", metavar="FILE", help="where to save the path over the flow (default recordings/paperN.png)")
     paper.add_argument("--no-png", action="store_true", help="do not save a PNG")
     paper.add_argument("--max-time", type=float, default=20.0, metavar="MS",
@@ -691,6 +722,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     stream = commands.add_parser("stream", help="run cells through the closed sorting loop (detector, controller, plant)")
     _scenario_options(stream)
+    _tolerance_options(stream)
     _stream_options(stream)
     stream.add_argument("--output", default="recordings", metavar="DIR",
                         help="where the run's files go: the MCAP recording, FCS 3.1 detector events and a JSON "

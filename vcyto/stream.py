@@ -149,6 +149,8 @@ def run_stream(scenario: Scenario, settings: StreamSettings, progress=None, plan
         result["auto"] = {"switches": [{"time_ms": t * 1e3, "model": model, "reason": why}
                                        for t, model, why in plant.switches],
                           "feib_fraction": plant.diagnostics()["feib_fraction"]}
+    if hasattr(plant, "time_steps"):           # feib: the dt used over time (sim.adaptive with --tolerance)
+        result["time_steps"] = plant.time_steps()
     if status == "interrupted":
         raise StreamStopped(status, reason, result)
     if status == "failed":
@@ -270,6 +272,9 @@ def report_lines(result: dict) -> list[str]:
         f"{result['wall_time_s']:.1f} s wall ({result['model']} model, set-up {result['setup_time_s']:.1f} s); "
         f"controller latency p99 {result['controller_latency_us'].get('p99', float('nan')):.1f} us",
     ]
+    if (result.get("time_steps") or {}).get("levels_us"):
+        from .paper import time_step_line
+        lines += [line.strip() for line in time_step_line(result["time_steps"])]
     if "auto" in result:
         auto = result["auto"]
         lines.append(f"auto: feib for {100 * auto['feib_fraction']:.1f} % of the periods, "

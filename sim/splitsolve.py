@@ -144,15 +144,23 @@ class SplitPardiso:
         blocks = [matrix[p][:, p].tocsr() for p in (left, right)]
         couplings = [matrix[p][:, separator].tocsc() for p in (left, right)]
         self.halves = self._both(lambda: _Half(blocks[0]), lambda: _Half(blocks[1]))
+        self.factor_nonzeros = sum(h.factor.factor_nonzeros for h in self.halves)
+        self.separator_size = len(separator)
+        self._schur = None
+        self._pending = (matrix, couplings)      # the coupling is computed on the first solve (``_couple``)
+
+    def _couple(self):
+        """H of each half and the separator's Schur complement: from the store (sim.store) or computed."""
+        matrix, couplings = self._pending
         key = {"matrix": digest(matrix.data, matrix.indices, matrix.indptr), "parts": digest(*self.parts),
                "mkl": mkl_version(), "factors": digest(*(h.probe(c) for h, c in zip(self.halves, couplings)))}
         stored = reuse("split-solve", key, lambda: self._coupling(matrix, couplings))
         for i, half in enumerate(self.halves):
             half.use(sp.csr_matrix((stored[f"h{i}_data"], stored[f"h{i}_indices"], stored[f"h{i}_indptr"]),
-                                   shape=(len(self.parts[i]), len(separator))))
+                                   shape=(len(self.parts[i]), self.separator_size)))
         self._schur = (stored["schur_lu"], stored["schur_pivots"])
-        self.factor_nonzeros = sum(h.factor.factor_nonzeros for h in self.halves) + sum(h.h.nnz for h in self.halves)
-        self.separator_size = len(separator)
+        self.factor_nonzeros += sum(h.h.nnz for h in self.halves)
+        self._pending = None
 
     def _coupling(self, matrix, couplings) -> dict:
         """The arrays a later run can reuse: each half's H and the LU factors of the separator's Schur complement."""
@@ -190,6 +198,8 @@ class SplitPardiso:
         rhs = np.asarray(rhs, dtype=np.float64)
         if rhs.ndim != 1:
             return np.column_stack([self.solve(column) for column in rhs.T])
+        if self._schur is None:
+            self._couple()
         left, right, separator = self.parts
         first, second = self.halves
         g_first, g_second = self._both(lambda: first.forward(rhs[left]), lambda: second.forward(rhs[right]))

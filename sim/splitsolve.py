@@ -19,6 +19,12 @@ K = A_S - sum_i (F_i C_i)^T H_i, a solve is
 
 Every operation runs in a fixed order on one thread with one MKL thread, so equal inputs give equal bits,
 whatever the machine's load; the two halves stream their factors through memory at the same time.
+
+The halves are factored at once when the solver is built; the coupling (H_i and K: one forward and one
+diagonal substitution per separator unknown) on the first solve, through ``sim.store`` so an application
+can keep it between runs (the key names the matrix, the cut, MKL's version and a probe of both factors).
+PARDISO's partial substitutions with several right-hand sides give wrong columns after the first (measured
+with MKL 2026.2), hence one column at a time.
 """
 
 from __future__ import annotations

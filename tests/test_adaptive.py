@@ -114,3 +114,17 @@ def test_default_stream_within_tolerance():
                        path[keep, 2] - np.interp(path[keep, 0], ref[:, 0], ref[:, 2]))
         assert gap.max() <= 1e-6, (key, gap.max())
     assert adaptive["time_steps"]["levels_us"] == [2.5, 5.0, 10.0, 20.0]
+
+
+@pytest.mark.parametrize("arguments, message", [
+    (["paper", "2", "--tolerance", "1us"], "--tolerance: must be a positive length"),
+    (["paper", "2", "--tolerance=-1um"], "--tolerance: must be a positive length"),
+    (["paper", "1", "--tolerance", "nan"], "--tolerance: cannot read 'nan'"),
+    (["stream", "--model", "rom", "--tolerance", "1um"], "--tolerance: picks the steps of the feib model only"),
+])
+def test_bad_tolerances_are_one_line_errors(arguments, message):
+    import subprocess
+    import sys
+    result = subprocess.run([sys.executable, "-m", "vcyto.cli", *arguments], capture_output=True, text=True)
+    assert result.returncode == 2 and result.stderr.startswith("vcyto: error: " + message)
+    assert result.stderr.count("\n") == 1 and "Traceback" not in result.stderr

@@ -97,6 +97,9 @@ def _tolerance_override(args) -> list[str]:
         raise UsageError(f"--tolerance: {error}") from None
     if unit not in LENGTH_UNITS or not (math.isfinite(value) and value > 0):
         raise UsageError(f"--tolerance: must be a positive length such as 1um or 0.5um (got {text!r})")
+    if getattr(args, "model", None) not in (None, "feib"):
+        raise UsageError(f"--tolerance: picks the steps of the feib model only; drop it or use --model feib "
+                         f"(got --model {args.model})")
     return [f"numerics.tolerance={value!r}"]
 
 

@@ -513,7 +513,9 @@ class NavierStokes:
             return {"velocity": velocity, "pressure": pressure, "iterations": np.array(iterations)}
 
         if load is None:        # a stored start flow: everything it depends on is in the key (sim.store)
-            key = {"scenario": repr(self.scenario), "actuation": float(actuation), "solver": self.solver_name,
+            # the steady flow does not depend on the time step: one entry serves every dt and tolerance
+            steady_scenario = self.scenario.with_numerics(dt=1.0, tolerance=0.0)
+            key = {"scenario": repr(steady_scenario), "actuation": float(actuation), "solver": self.solver_name,
                    "mkl": mkl_version(), "nodes": digest(self.space.nodes), "inflow": digest(self.inflow, self.jet)}
             result = reuse("steady-flow", key, solve)
         else:

@@ -513,9 +513,13 @@ class NavierStokes:
             return {"velocity": velocity, "pressure": pressure, "iterations": np.array(iterations)}
 
         if load is None:        # a stored start flow: everything it depends on is in the key (sim.store)
-            # the steady flow does not depend on the time step: one entry serves every dt and tolerance
-            steady_scenario = self.scenario.with_numerics(dt=1.0, tolerance=0.0)
-            key = {"scenario": repr(steady_scenario), "actuation": float(actuation), "solver": self.solver_name,
+            # what the steady flow depends on: the device, the fluid, the SAW and the numerics of Newton's
+            # method (not dt, the convection treatment of steps, the cells or the membrane method)
+            scene, numerics = self.scenario, self.scenario.numerics
+            newton = {name: getattr(numerics, name) for name in
+                      ("mesh_h", "linear_solver", "nonlinear_tolerance", "max_nonlinear_iterations", "reproducible")}
+            key = {"channel": repr(scene.channel), "fluid": repr(scene.fluid), "saw": repr(scene.saw),
+                   "numerics": repr(newton), "actuation": float(actuation), "solver": self.solver_name,
                    "mkl": mkl_version(), "nodes": digest(self.space.nodes), "inflow": digest(self.inflow, self.jet)}
             result = reuse("steady-flow", key, solve)
         else:

@@ -83,6 +83,27 @@ def _tolerance_options(parser: argparse.ArgumentParser):
                             "fixed steps of dt, e.g. 1um; never above the cells' stability limit (default: fixed dt)")
 
 
+def _length_value(text: str) -> float:
+    """A positive length (m, mm, um or nm); ValueError otherwise."""
+    from .config import _QUANTITY, parse_quantity
+    match = _QUANTITY.fullmatch(text)
+    value = parse_quantity(text)
+    if (" ".join(match.group(2).split()) if match else "") not in LENGTH_UNITS:
+        raise ValueError(f"{text!r} is not a length")
+    return value
+
+
+def _tolerance_bench_command(targets):
+    tolerance = targets.add_parser("tolerance", help="the paper scenarios with --tolerance levels against fixed "
+                                   "steps: outlets, path distance, steps per level")
+    _scenario_options(tolerance)
+    tolerance.add_argument("--tolerances", default="1um,3um", metavar="LIST", help="tolerances (default 1um,3um)")
+    tolerance.add_argument("--numbers", type=int, nargs="+", choices=(1, 2), default=[1, 2], metavar="N",
+                           help="paper scenarios (default 1 2)")
+    _output_options(tolerance)
+    tolerance.set_defaults(handler=command_bench)
+
+
 def _tolerance_override(args) -> list[str]:
     """``--tolerance LENGTH`` as the override numerics.tolerance=VALUE (a length: m, mm, um or nm)."""
     text = getattr(args, "tolerance", None)
@@ -187,6 +208,12 @@ def command_bench(args):
             raise UsageError(f"--repeats must be at least 1 (got {args.repeats})")
         result = bench.bench_membrane(scenario, args.repeats, progress=Progress(quiet=args.quiet or args.json))
         _emit(args, result, bench.membrane_lines(result))
+        return
+    if args.target == "tolerance":
+        from .tolerancebench import bench_tolerance, tolerance_lines
+        tolerances = _positive_list(args.tolerances, "--tolerances", "1um,3um", _length_value)
+        result = bench_tolerance(scenario, tuple(args.numbers), tuple(tolerances), progress)
+        _emit(args, result, tolerance_lines(result))
         return
     if args.target == "paper":
         from .progress import Progress
@@ -803,6 +830,7 @@ def build_parser() -> argparse.ArgumentParser:
     _cache_command(commands)
     bench = commands.add_parser("bench", help="benchmarks")
     targets = bench.add_subparsers(dest="target", required=True, metavar="TARGET")
+    _tolerance_bench_command(targets)
     fluid = targets.add_parser("fluid", help="set-up and per-step cost of the fluid solver, per convection treatment")
     _scenario_options(fluid)
     fluid.add_argument("--repeats", type=int, default=40, help="timed repetitions per median (default 40)")

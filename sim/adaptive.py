@@ -31,7 +31,7 @@ from .fluid import NavierStokes
 from .stability import paper_bound
 
 LEVELS = 4
-SAFETY = 0.4
+SAFETY = 0.3
 STABLE_FRACTION = 3.4
 
 

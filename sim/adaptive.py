@@ -12,8 +12,9 @@ path, so a step is within budget when e <= SAFETY * tolerance * (distance the ce
 a transit then accumulates at most about SAFETY * tolerance. The tolerance is stated against the finest
 level (the reference dt0): since e / distance grows like dt, a ratio q measured at dt_k predicts
 q (2^j - 1) / 2^k for level j against the finest one; the next step takes the coarsest level (at most one
-up) where that is <= 1 (no step is repeated). A new cell starts at the finest level; with no cell in the
-channel the coarsest level is used.
+up) where that is <= 1 (no step is repeated). A new cell, or a change of the IDT drive (the flow jumps
+before any estimate has seen it), starts from the finest level; with no cell in the channel the coarsest
+level is used.
 
 Never above the stability limit of the cells in the channel: STABLE_FRACTION times the paper's bound (33)
 with C_cell = 1 (``sim.stability.paper_bound``). The measured limits are 4.2x (melanoma, 3.33 um mesh) and
@@ -46,6 +47,7 @@ class AdaptiveSteps:
         self._fluids = {0: plant.fluid}
         self._limits: dict[str, float] = {}
         self._known: set[int] = set()
+        self._actuation: float | None = None
         self.level = LEVELS - 1
         self.ratio = float("nan")
         self.history: list[tuple[float, float]] = []          # (time, dt) whenever dt changes
@@ -72,11 +74,13 @@ class AdaptiveSteps:
             limit = min(limit, self._limits[cell_type.name])
         return max([0] + [k for k, dt in enumerate(self.levels) if dt <= limit])
 
-    def choose(self, state, active, until) -> int:
-        """The level of the next step: the estimate's, a new cell's finest, capped by stability and ``until``."""
+    def choose(self, state, active, until, actuation: float | None = None) -> int:
+        """The level of the next step: the estimate's; the finest for a new cell or when the IDT drive changes
+        (the flow jumps: no estimate has seen it yet); capped by stability and ``until``."""
         ids = {cell.id for cell in active}
-        level = LEVELS - 1 if not active else (0 if ids - self._known else self.level)
-        self._known = ids
+        switched = actuation is not None and self._actuation is not None and actuation != self._actuation
+        level = LEVELS - 1 if not active else (0 if ids - self._known or switched else self.level)
+        self._known, self._actuation = ids, actuation
         level = min(level, self.stable_level(active))
         if until is not None:
             room = until - state.time
@@ -87,7 +91,7 @@ class AdaptiveSteps:
     # ------------------------------------------------------------------ the step
     def step(self, state, actuation: float, until: float | None):
         active = [cell for cell in state.cells if cell.in_channel]
-        level = self.choose(state, active, until)
+        level = self.choose(state, active, until, actuation)
         dt = self.levels[level]
         samples = [self._sample(state.flow.velocity, cell.membrane.points) for cell in active]
         new = self.plant.fixed_step(state, actuation, self.fluid(level))

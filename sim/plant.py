@@ -104,6 +104,9 @@ def membrane_truths(cells) -> tuple[CellTruth, ...]:
     return tuple(truths)
 
 
+ADAPTIVE_PERIOD = 20e-6      # the longest control period of a FeibPlant whose steps a tolerance picks
+
+
 class FeibPlant:
     """The FE-IB model behind the plant contract."""
 
@@ -111,8 +114,9 @@ class FeibPlant:
         self.scenario = scenario
         self.ib = plant or ImmersedBoundary(scenario)
         dt = scenario.numerics.dt
-        # with a tolerance the period holds one step of the coarsest level (sim.adaptive)
-        natural = dt if self.ib.adaptive is None else self.ib.adaptive.levels[-1]
+        # with a tolerance the period holds one step of the coarsest level (sim.adaptive), at most 20 us (the
+        # IDT drive changes only between periods: a longer one would delay pulses by more than the steps' error)
+        natural = dt if self.ib.adaptive is None else max(dt, min(self.ib.adaptive.levels[-1], ADAPTIVE_PERIOD))
         self.control_period = control_period or natural
         self.substeps = max(1, round(self.control_period / dt))
         self._initial = None

@@ -39,6 +39,9 @@ def test_levels_new_cells_empty_channel_and_the_stability_cap():
     steps.level = 3
     assert steps.choose(state, [rbc, melanoma], None) == 1
     assert steps.choose(state, [rbc], until=25e-6) == 1                     # never past `until`
+    steps.level = 3
+    assert steps.choose(state, [rbc], None, actuation=0.0) == 3
+    assert steps.choose(state, [rbc], None, actuation=1.0) == 0             # the IDT switched: the flow jumps
 
 
 def test_next_level_against_the_finest_level():

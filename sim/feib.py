@@ -117,6 +117,10 @@ class ImmersedBoundary:
         self.locator = PointLocator(space.cmesh, space.velocity_basis.element_dofs)
         self.limits = HealthLimits.of(scenario)
         self.timings = Timings()
+        self.adaptive = None
+        if scenario.numerics.tolerance > 0:     # dt chosen per step from levels by an error estimate
+            from .adaptive import AdaptiveSteps
+            self.adaptive = AdaptiveSteps(self)
 
     # ------------------------------------------------------------------ cells
     def injection_point(self, cell_type: CellType, gap: float = 1e-6) -> tuple[float, float]:
@@ -130,8 +134,17 @@ class ImmersedBoundary:
         return State(self.fluid.initial_flow(actuation), tuple(cells))
 
     # ------------------------------------------------------------------ the step
-    def step(self, state: State, actuation: float = 0.0) -> State:
-        dt = self.scenario.numerics.dt
+    def step(self, state: State, actuation: float = 0.0, until: float | None = None) -> State:
+        """One step: of ``numerics.dt``, or with ``numerics.tolerance`` of the level the error estimate picks
+        (``sim.adaptive``; never past ``until``)."""
+        if self.adaptive is not None:
+            return self.adaptive.step(state, actuation, until)
+        return self.fixed_step(state, actuation)
+
+    def fixed_step(self, state: State, actuation: float = 0.0, fluid: NavierStokes | None = None) -> State:
+        """One step of ``fluid``'s dt (default: this plant's fluid, dt = ``numerics.dt``)."""
+        fluid = fluid or self.fluid
+        dt = fluid.scenario.numerics.dt
         started = clock.perf_counter()
         active = [cell for cell in state.cells if cell.in_channel]
         load = np.zeros((2, self.fluid.space.N))
@@ -144,12 +157,12 @@ class ImmersedBoundary:
             self.locator.spread_located(forces, elements, reference, load)
             located.append((elements, reference))
         fluid_started = clock.perf_counter()
-        flow = self.fluid.step(state.flow, actuation, load if active else None)
+        flow = fluid.step(state.flow, actuation, load if active else None)
         membrane_started = clock.perf_counter()
         moved = {}
         for cell, (elements, reference) in zip(active, located):
             velocity = self.locator.interpolate_located(flow.velocity, elements, reference)
-            moved[cell.id] = self._settle(cell, cell.membrane.points + dt * velocity, flow.time)
+            moved[cell.id] = settle(cell, cell.membrane.points + dt * velocity, flow.time, self.scenario, dt)
         cells = tuple(moved.get(cell.id, cell) for cell in state.cells)
         health_started = clock.perf_counter()
         check_cells([moved[cell.id] for cell in active], self.limits, state.step + 1, flow.time)
@@ -202,9 +215,10 @@ def reshape(membrane: Membrane, numerics) -> tuple[Membrane, float]:
     return membrane, corrected
 
 
-def settle(cell: Cell, points: np.ndarray, time: float, scenario: Scenario) -> Cell:
-    """The cell with its new points (reshaped while wholly inside, with its measures); its fate once its
-    centroid crosses x = length (the outlet at the crossing ordinate)."""
+def settle(cell: Cell, points: np.ndarray, time: float, scenario: Scenario, dt: float | None = None) -> Cell:
+    """The cell with its new points (reshaped while wholly inside, with its measures) after a step of ``dt``
+    (default ``numerics.dt``); its fate once its centroid crosses x = length (the outlet at the crossing ordinate)."""
+    dt = scenario.numerics.dt if dt is None else dt
     membrane = cell.membrane.with_points(points)
     measures = cell.measures
     length = scenario.channel.length
@@ -216,7 +230,7 @@ def settle(cell: Cell, points: np.ndarray, time: float, scenario: Scenario) -> C
         return replace(cell, membrane=membrane, measures=measures)
     weight = (length - before[0]) / (after[0] - before[0])
     exit_y = before[1] + weight * (after[1] - before[1])
-    exit_time = time - scenario.numerics.dt * (1 - weight)
+    exit_time = time - dt * (1 - weight)
     return replace(cell, membrane=membrane, fate=outlet_at(scenario.channel, exit_y),
                    exit_time=exit_time, exit_y=exit_y, measures=measures)
 

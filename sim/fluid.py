@@ -35,9 +35,10 @@ from skfem.quadrature import get_quadrature
 
 from . import kernels
 from .boundary import inflow_velocity, saw_jet_factor, saw_window_profile
-from .linalg import factorize, resolved_solver_name
+from .linalg import factorize, mkl_version, resolved_solver_name
 from .mesh import ChannelMesh, channel_mesh
 from .scenario import Scenario
+from .store import digest, reuse
 
 log = logging.getLogger(__name__)
 
@@ -255,6 +256,8 @@ class NavierStokes:
         self.dirichlet = np.concatenate([nodes, nodes + space.N])
         self.free = np.setdiff1d(np.arange(space.dofs), self.dirichlet)
         self.free_velocity = self.free[self.free < 2 * space.N]
+        x_of_unknown = np.concatenate([space.nodes[0], space.nodes[0], space.pressure_basis.doflocs[0]])
+        self.free_x = x_of_unknown[self.free]
         positions = np.full(2 * space.N, -1, dtype=np.int64)
         positions[self.free_velocity] = np.arange(len(self.free_velocity))
         self.positions = positions.reshape(2, space.N)
@@ -325,7 +328,8 @@ class NavierStokes:
         previous = self._reusable.get(reuse)
         numerics = self.scenario.numerics
         factor = factorize(rows[:, self.free].tocsr(), numerics.linear_solver, symmetric=symmetric,
-                           previous=previous, reproducible=numerics.reproducible)
+                           previous=previous, reproducible=numerics.reproducible,
+                           coordinates=self.free_x if symmetric else None)
         if reuse:
             self._reusable[reuse] = factor
         self.timings.factor += clock.perf_counter() - started
@@ -502,11 +506,26 @@ class NavierStokes:
         level = actuation if self.scenario.saw.model == "streaming" else 0.0
         forcing = level * self.streaming_unit_load if load is None else load + level * self.streaming_unit_load
         jet = self.jet_weight(0.0, actuation)
-        velocity = np.zeros((2, self.space.N))
-        pressure = np.zeros(self.space.P)
-        velocity, pressure, iterations = self._newton(velocity, pressure, forcing, jet, 0.0, with_mass=False)
+
+        def solve():
+            velocity, pressure = np.zeros((2, self.space.N)), np.zeros(self.space.P)
+            velocity, pressure, iterations = self._newton(velocity, pressure, forcing, jet, 0.0, with_mass=False)
+            return {"velocity": velocity, "pressure": pressure, "iterations": np.array(iterations)}
+
+        if load is None:        # a stored start flow: everything it depends on is in the key (sim.store)
+            # what the steady flow depends on: the device, the fluid, the SAW and the numerics of Newton's
+            # method (not dt, the convection treatment of steps, the cells or the membrane method)
+            scene, numerics = self.scenario, self.scenario.numerics
+            newton = {name: getattr(numerics, name) for name in
+                      ("mesh_h", "linear_solver", "nonlinear_tolerance", "max_nonlinear_iterations", "reproducible")}
+            key = {"channel": repr(scene.channel), "fluid": repr(scene.fluid), "saw": repr(scene.saw),
+                   "numerics": repr(newton), "actuation": float(actuation), "solver": self.solver_name,
+                   "mkl": mkl_version(), "nodes": digest(self.space.nodes), "inflow": digest(self.inflow, self.jet)}
+            result = reuse("steady-flow", key, solve)
+        else:
+            result = solve()
         self.timings.extra["steady"] = self.timings.extra.get("steady", 0.0) + clock.perf_counter() - started
-        return Flow(0.0, velocity, pressure, level, iterations)
+        return Flow(0.0, result["velocity"].copy(), result["pressure"].copy(), level, int(result["iterations"]))
 
     def use_boundary_velocity(self, velocity: np.ndarray):
         """Impose ``velocity`` (2, N) on the Dirichlet boundary instead of the scenario's inflow.

@@ -56,6 +56,17 @@ def _aligned_empty(size: int, alignment: int = 64) -> np.ndarray:
     return raw[offset: offset + size]
 
 
+@lru_cache(maxsize=1)
+def mkl_version() -> str:
+    """MKL's version string ('' without MKL): factorisations, and what is derived from them, depend on it."""
+    library = _mkl_runtime()
+    if library is None:
+        return ""
+    buffer = ctypes.create_string_buffer(256)
+    library.mkl_get_version_string(buffer, ctypes.c_int(len(buffer)))
+    return buffer.value.decode(errors="replace").strip()
+
+
 def pardiso_available() -> bool:
     return _mkl_runtime() is not None
 
@@ -84,7 +95,7 @@ class Pardiso:
         self._indptr = np.ascontiguousarray(stored.indptr, dtype=np.int32)
         self._indices = np.ascontiguousarray(stored.indices, dtype=np.int32)
         self._handle = np.zeros(64, dtype=np.int64)
-        self._rhs_buffer = self._solution_buffer = None
+        self._rhs_buffer = self._solution_buffer = self._phase_buffers = None
         self.iparm = np.zeros(64, dtype=np.int32)
         self.iparm[0] = 1      # we supply iparm
         self.iparm[1] = 2      # METIS nested dissection ordering
@@ -132,6 +143,21 @@ class Pardiso:
         self._rhs_buffer[:] = rhs
         self._call(33, self._rhs_buffer, self._solution_buffer)
         return self._solution_buffer.copy()
+
+    def phase(self, phase: int, rhs: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
+        """One partial substitution of a vector: 331 forward, 332 diagonal, 333 backward (A^-1 = 333 332 331).
+
+        Inputs and outputs go through fixed aligned buffers (see ``solve``); the result is written to ``out``
+        (or a new array)."""
+        if self._phase_buffers is None or len(self._phase_buffers[0]) != len(rhs):
+            self._phase_buffers = (_aligned_empty(len(rhs)), _aligned_empty(len(rhs)))
+        source, target = self._phase_buffers
+        source[:] = rhs
+        self._call(phase, source, target)
+        if out is None:
+            return target.copy()
+        out[:] = target
+        return out
 
     def same_pattern(self, matrix: sp.spmatrix) -> bool:
         stored = sp.triu(matrix, format="csr") if self.symmetric else matrix
@@ -182,19 +208,32 @@ class SuperLU:
 
 
 def factorize(matrix: sp.spmatrix, solver: str = "auto", symmetric: bool = False, previous=None,
-              reproducible: bool = True):
+              reproducible: bool = True, coordinates: np.ndarray | None = None):
     """Factor ``matrix`` with the named back-end ('auto' prefers PARDISO); returns an object with ``solve``.
 
     With ``previous`` (an earlier PARDISO factorisation of a matrix with the same sparsity pattern, e.g. the
     previous Newton or Oseen matrix) only the numerical factorisation is redone: ~3x cheaper.
+    With ``coordinates`` (the x coordinate of each unknown) a large symmetric reproducible PARDISO system is
+    solved by two sequential halves on two threads (``sim.splitsolve``): reproducible at the parallel speed.
     """
     if solver not in SOLVERS:
         raise SolverError(f"unknown linear solver {solver!r}: choose one of {', '.join(SOLVERS)}")
     if isinstance(previous, Pardiso) and previous.symmetric == symmetric and previous.same_pattern(matrix):
         return previous.refactor(matrix)
     if solver == "pardiso" or (solver == "auto" and pardiso_available()):
+        if pardiso_available() and symmetric and reproducible and coordinates is not None and split_wanted(matrix):
+            from .splitsolve import SplitPardiso
+            return SplitPardiso(matrix, coordinates)
         return Pardiso(matrix, symmetric=symmetric, reproducible=reproducible)
     return SuperLU(matrix, symmetric=symmetric)
+
+
+def split_wanted(matrix) -> bool:
+    """Whether the two-thread split solve pays: a large matrix, two cores; ``VCYTO_SPLIT_SOLVE=0`` turns it off."""
+    from .splitsolve import MIN_UNKNOWNS
+    if os.environ.get("VCYTO_SPLIT_SOLVE", "1") == "0":
+        return False
+    return matrix.shape[0] >= MIN_UNKNOWNS and (os.cpu_count() or 1) >= 2
 
 
 def resolved_solver_name(solver: str) -> str:

@@ -104,6 +104,9 @@ def membrane_truths(cells) -> tuple[CellTruth, ...]:
     return tuple(truths)
 
 
+ADAPTIVE_PERIOD = 20e-6      # the longest control period of a FeibPlant whose steps a tolerance picks
+
+
 class FeibPlant:
     """The FE-IB model behind the plant contract."""
 
@@ -111,7 +114,10 @@ class FeibPlant:
         self.scenario = scenario
         self.ib = plant or ImmersedBoundary(scenario)
         dt = scenario.numerics.dt
-        self.control_period = control_period or dt
+        # with a tolerance the period holds one step of the coarsest level (sim.adaptive), at most 20 us (the
+        # IDT drive changes only between periods: a longer one would delay pulses by more than the steps' error)
+        natural = dt if self.ib.adaptive is None else max(dt, min(self.ib.adaptive.levels[-1], ADAPTIVE_PERIOD))
+        self.control_period = control_period or natural
         self.substeps = max(1, round(self.control_period / dt))
         self._initial = None
         self.state = None
@@ -133,10 +139,34 @@ class FeibPlant:
             self.state = State(self.state.flow, self.state.cells + tuple(new), self.state.step)
 
     def step(self, actuation: float) -> Observation:
+        if self.ib.adaptive is not None:
+            return self._adaptive_step(actuation)
         for _ in range(self.substeps):
             self.state = self.ib.step(self.state, actuation)
             self._inject()
         return self.observe()
+
+    def _adaptive_step(self, actuation: float) -> Observation:
+        """One control period in steps of the levels ``sim.adaptive`` picks, stopping where a cell is due (on
+        the dt grid, as the fixed step injects it)."""
+        dt = self.scenario.numerics.dt
+        end = (round(self.state.time / self.control_period) + 1) * self.control_period
+        while self.state.time < end - 0.5 * dt:
+            stop = end
+            if self.schedule.waiting:
+                arrival = self.schedule.items[self.schedule.position][0]
+                due = dt * math.ceil((arrival - 0.5 * dt) / dt - 1e-9)
+                if due > self.state.time + 0.5 * dt:
+                    stop = min(end, due)
+            self.state = self.ib.step(self.state, actuation, until=stop)
+            self._inject()
+        return self.observe()
+
+    def time_steps(self) -> dict:
+        """The dt used: fixed, or per level with the changes over time (``sim.adaptive``)."""
+        if self.ib.adaptive is None:
+            return {"dt_us": self.scenario.numerics.dt * 1e6, "steps": self.ib.timings.steps}
+        return self.ib.adaptive.summary(self.state.time)
 
     def adopt(self, state: State, injected: int):
         """Continue from ``state`` (built from another plant's) with the first ``injected`` arrivals injected."""
@@ -161,7 +191,9 @@ class FeibPlant:
     def diagnostics(self) -> dict:
         """Solver figures for logging: dt, steps so far, cumulative wall time per part (s)."""
         timings, fluid = self.ib.timings, self.ib.fluid.timings
-        return {"dt": self.scenario.numerics.dt, "physics_steps": timings.steps, "fluid_solve_s": fluid.solve,
+        adaptive = self.ib.adaptive
+        dt = self.scenario.numerics.dt if adaptive is None or not adaptive.history else adaptive.history[-1][1]
+        return {"dt": dt, "physics_steps": timings.steps, "fluid_solve_s": fluid.solve,
                 "fluid_load_s": fluid.load, "membrane_s": timings.membrane, "health_checks_s": timings.health,
                 "health": "ok"}
 

@@ -241,6 +241,10 @@ class Numerics:
     membrane's points equally along its spline, ``membrane_spacing`` apart, whenever a spacing leaves
     ``spacing_band`` (both in units of ``mesh_h``).
 
+    ``tolerance`` > 0 (m) lets the FE-IB plant pick each step from the levels dt, 2 dt, 4 dt, 8 dt by an
+    error estimate on the membrane positions, for at most that centroid path error per transit
+    (``sim.adaptive``); 0 keeps the fixed step dt.
+
     ``max_stretch`` is the operational meaning of the paper's Remark 2.4 ("membranes torn apart"): a
     membrane whose length exceeds ``max_stretch`` times its resting length L is torn apart and the health
     checks stop the run saying the flow is too fast for it. The paper's energy has no rupture law, so
@@ -263,9 +267,14 @@ class Numerics:
     redistribute: bool = True
     spacing_band: tuple[float, float] = (0.3, 0.7)
     max_stretch: float = 20.0
+    tolerance: float = 0.0
 
     def __post_init__(self):
         _positive(self, "mesh_h", "dt", "nonlinear_tolerance", "membrane_spacing", "max_area_change")
+        if isinstance(self.tolerance, bool) or not (isinstance(self.tolerance, (int, float))
+                                                    and math.isfinite(self.tolerance) and self.tolerance >= 0):
+            raise ScenarioError("tolerance", f"must be a length >= 0: the path error per transit that picks the "
+                                             f"time step (0: the fixed step dt), e.g. 1um (got {self.tolerance!r})")
         if isinstance(self.max_stretch, bool) or not (isinstance(self.max_stretch, (int, float))
                                                       and math.isfinite(self.max_stretch) and self.max_stretch > 1):
             raise ScenarioError("max_stretch", f"must be a number > 1: the membrane length, in resting lengths, at "

@@ -156,7 +156,7 @@ def test_tradeoff_fast_writes_table_csv_plot_and_auto_is_within_tolerance(tmp_pa
     levels = list(dict.fromkeys(row["level"] for row in rows))
     scenes = list(dict.fromkeys(row["scene"] for row in rows))
     assert levels[-1].endswith("stiff Ca<0") and scenes[-1] == "melanoma and RBC 1 ms apart, pulse 0.9-2.1 ms"
-    assert len(rows) == len(levels) * len(scenes) == 6 * 4
+    assert len(rows) == len(levels) * len(scenes) == 7 * 4       # FAST_LADDER (with a tolerance level) + 1
     assert {p.name for p in tmp_path.iterdir()} >= {"tradeoff.md", "tradeoff.csv", "tradeoff.png"}
     with open(tmp_path / "tradeoff.csv") as handle:
         assert len(list(csv.DictReader(handle))) == len(rows)

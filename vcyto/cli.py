@@ -24,6 +24,7 @@ from sim.scenario import CONVECTIONS, MEMBRANE_METHODS, SAW_MODELS, ScenarioErro
 from . import arguments as limits
 from . import units
 from .arguments import Integer, Number, Parser, Quantity
+from .cache import install_default as install_cache
 from .config import load_scenario
 from . import outputs
 from .outputs import strict_json
@@ -84,7 +85,7 @@ def _scenario(args, membrane: str | None = None):
     method = getattr(args, "membrane", None) or membrane
     overrides = [f"numerics.{field}={str(value).lower()}" for field, value in MEMBRANE_METHODS[method].items()] \
         if method else []
-    overrides += list(args.overrides)
+    overrides += list(args.overrides) + _tolerance_override(args)
     for option, field in (("mesh_h", "numerics.mesh_h"), ("dt", "numerics.dt"), ("convection", "numerics.convection"),
                           ("saw_model", "saw.model"), ("solver", "numerics.linear_solver")):
         value = getattr(args, option, None)
@@ -93,6 +94,58 @@ def _scenario(args, membrane: str | None = None):
     scenario = load_scenario(args.scenario, overrides)
     limits.check_mesh(scenario.channel.length, scenario.channel.height, scenario.numerics.mesh_h)
     return scenario
+
+
+LENGTH_UNITS = ("", "m", "mm", "um", "nm")
+
+
+def _tolerance_options(parser: argparse.ArgumentParser):
+    group = parser.add_argument_group("time steps chosen by a tolerance (README: 'Fast at the limit')")
+    group.add_argument("--tolerance", metavar="LENGTH",
+                       help="pick each FE-IB step from dt, 2dt, 4dt, 8dt (dt = --dt, default 2.5us) by an error "
+                            "estimate on the membranes, for at most this centroid path error per transit against "
+                            "fixed steps of dt, e.g. 1um; never above the cells' stability limit (default: fixed dt)")
+
+
+def _length_value(text: str) -> float:
+    """A positive length (m, mm, um or nm); ValueError otherwise."""
+    from .config import _QUANTITY, parse_quantity
+    match = _QUANTITY.fullmatch(text)
+    value = parse_quantity(text)
+    if (" ".join(match.group(2).split()) if match else "") not in LENGTH_UNITS:
+        raise ValueError(f"{text!r} is not a length")
+    return value
+
+
+def _tolerance_bench_command(targets):
+    tolerance = targets.add_parser("tolerance", help="the paper scenarios with --tolerance levels against fixed "
+                                   "steps: outlets, path distance, steps per level")
+    _scenario_options(tolerance)
+    tolerance.add_argument("--tolerances", default="1um,3um", metavar="LIST", help="tolerances (default 1um,3um)")
+    tolerance.add_argument("--numbers", type=int, nargs="+", choices=(1, 2), default=[1, 2], metavar="N",
+                           help="paper scenarios (default 1 2)")
+    _output_options(tolerance)
+    tolerance.set_defaults(handler=command_bench)
+
+
+def _tolerance_override(args) -> list[str]:
+    """``--tolerance LENGTH`` as the override numerics.tolerance=VALUE (a length: m, mm, um or nm)."""
+    text = getattr(args, "tolerance", None)
+    if text is None:
+        return []
+    from .config import _QUANTITY, parse_quantity
+    match = _QUANTITY.fullmatch(text)
+    unit = " ".join(match.group(2).split()) if match else ""
+    try:
+        value = parse_quantity(text)
+    except ValueError as error:
+        raise UsageError(f"--tolerance: {error}") from None
+    if unit not in LENGTH_UNITS or not (math.isfinite(value) and value > 0):
+        raise UsageError(f"--tolerance: must be a positive length such as 1um or 0.5um (got {text!r})")
+    if getattr(args, "model", None) not in (None, "feib"):
+        raise UsageError(f"--tolerance: picks the steps of the feib model only; drop it or use --model feib "
+                         f"(got --model {args.model})")
+    return [f"numerics.tolerance={value!r}"]
 
 
 def _output_path(path: str | None) -> Path | None:
@@ -177,6 +230,12 @@ def command_bench(args):
         result = bench.bench_membrane(scenario, args.repeats, progress=Progress(quiet=args.quiet or args.json))
         _emit(args, result, bench.membrane_lines(result))
         return
+    if args.target == "tolerance":
+        from .tolerancebench import bench_tolerance, tolerance_lines
+        tolerances = _positive_list(args.tolerances, "--tolerances", "1um,3um", _length_value)
+        result = bench_tolerance(scenario, tuple(args.numbers), tuple(tolerances), progress)
+        _emit(args, result, tolerance_lines(result))
+        return
     if args.target == "paper":
         from .progress import Progress
         result = bench.bench_paper_treatments(args.number, scenario, progress=Progress(quiet=args.quiet or args.json))
@@ -222,7 +281,9 @@ def _bench_sweep(args, bench):
 def command_paper(args):
     from . import paper
     from .progress import Progress
-    scenario = paper.paper_scenario(args.number, _scenario(args, membrane="paper"), dt_given=args.dt is not None)
+    # with --tolerance the finest level is --dt or 2.5 us, the step the tolerance is stated against
+    scenario = paper.paper_scenario(args.number, _scenario(args, membrane="paper"),
+                                    dt_given=args.dt is not None or args.tolerance is not None)
     png = _output_path(args.png if args.png else f"recordings/paper{args.number}.png") if not args.no_png else None
     progress = Progress(quiet=args.quiet or args.json)
     try:
@@ -786,6 +847,29 @@ def command_scenario(args):
     print(scenario_to_toml(_scenario(args)), end="")
 
 
+def command_cache(args):
+    """`vcyto cache [clear]`: where the set-up cache is and what it holds; `clear` empties it."""
+    from .cache import clear, usage
+    removed = clear() if args.action == "clear" else None
+    result = usage()
+    if removed is not None:
+        result["removed"] = removed
+    lines = [f"set-up cache: {result['directory']} ({'on' if result['enabled'] else 'off: VCYTO_CACHE=off'}), "
+             f"{result['entries']} entries, {result['bytes'] / 1e6:.1f} MB"]
+    if removed is not None:
+        lines.append(f"removed {removed} files")
+    _emit(args, result, lines)
+
+
+def _cache_command(commands):
+    cache = commands.add_parser("cache", help="the disk cache of set-up results (steady flows, solver couplings): "
+                                "where it is, its size; 'clear' empties it")
+    cache.add_argument("action", nargs="?", choices=("info", "clear"), default="info",
+                       help="info (default): directory and size; clear: delete every entry")
+    cache.add_argument("--json", action="store_true", help="print the result as JSON")
+    cache.set_defaults(handler=command_cache)
+
+
 def _stream_options(parser: argparse.ArgumentParser):
     """The options of one closed-loop run: arrivals, detector, controller, plant model, seed, duration.
     Quantities take a unit (``--lead 500us``); a bare number is in the unit the help names."""
@@ -903,6 +987,7 @@ def build_parser() -> argparse.ArgumentParser:
     paper = commands.add_parser("paper", help="run the paper's scenario 1 (RBC, IDT off) or 2 (melanoma, IDT on)")
     paper.add_argument("number", type=int, choices=(1, 2), help="1: RBC, IDT off, dt 2.5 us; 2: melanoma, IDT on, dt 25 us")
     _scenario_options(paper)
+    _tolerance_options(paper)
     paper.add_argument("--png", metavar="FILE", help="where to save the path over the flow (default recordings/paperN.png)")
     paper.add_argument("--no-png", action="store_true", help="do not save a PNG")
     paper.add_argument("--max-time", type=Quantity("time", "ms", low=0, low_open=True, high=3600.0), default="20",
@@ -912,6 +997,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     stream = commands.add_parser("stream", help="run cells through the closed sorting loop (detector, controller, plant)")
     _scenario_options(stream)
+    _tolerance_options(stream)
     _stream_options(stream)
     stream.add_argument("--output", default="recordings", metavar="DIR",
                         help="where the run's files go: the MCAP recording, FCS 3.1 detector events, the gate "
@@ -999,8 +1085,10 @@ def build_parser() -> argparse.ArgumentParser:
     _scenario_options(scenario)
     scenario.set_defaults(handler=command_scenario)
 
+    _cache_command(commands)
     bench = commands.add_parser("bench", help="benchmarks")
     targets = bench.add_subparsers(dest="target", required=True, metavar="TARGET")
+    _tolerance_bench_command(targets)
     fluid = targets.add_parser("fluid", help="set-up and per-step cost of the fluid solver, per convection treatment")
     _scenario_options(fluid)
     fluid.add_argument("--repeats", type=Integer(low=2, high=100_000), default="40",
@@ -1090,6 +1178,7 @@ def main(argv=None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     try:
+        install_cache()
         status = args.handler(args)
     except (ScenarioError, UsageError, units.QuantityError) as error:
         return _fail(error, EXIT_INPUT)

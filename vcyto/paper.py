@@ -53,12 +53,13 @@ def run_paper(number: int, scenario: Scenario, max_time: float = 20e-3, progress
     cell = plant.new_cell(scenario.cell_type(spec.cell), 0, state.time)
     state = type(state)(state.flow, (cell,), 0)
     steady = time.perf_counter() - started - setup
-    path, outlines = [cell.membrane.centroid()], [(0.0, cell.membrane.points)]
+    path, outlines, times = [cell.membrane.centroid()], [(0.0, cell.membrane.points)], [state.time]
     stepping = time.perf_counter()
     while state.cells[0].in_channel and state.time < max_time:
         state = plant.step(state, spec.actuation)
         membrane = state.cells[0].membrane
         path.append(membrane.centroid())
+        times.append(state.time)
         update(f"step {state.step}, t = {state.time * 1e3:.3f} ms, centroid x = {path[-1][0] / UM:.1f} um")
     step_wall = time.perf_counter() - stepping
     final = state.cells[0]
@@ -94,7 +95,9 @@ def run_paper(number: int, scenario: Scenario, max_time: float = 20e-3, progress
             "membrane": timings.membrane,
             "health_checks": timings.health,
         },
+        "time_steps": plant.adaptive.summary(state.time) if plant.adaptive else None,
         "_path": np.array(path),
+        "_times": np.array(times),
         "_outlines": _pick(outlines + [(state.time, final.membrane.points)], snapshots),
         "_flow": state.flow,
         "_plant": plant,
@@ -120,6 +123,15 @@ def _pick(items, count):
     return [items[i] for i in indices]
 
 
+def time_step_line(summary: dict | None) -> list[str]:
+    """One line on the dt used, when a tolerance picked it (``sim.adaptive``'s summary)."""
+    if not summary:
+        return []
+    parts = ", ".join(f"{dt:g} us: {steps} steps, {ms:.3f} ms" for dt, steps, ms
+                      in zip(summary["levels_us"], summary["steps"], summary["time_ms"]) if steps)
+    return [f"  time steps for a {summary['tolerance_um']:g} um tolerance: {parts}; {len(summary['changes'])} changes"]
+
+
 def report_lines(result: dict) -> list[str]:
     cell = result["cells"][0]
     wall = result["wall_time_s"]
@@ -138,7 +150,7 @@ def report_lines(result: dict) -> list[str]:
         f"{wall['stepping']:.2f} s ({wall['per_step_ms']:.2f} ms/step)",
         f"  per part: fluid load {wall['fluid_load']:.2f} s, fluid solve {wall['fluid_solve']:.2f} s, "
         f"membrane {wall['membrane']:.2f} s, health checks {wall['health_checks']:.2f} s",
-    ]
+    ] + time_step_line(result.get("time_steps"))
 
 
 def save_png(path: str, result: dict, scenario: Scenario):

@@ -303,6 +303,9 @@ def sort_report_lines(result: dict) -> list[str]:
         f"{result['wall_time_s']:.1f} s wall ({result['model']} model, set-up {result['setup_time_s']:.1f} s); "
         f"controller latency p99 {result['controller_latency_us'].get('p99', float('nan')):.1f} us",
     ]
+    if (result.get("time_steps") or {}).get("levels_us"):
+        from .paper import time_step_line
+        lines += [line.strip() for line in time_step_line(result["time_steps"])]
     if result.get("status", "complete") != "complete":
         lines.append(f"PARTIAL RESULT ({result['status']}): {result['reason']}")
     if "auto" in result:

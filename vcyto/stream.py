@@ -127,11 +127,15 @@ def run_stream(scenario: Scenario, settings: StreamSettings, progress=None, plan
     result.update(status=status, reason=reason, wall_time_s=time.perf_counter() - started, setup_time_s=setup,
                   idt_on_time_ms=run.idt_time * 1e3, steps=run.steps, memory_mb={"after_setup": rss_setup,
                                                                                   "peak": _peak_rss_mb()})
+    if hasattr(plant, "time_steps"):           # feib: the dt used over time (sim.adaptive with --tolerance)
+        result["time_steps"] = plant.time_steps()
     _announce_end(sinks, result)
     if hasattr(plant, "switches"):             # the auto plant: what it picked, when and why
         result["auto"] = {"switches": [{"time_ms": t * 1e3, "model": model, "reason": why}
                                        for t, model, why in plant.switches],
                           "feib_fraction": plant.diagnostics()["feib_fraction"]}
+    if hasattr(plant, "time_steps"):           # feib: the dt used over time (sim.adaptive with --tolerance)
+        result["time_steps"] = plant.time_steps()
     if status == "interrupted":
         raise StreamStopped(status, reason, result)
     if status == "failed":

@@ -66,6 +66,7 @@ class Level:
     window: float | None = None
     coupling: float | None = None      # auto: its coupling factor (None: sim.auto's default)
     stiff: float | None = None         # auto: its stiff-cell capillary number (None: sim.auto's default; 0: off)
+    tolerance: float | None = None     # feib: dt picked per step from dt..8 dt for this path error (sim.adaptive)
 
     @property
     def window_mesh_h(self) -> float:
@@ -79,6 +80,7 @@ class Level:
         if self.model == "auto":
             text += f" window h={self.window_mesh_h / UM:.3g}um"
         text += f" coupling={self.coupling:g}" if self.coupling is not None else ""
+        text += f" tolerance={self.tolerance / UM:g}um" if self.tolerance is not None else ""
         return text + (f" stiff Ca<{self.stiff:g}" if self.stiff is not None else "")
 
 
@@ -86,6 +88,8 @@ PAPER_H = 10 * UM / 3
 LADDER = (
     Level("feib", PAPER_H, 2.5e-6),                   # the reference: the paper's resolution and step
     Level("feib", PAPER_H, 10e-6),
+    Level("feib", PAPER_H, 2.5e-6, tolerance=1e-6),   # dt from 2.5-20 us by the error estimate
+    Level("feib", PAPER_H, 2.5e-6, tolerance=3e-6),
     Level("feib", 2 * PAPER_H, 10e-6),
     Level("oneway", PAPER_H, 2.5e-6),
     Level("oneway", PAPER_H, 10e-6),
@@ -97,6 +101,7 @@ LADDER = (
 FAST_LADDER = (
     Level("feib", 2 * PAPER_H, 10e-6),                # the reference of the reduced set (CI)
     Level("feib", 2 * PAPER_H, 25e-6),
+    Level("feib", 2 * PAPER_H, 10e-6, tolerance=3e-6),
     Level("oneway", 2 * PAPER_H, 10e-6, grid=2e-6),
     Level("rom", 2 * PAPER_H, 20e-6, grid=2e-6),
     Level("auto", 2 * PAPER_H, 10e-6, grid=2e-6),
@@ -121,7 +126,7 @@ class _Flows:
 def make_plant(scenario: Scenario, level: Level, flows: _Flows):
     if level.model == "feib":
         from sim.plant import FeibPlant
-        return FeibPlant(scenario.with_numerics(mesh_h=level.mesh_h, dt=level.dt))
+        return FeibPlant(scenario.with_numerics(mesh_h=level.mesh_h, dt=level.dt, tolerance=level.tolerance or 0.0))
     if level.model == "oneway":
         from sim.oneway import OneWayPlant
         return OneWayPlant(scenario.with_numerics(mesh_h=level.mesh_h, dt=level.dt), flows=flows.get(level))

@@ -1,0 +1,153 @@
+"""Time steps chosen by a tolerance: each FE-IB step takes dt from the levels dt0, 2 dt0, 4 dt0, 8 dt0.
+
+``numerics.tolerance`` is a centroid path error per transit (m). The membrane update of a step,
+X' = X + dt v^{m+1}(X), is first order; its local error is estimated from what the step computes anyway:
+
+    e = dt / 2 | mean_r ( [v^{m+1}(X_r) - v^m(X_r)] - [v^{m+1}(X_r + dt v^{m+1}(X_r)) - v^{m+1}(X_r)] ) |,
+
+the difference between the update and a trapezoidal one (the flow's change in time at the points minus
+its change along their motion), averaged over a cell's points inside the channel: the error of its
+centroid, whose path the tolerance is about; the largest over the cells in the channel. Local errors add up along a
+path, so a step is within budget when e <= SAFETY * tolerance * (distance the cell moved) / channel length:
+a transit then accumulates at most about SAFETY * tolerance. The tolerance is stated against the finest
+level (the reference dt0): since e / distance grows like dt, a ratio q measured at dt_k predicts
+q (2^j - 1) / 2^k for level j against the finest one; the next step takes the coarsest level (at most one
+up) where that is <= 1 (no step is repeated). A new cell, or a change of the IDT drive (the flow jumps
+before any estimate has seen it), starts from the finest level; with no cell in the channel the coarsest
+level is used.
+
+Never above the stability limit of the cells in the channel: STABLE_FRACTION times the paper's bound (33)
+with C_cell = 1 (``sim.stability.paper_bound``). The measured limits are 4.2x (melanoma, 3.33 um mesh) and
+>= 5.6x (6.67 um) that bound, >= 100 us for the RBC (README, "Stability"); 3.4x stays below all of them.
+Each level's fluid matrix is factored once, when first needed, on the same mesh.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from .fluid import NavierStokes
+from .stability import paper_bound
+
+LEVELS = 4
+SAFETY = 0.3
+STABLE_FRACTION = 3.4
+
+
+class AdaptiveSteps:
+    """The level choice and the error estimate of an ``ImmersedBoundary`` plant with ``numerics.tolerance``."""
+
+    def __init__(self, plant):
+        self.plant = plant
+        numerics = plant.scenario.numerics
+        self.tolerance = numerics.tolerance
+        self.levels = [numerics.dt * 2 ** k for k in range(LEVELS)]
+        self._fluids = {0: plant.fluid}
+        self._limits: dict[str, float] = {}
+        self._known: set[int] = set()
+        self._actuation: float | None = None
+        self.level = LEVELS - 1
+        self.ratio = float("nan")
+        self.history: list[tuple[float, float]] = []          # (time, dt) whenever dt changes
+        self.steps = [0] * LEVELS
+
+    # ------------------------------------------------------------------ levels
+    def fluid(self, level: int) -> NavierStokes:
+        """The fluid solver of ``level`` (factored on first use, on the plant's mesh; timings shared)."""
+        if level not in self._fluids:
+            base = self.plant.fluid
+            fluid = NavierStokes(self.plant.scenario.with_numerics(dt=self.levels[level], tolerance=0.0), base.space)
+            base.timings.factor += fluid.timings.factor
+            fluid.timings = base.timings
+            self._fluids[level] = fluid
+        return self._fluids[level]
+
+    def stable_level(self, cells) -> int:
+        """The coarsest level within STABLE_FRACTION of every present cell type's stability bound."""
+        limit = math.inf
+        for cell in cells:
+            cell_type = cell.membrane.cell_type
+            if cell_type.name not in self._limits:
+                self._limits[cell_type.name] = STABLE_FRACTION * paper_bound(cell_type, self.plant.scenario)
+            limit = min(limit, self._limits[cell_type.name])
+        return max([0] + [k for k, dt in enumerate(self.levels) if dt <= limit])
+
+    def choose(self, state, active, until, actuation: float | None = None) -> int:
+        """The level of the next step: the estimate's; the finest for a new cell or when the IDT drive changes
+        (the flow jumps: no estimate has seen it yet); capped by stability and ``until``."""
+        ids = {cell.id for cell in active}
+        switched = actuation is not None and self._actuation is not None and actuation != self._actuation
+        level = LEVELS - 1 if not active else (0 if ids - self._known or switched else self.level)
+        self._known, self._actuation = ids, actuation
+        level = min(level, self.stable_level(active))
+        if until is not None:
+            room = until - state.time
+            while level > 0 and self.levels[level] > room + 1e-6 * self.levels[0]:
+                level -= 1
+        return level
+
+    # ------------------------------------------------------------------ the step
+    def step(self, state, actuation: float, until: float | None):
+        active = [cell for cell in state.cells if cell.in_channel]
+        level = self.choose(state, active, until, actuation)
+        dt = self.levels[level]
+        samples = [self._sample(state.flow.velocity, cell.membrane.points) for cell in active]
+        new = self.plant.fixed_step(state, actuation, self.fluid(level))
+        if active:
+            self.ratio = max(self._ratio(sample, new.flow.velocity, dt) for sample in samples)
+            self.level = self._next_level(level, self.ratio)
+        if not self.history or self.history[-1][1] != dt:
+            self.history.append((state.time, dt))
+        self.steps[level] += 1
+        return new
+
+    def _next_level(self, level: int, ratio: float) -> int:
+        """The coarsest level (at most one up) whose error relative to the finest level's is within budget.
+
+        The error rate grows like dt: ``ratio`` measured at dt_k = 2^k dt0 predicts ratio / 2^k (2^j - 1) for
+        level j against the finest level (the reference the tolerance is stated against)."""
+        if not math.isfinite(ratio):
+            return 0
+        rate = ratio / 2 ** level
+        fitting = [j for j in range(min(LEVELS - 1, level + 1) + 1) if rate * (2 ** j - 1) <= 1]
+        return max(fitting)
+
+    def _sample(self, velocity, points):
+        """The points inside the channel, located, and the old velocity there."""
+        locator = self.plant.locator
+        points = points[points[:, 0] < self.plant.scenario.channel.length]
+        elements, reference = locator.locate(points)
+        keep = elements >= 0
+        points, elements, reference = points[keep], elements[keep], reference[keep]
+        return points, elements, reference, locator.interpolate_located(velocity, elements, reference)
+
+    def _ratio(self, sample, velocity, dt) -> float:
+        """The local error estimate of one cell over its budget for the step (module docstring)."""
+        points, elements, reference, old = sample
+        if len(points) == 0:
+            return 0.0
+        locator = self.plant.locator
+        new = locator.interpolate_located(velocity, elements, reference)
+        moved = self.plant._inside(points + dt * new)
+        moved_elements, moved_reference = locator.locate(moved)
+        inside = moved_elements >= 0
+        along = np.zeros_like(new)
+        along[inside] = locator.interpolate_located(velocity, moved_elements[inside], moved_reference[inside]) \
+            - new[inside]
+        error = 0.5 * dt * float(np.linalg.norm(((new - old) - along).mean(axis=0)))
+        distance = dt * float(np.linalg.norm(new, axis=1).mean())
+        budget = SAFETY * self.tolerance * distance / self.plant.scenario.channel.length
+        return error / budget if budget > 0 else (0.0 if error == 0 else math.inf)
+
+    # ------------------------------------------------------------------ reporting
+    def summary(self, end_time: float) -> dict:
+        """The dt used over time: steps and simulated time per level, and the changes (time, dt)."""
+        changes = self.history + [(end_time, math.nan)]
+        share = [0.0] * LEVELS
+        for (start, dt), (stop, _) in zip(changes[:-1], changes[1:]):
+            share[self.levels.index(dt)] += stop - start
+        return {"tolerance_um": self.tolerance * 1e6, "levels_us": [dt * 1e6 for dt in self.levels],
+                "steps": list(self.steps), "time_ms": [t * 1e3 for t in share],
+                "changes": [(round(t * 1e3, 6), dt * 1e6) for t, dt in self.history]}

@@ -1,0 +1,246 @@
+"""A bit-for-bit reproducible back-solve on two cores: the channel cut in two, each half solved on its own thread.
+
+PARDISO's parallel substitution (``iparm[24] = 2``) is twice as fast as its sequential one but its
+reductions make the last bits of a solution vary from run to run. Here the parallelism is ours and static:
+
+The unknowns are split by their x coordinate into a left part I1, a right part I2 and the separator S (the
+left unknowns coupled to right ones, a line of nodes across the channel), so that
+
+    A = [[A1, 0, C1], [0, A2, C2], [C1^T, C2^T, A_S]]
+
+Each A_i is factored by its own sequential PARDISO (A_i^{-1} = G_i D_i^{-1} F_i: the forward (phase 331),
+diagonal (332) and backward (333) substitutions, with G_i = F_i^T for a symmetric matrix). With
+H_i = D_i^{-1} F_i C_i (sparse: a few hundred thousand entries) and the dense separator matrix
+K = A_S - sum_i (F_i C_i)^T H_i, a solve is
+
+    thread i:  y_i = F_i b_i,  z_i = D_i^{-1} y_i,  g_i = H_i^T y_i
+    both:      x_S = K^{-1} (b_S - g_1 - g_2)
+    thread i:  x_i = G_i (z_i - H_i x_S)
+
+Every operation runs in a fixed order on one thread with one MKL thread, so equal inputs give equal bits,
+whatever the machine's load; the two halves stream their factors through memory at the same time.
+
+The halves are factored at once when the solver is built; the coupling (H_i and K: one forward and one
+diagonal substitution per separator unknown) on the first solve, through ``sim.store`` so an application
+can keep it between runs (the key names the matrix, the cut, MKL's version and a probe of both factors).
+PARDISO's partial substitutions with several right-hand sides give wrong columns after the first (measured
+with MKL 2026.2), hence one column at a time.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import queue
+import threading
+
+import numpy as np
+import scipy.linalg as sla
+import scipy.sparse as sp
+
+from .linalg import Pardiso, SolverError, _mkl_runtime, mkl_version
+from .store import digest, reuse
+
+MIN_UNKNOWNS = 20_000        # below this a plain sequential PARDISO solve is as fast
+
+
+def separator_split(matrix: sp.csr_matrix, x: np.ndarray, band=(0.35, 0.65)):
+    """(I1, I2, S) index arrays: a cut x <= t with the smallest separator near the middle (best balanced
+    among cuts within 10 % of the smallest). S is the left unknowns coupled to a right one; none of I1 is."""
+    pattern = sp.csr_matrix((np.ones(matrix.nnz, dtype=np.int32), matrix.indices, matrix.indptr), shape=matrix.shape)
+    order = np.sort(x)
+    low, high = order[int(band[0] * len(x))], order[int(band[1] * len(x))]
+    candidates = []
+    for cut in np.unique(x[(x >= low) & (x <= high)]):
+        left = x <= cut
+        separator = left & (pattern @ (~left).astype(np.int32) > 0)
+        candidates.append((int(separator.sum()), abs(2 * int(left.sum()) - len(x)), cut, separator, left))
+    if not candidates:
+        raise SolverError("no cut across the domain found for the split solve")
+    smallest = min(c[0] for c in candidates)
+    size, _, cut, separator, left = min((c for c in candidates if c[0] <= 1.1 * smallest), key=lambda c: c[1])
+    return np.flatnonzero(left & ~separator), np.flatnonzero(~left), np.flatnonzero(separator)
+
+
+def _one_mkl_thread():
+    library = _mkl_runtime()
+    library.MKL_Set_Num_Threads_Local.restype = ctypes.c_int
+    library.MKL_Set_Num_Threads_Local(ctypes.c_int(1))
+
+
+class _Half:
+    """One side of the cut: its sequential factorisation and H = D^{-1} F C."""
+
+    def __init__(self, block: sp.csr_matrix):
+        _one_mkl_thread()
+        self.factor = Pardiso(block, symmetric=True, reproducible=True)
+        n = block.shape[0]
+        self.y, self.z, self.x = (np.zeros(n) for _ in range(3))
+        self.h = self.h_t = None
+        self.dinv = self._diagonal(n)
+
+    def _diagonal(self, n: int) -> np.ndarray | None:
+        """PARDISO's diagonal substitution (phase 332) as a vector when it is one (1x1 pivots: checked on two
+        random vectors to 1e-13), else None: 332 costs a quarter of a half's solve, a product almost nothing."""
+        dinv = self.factor.phase(332, np.ones(n))
+        for probe in np.random.default_rng(18).uniform(1.0, 2.0, size=(2, n)):
+            exact = self.factor.phase(332, probe)
+            if not np.all(np.abs(dinv * probe - exact) <= 1e-13 * np.abs(exact)):
+                return None
+        return dinv
+
+    def _solve_diagonal(self, vector: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
+        if self.dinv is None:
+            return self.factor.phase(332, vector, out)
+        return np.multiply(self.dinv, vector, out=out)
+
+    def _column(self, coupling: sp.csc_matrix, j: int) -> np.ndarray:
+        dense = np.zeros(coupling.shape[0])
+        start, end = coupling.indptr[j], coupling.indptr[j + 1]
+        dense[coupling.indices[start:end]] = coupling.data[start:end]
+        return dense
+
+    def probe(self, coupling: sp.csc_matrix) -> np.ndarray:
+        """F C e_0: names this factorisation in the key of the stored coupling (a different factor misses)."""
+        return self.factor.phase(331, self._column(coupling, 0))
+
+    def coupling(self, coupling: sp.csc_matrix) -> tuple[sp.csr_matrix, np.ndarray]:
+        """H = D^{-1} F C (sparse) and (F C)^T H (dense, this half's share of the separator's Schur complement)."""
+        _one_mkl_thread()
+        columns_e, columns_h = [], []
+        for j in range(coupling.shape[1]):
+            e = self.factor.phase(331, self._column(coupling, j))
+            columns_e.append(sp.csc_matrix(e[:, None]))
+            columns_h.append(sp.csc_matrix(self._solve_diagonal(e)[:, None]))
+        h = sp.hstack(columns_h, format="csr")
+        return h, (sp.hstack(columns_e, format="csc").T @ h).toarray()
+
+    def use(self, h: sp.csr_matrix):
+        self.h, self.h_t = h, h.T.tocsr()
+
+    def forward(self, rhs: np.ndarray) -> np.ndarray:
+        self.factor.phase(331, rhs, self.y)
+        self._solve_diagonal(self.y, self.z)
+        return self.h_t @ self.y
+
+    def backward(self, separator_solution: np.ndarray) -> np.ndarray:
+        w = self.z - self.h @ separator_solution
+        return self.factor.phase(333, w, self.x)
+
+
+class _Worker(threading.Thread):
+    """A daemon thread with one MKL thread that runs the tasks it is given, one at a time."""
+
+    def __init__(self):
+        super().__init__(daemon=True)
+        self.tasks, self.results = queue.SimpleQueue(), queue.SimpleQueue()
+        self.start()
+
+    def run(self):
+        _one_mkl_thread()
+        while (task := self.tasks.get()) is not None:
+            try:
+                self.results.put((True, task()))
+            except Exception as error:  # handed back to the caller's thread
+                self.results.put((False, error))
+
+    def submit(self, task):
+        self.tasks.put(task)
+
+    def result(self):
+        ok, value = self.results.get()
+        if not ok:
+            raise value
+        return value
+
+
+class SplitPardiso:
+    """A symmetric matrix solved by two sequential PARDISO halves on two threads (module docstring)."""
+
+    def __init__(self, matrix: sp.spmatrix, x: np.ndarray):
+        matrix = sp.csr_matrix(matrix)
+        self.shape = matrix.shape
+        self.symmetric = True
+        self.parts = separator_split(matrix, np.asarray(x, dtype=float))
+        left, right, separator = self.parts
+        self._worker = _Worker()
+        blocks = [matrix[p][:, p].tocsr() for p in (left, right)]
+        couplings = [matrix[p][:, separator].tocsc() for p in (left, right)]
+        self.halves = self._both(lambda: _Half(blocks[0]), lambda: _Half(blocks[1]))
+        self.factor_nonzeros = sum(h.factor.factor_nonzeros for h in self.halves)
+        self.separator_size = len(separator)
+        self._schur = None
+        self._pending = (matrix, couplings)      # the coupling is computed on the first solve (``_couple``)
+
+    def _couple(self):
+        """H of each half and the separator's Schur complement: from the store (sim.store) or computed."""
+        matrix, couplings = self._pending
+        key = {"matrix": digest(matrix.data, matrix.indices, matrix.indptr), "parts": digest(*self.parts),
+               "mkl": mkl_version(), "factors": digest(*(h.probe(c) for h, c in zip(self.halves, couplings)))}
+        stored = reuse("split-solve", key, lambda: self._coupling(matrix, couplings))
+        for i, half in enumerate(self.halves):
+            half.use(sp.csr_matrix((stored[f"h{i}_data"], stored[f"h{i}_indices"], stored[f"h{i}_indptr"]),
+                                   shape=(len(self.parts[i]), self.separator_size)))
+        self._schur = (stored["schur_lu"], stored["schur_pivots"])
+        self.factor_nonzeros += sum(h.h.nnz for h in self.halves)
+        self._pending = None
+
+    def _coupling(self, matrix, couplings) -> dict:
+        """The arrays a later run can reuse: each half's H and the LU factors of the separator's Schur complement."""
+        first, second = self._both(lambda: self.halves[0].coupling(couplings[0]),
+                                   lambda: self.halves[1].coupling(couplings[1]))
+        separator = self.parts[2]
+        schur = matrix[separator][:, separator].toarray() - first[1] - second[1]
+        lu, pivots = sla.lu_factor(schur, check_finite=False)
+        arrays = {"schur_lu": lu, "schur_pivots": pivots}
+        for i, (h, _) in enumerate((first, second)):
+            arrays.update({f"h{i}_data": h.data, f"h{i}_indices": h.indices, f"h{i}_indptr": h.indptr})
+        return arrays
+
+    def _both(self, on_main, on_worker):
+        """Run two tasks at once, one here and one on the worker thread; both results."""
+        self._worker.submit(on_worker)
+        try:
+            first = self._in_main(on_main)
+        finally:
+            second = self._worker.result()
+        return first, second
+
+    @staticmethod
+    def _in_main(task):
+        """Run ``task`` on this thread with one MKL thread, then give MKL back its global setting."""
+        library = _mkl_runtime()
+        library.MKL_Set_Num_Threads_Local.restype = ctypes.c_int
+        previous = library.MKL_Set_Num_Threads_Local(ctypes.c_int(1))
+        try:
+            return task()
+        finally:
+            library.MKL_Set_Num_Threads_Local(ctypes.c_int(previous))
+
+    def solve(self, rhs: np.ndarray) -> np.ndarray:
+        rhs = np.asarray(rhs, dtype=np.float64)
+        if rhs.ndim != 1:
+            return np.column_stack([self.solve(column) for column in rhs.T])
+        if self._schur is None:
+            self._couple()
+        left, right, separator = self.parts
+        first, second = self.halves
+        g_first, g_second = self._both(lambda: first.forward(rhs[left]), lambda: second.forward(rhs[right]))
+        separator_solution = sla.lu_solve(self._schur, rhs[separator] - g_first - g_second, check_finite=False)
+        x_first, x_second = self._both(lambda: first.backward(separator_solution),
+                                       lambda: second.backward(separator_solution))
+        solution = np.empty(self.shape[0])
+        solution[left], solution[right], solution[separator] = x_first, x_second, separator_solution
+        return solution
+
+    def release(self):
+        if self._worker is not None:
+            self._worker.submit(None)
+            self._worker = None
+        for half in getattr(self, "halves", ()):
+            half.factor.release()
+
+    def __del__(self):
+        try:
+            self.release()
+        except Exception:  # interpreter shutdown: nothing sensible to report
+            pass

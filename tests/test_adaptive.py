@@ -1,0 +1,134 @@
+"""Time steps chosen by a tolerance (sim/adaptive.py, --tolerance): the level rules, and the done-means of
+issue 18: Scenario I, II and the default stream keep their outlets and stay within the tolerance of the
+dt = 2.5 us reference paths (centroid distance at the adaptive run's times, as the tradeoff measures it)."""
+
+import math
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from sim.adaptive import LEVELS, AdaptiveSteps
+from sim.scenario import UM, Scenario
+from vcyto.paper import paper_scenario, run_paper
+
+
+def steps_of(scenario):
+    return AdaptiveSteps(SimpleNamespace(scenario=scenario, fluid=None))
+
+
+def cell(kind, key, scenario):
+    from sim.feib import new_cell
+    return new_cell(scenario, scenario.cell_type(kind), key, 0.0, warn=False)
+
+
+def test_levels_new_cells_empty_channel_and_the_stability_cap():
+    scenario = Scenario().with_numerics(dt=10e-6, tolerance=1e-6)          # paper mesh; levels 10-80 us
+    steps = steps_of(scenario)
+    state = SimpleNamespace(time=0.0)
+    assert steps.levels == [10e-6, 20e-6, 40e-6, 80e-6]
+    assert steps.choose(state, [], None) == LEVELS - 1                      # nobody to be accurate for
+    rbc = cell("RBC", 1, scenario)
+    assert steps.choose(state, [rbc], None) == 0                            # a new cell starts finest
+    steps.level = 3
+    assert steps.choose(state, [rbc], None) == 3                            # RBC: bound 409 us, no cap
+    melanoma = cell("melanoma", 2, scenario)
+    steps.level = 3
+    # melanoma: 3.4 x 8.9 us = 30 us < 37.6 us measured: never above 20 us, whatever the estimate says
+    assert steps.choose(state, [rbc, melanoma], None) == 0                 # the melanoma is new
+    steps.level = 3
+    assert steps.choose(state, [rbc, melanoma], None) == 1
+    assert steps.choose(state, [rbc], until=25e-6) == 1                     # never past `until`
+    steps.level = 3
+    assert steps.choose(state, [rbc], None, actuation=0.0) == 3
+    assert steps.choose(state, [rbc], None, actuation=1.0) == 0             # the IDT switched: the flow jumps
+
+
+def test_next_level_against_the_finest_level():
+    steps = steps_of(Scenario().with_numerics(tolerance=1e-6))
+    assert steps._next_level(0, 0.9) == 1          # level 1 predicted at 0.9 of the budget: one up
+    assert steps._next_level(0, 3.0) == 0          # the melanoma at 1 um: stays at dt
+    assert steps._next_level(1, 0.2) == 2          # at most one up per step
+    assert steps._next_level(2, 1.5) == 1          # down as far as needed
+    assert steps._next_level(3, math.inf) == 0
+
+
+def paper_pair(number, mesh_h, tolerance):
+    base = Scenario().with_numerics(mesh_h=mesh_h, dt=2.5e-6).with_membrane("paper")
+    runs = [run_paper(number, paper_scenario(number, base.with_numerics(tolerance=t), dt_given=True))
+            for t in (0.0, tolerance)]
+    reference, adaptive = runs
+    times, path = adaptive["_times"], adaptive["_path"]
+    keep = times <= reference["_times"][-1]
+    gap = np.hypot(path[keep, 0] - np.interp(times[keep], reference["_times"], reference["_path"][:, 0]),
+                   path[keep, 1] - np.interp(times[keep], reference["_times"], reference["_path"][:, 1]))
+    return reference, adaptive, float(gap.max())
+
+
+@pytest.mark.parametrize("number", [1, 2])
+def test_paper_scenarios_within_tolerance_on_the_coarse_mesh(number):
+    reference, adaptive, gap = paper_pair(number, 20 * UM / 3, 1e-6)
+    assert adaptive["cells"][0]["outlet"] == reference["cells"][0]["outlet"]
+    assert gap <= 1e-6
+    assert adaptive["steps"] < reference["steps"]            # coarser levels were taken (a melanoma in the jet: few)
+    summary = adaptive["time_steps"]
+    assert sum(summary["steps"]) == adaptive["steps"] and summary["steps"][1] > 0
+    assert math.isclose(sum(summary["time_ms"]), adaptive["_times"][-1] * 1e3, rel_tol=1e-9)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("number", [1, 2])
+def test_paper_scenarios_within_tolerance_at_the_paper_mesh(number):
+    reference, adaptive, gap = paper_pair(number, 10 * UM / 3, 1e-6)
+    assert adaptive["cells"][0]["outlet"] == reference["cells"][0]["outlet"]
+    assert gap <= 1e-6 and adaptive["steps"] < reference["steps"]
+
+
+class PathSink:
+    """Collects every cell's centroid at every control period of a stream."""
+
+    def __init__(self):
+        self.paths = {}
+
+    def on_step(self, step, observation, truth, actuation, events, decisions, fields=None, diagnostics=None):
+        for view in observation.cells:
+            self.paths.setdefault(view.key, []).append((observation.time, view.x, view.y))
+
+    def close(self):
+        pass
+
+
+@pytest.mark.slow
+def test_default_stream_within_tolerance():
+    from sim.arrivals import Arrivals
+    from vcyto.stream import StreamSettings, run_stream
+    results = []
+    for tolerance in (0.0, 1e-6):
+        sink = PathSink()
+        scenario = Scenario().with_numerics(tolerance=tolerance)
+        result = run_stream(scenario, StreamSettings(Arrivals(cells=("RBC", "melanoma"))), sinks=[sink])
+        results.append((result, {k: np.array(v) for k, v in sink.paths.items()}))
+    (reference, ref_paths), (adaptive, paths) = results
+    assert [c["outlet"] for c in adaptive["cells"]] == [c["outlet"] for c in reference["cells"]]
+    for key, path in paths.items():
+        ref = ref_paths[key]
+        keep = (path[:, 0] >= ref[0, 0]) & (path[:, 0] <= ref[-1, 0])
+        gap = np.hypot(path[keep, 1] - np.interp(path[keep, 0], ref[:, 0], ref[:, 1]),
+                       path[keep, 2] - np.interp(path[keep, 0], ref[:, 0], ref[:, 2]))
+        assert gap.max() <= 1e-6, (key, gap.max())
+    assert adaptive["time_steps"]["levels_us"] == [2.5, 5.0, 10.0, 20.0]
+
+
+@pytest.mark.parametrize("arguments, message", [
+    (["paper", "2", "--tolerance", "1us"], "--tolerance: must be a positive length"),
+    (["paper", "2", "--tolerance=-1um"], "--tolerance: must be a positive length"),
+    (["paper", "1", "--tolerance", "nan"], "--tolerance: cannot read 'nan'"),
+    (["stream", "--model", "rom", "--tolerance", "1um"], "--tolerance: picks the steps of the feib model only"),
+    (["bench", "tolerance", "--tolerances", "1us"], "--tolerances needs positive numbers"),
+])
+def test_bad_tolerances_are_one_line_errors(arguments, message):
+    import subprocess
+    import sys
+    result = subprocess.run([sys.executable, "-m", "vcyto.cli", *arguments], capture_output=True, text=True)
+    assert result.returncode == 2 and result.stderr.startswith("vcyto: error: " + message)
+    assert result.stderr.count("\n") == 1 and "Traceback" not in result.stderr

@@ -1,0 +1,125 @@
+"""The set-up cache (vcyto/cache.py + sim/store.py): a cached start equals a cold one, a changed field misses,
+a corrupted entry is rebuilt, concurrent writers leave a valid entry. Every test uses its own directory."""
+
+import dataclasses
+import multiprocessing
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from sim import store
+from sim.fluid import NavierStokes
+from sim.scenario import UM, Scenario
+from vcyto.cache import DiskCache, clear, usage
+
+
+@pytest.fixture
+def cache(tmp_path):
+    disk = DiskCache(tmp_path / "cache")
+    previous = store.install(disk)
+    yield disk
+    store.install(previous)
+
+
+def scenario(**fluid):
+    base = Scenario().with_numerics(mesh_h=10 * UM)
+    return dataclasses.replace(base, fluid=dataclasses.replace(base.fluid, **fluid)) if fluid else base
+
+
+def first_step(scene):
+    fluid = NavierStokes(scene)
+    return fluid.step(fluid.steady(0.0), actuation=1.0)
+
+
+def test_cached_start_gives_the_cold_start_first_step(cache):
+    store.install(None)
+    cold = first_step(scenario())
+    store.install(cache)
+    first_step(scenario())                        # fills the cache
+    assert cache.misses >= 1 and cache.hits == 0
+    warm = first_step(scenario())
+    assert cache.hits >= 1
+    assert np.allclose(warm.velocity, cold.velocity, rtol=0, atol=1e-12 * np.abs(cold.velocity).max())
+    assert np.allclose(warm.pressure, cold.pressure, rtol=0, atol=1e-12 * np.abs(cold.pressure).max())
+
+
+def test_a_changed_scenario_field_misses(cache):
+    first = NavierStokes(scenario()).steady(0.0)
+    misses = cache.misses
+    other = NavierStokes(scenario(viscosity=5e-3)).steady(0.0)
+    assert cache.misses == misses + 1 and cache.hits == 0
+    assert not np.allclose(first.velocity, other.velocity)
+    NavierStokes(scenario()).steady(0.0)
+    assert cache.hits == 1
+
+
+def builder(calls):
+    def build():
+        calls.append(1)
+        return {"x": np.arange(5.0), "y": np.eye(3)}
+    return build
+
+
+def test_a_corrupted_entry_is_detected_and_rebuilt(tmp_path):
+    disk, calls = DiskCache(tmp_path), []
+    key = {"a": 1}
+    disk.fetch("kind", key, builder(calls))
+    path = disk.path("kind", key)
+    raw = bytearray(path.read_bytes())
+    raw[len(raw) // 2] ^= 0xFF                     # one flipped byte inside the data
+    path.write_bytes(bytes(raw))
+    arrays = disk.fetch("kind", key, builder(calls))
+    assert disk.rebuilt == 1 and len(calls) == 2 and np.array_equal(arrays["x"], np.arange(5.0))
+    path.write_bytes(path.read_bytes()[:100])      # truncated
+    disk.fetch("kind", key, builder(calls))
+    assert disk.rebuilt == 2 and len(calls) == 3
+    assert disk.fetch("kind", key, builder(calls))["y"].shape == (3, 3) and disk.hits == 1 and len(calls) == 3
+
+
+def test_keys_name_everything(tmp_path):
+    disk, calls = DiskCache(tmp_path), []
+    disk.fetch("kind", {"a": 1, "b": 2.0}, builder(calls))
+    disk.fetch("kind", {"b": 2.0, "a": 1}, builder(calls))          # same key, other order: a hit
+    disk.fetch("kind", {"a": 1, "b": 2.0000000001}, builder(calls))  # any field: a miss
+    disk.fetch("other", {"a": 1, "b": 2.0}, builder(calls))
+    assert len(calls) == 3 and disk.hits == 1
+
+
+def _writer(directory, seed):
+    disk = DiskCache(directory)
+    big = np.random.default_rng(0).standard_normal(200_000)    # the same content from every writer
+    for _ in range(5):
+        disk._save(disk.path("kind", {"k": 1}), disk._full_key("kind", {"k": 1}), {"big": big})
+
+
+def test_concurrent_writers_leave_a_valid_entry(tmp_path):
+    context = multiprocessing.get_context("spawn")
+    writers = [context.Process(target=_writer, args=(tmp_path, seed)) for seed in range(4)]
+    for writer in writers:
+        writer.start()
+    for writer in writers:
+        writer.join(60)
+        assert writer.exitcode == 0
+    disk = DiskCache(tmp_path)
+    arrays = disk.fetch("kind", {"k": 1}, lambda: pytest.fail("the entry should be valid"))
+    assert disk.hits == 1 and arrays["big"].shape == (200_000,)
+    assert not list(Path(tmp_path).rglob("*.tmp"))                 # no temporary file left behind
+    assert usage(tmp_path)["entries"] == 1 and clear(tmp_path) == 1 and usage(tmp_path)["entries"] == 0
+
+
+def test_cache_command_reports_and_clears_the_configured_directory(tmp_path):
+    import json
+    import os
+    import subprocess
+    import sys
+    environment = {**os.environ, "VCYTO_CACHE_DIR": str(tmp_path)}
+    DiskCache(tmp_path).fetch("kind", {"a": 1}, lambda: {"x": np.zeros(3)})
+    run = subprocess.run([sys.executable, "-m", "vcyto.cli", "cache", "clear", "--json"], capture_output=True,
+                         text=True, env=environment)
+    assert run.returncode == 0, run.stderr
+    report = json.loads(run.stdout)
+    assert report["directory"] == str(tmp_path) and report["removed"] == 1 and report["entries"] == 0
+    run = subprocess.run([sys.executable, "-m", "vcyto.cli", "cache"], capture_output=True, text=True,
+                         env={**environment, "VCYTO_CACHE": "off"})
+    assert "off" in run.stdout

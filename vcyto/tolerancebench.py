@@ -1,0 +1,61 @@
+"""`vcyto bench tolerance`: the paper scenarios with time steps chosen by a tolerance against fixed steps.
+
+For each scenario (the paper's literal method, dt = 2.5 us, the mesh of the options) the fixed-step run is
+the reference; each tolerance's run reports its outlet, the centroid path distance at its own times to the
+reference path interpolated there (max, mean; as ``vcyto tradeoff`` measures it), its steps in all and per
+level, and both runs' stepping wall times.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from sim.scenario import UM, Scenario
+
+from .paper import paper_scenario, run_paper
+
+
+def path_distance(times, path, reference_times, reference_path) -> np.ndarray:
+    """Centroid distance at ``times`` (within the reference's span) to the reference path interpolated there."""
+    keep = (times >= reference_times[0]) & (times <= reference_times[-1])
+    return np.hypot(path[keep, 0] - np.interp(times[keep], reference_times, reference_path[:, 0]),
+                    path[keep, 1] - np.interp(times[keep], reference_times, reference_path[:, 1]))
+
+
+def bench_tolerance(base: Scenario, numbers=(1, 2), tolerances=(1e-6, 3e-6), progress=lambda message: None) -> dict:
+    rows = []
+    base = base.with_numerics(dt=base.numerics.dt, tolerance=0.0).with_membrane("paper")
+    for number in numbers:
+        progress(f"scenario {number}, fixed dt = {base.numerics.dt * 1e6:g} us")
+        reference = run_paper(number, paper_scenario(number, base, dt_given=True))
+        rows.append(_row(number, None, reference, reference))
+        for tolerance in tolerances:
+            progress(f"scenario {number}, tolerance {tolerance / UM:g} um")
+            run = run_paper(number, paper_scenario(number, base.with_numerics(tolerance=tolerance), dt_given=True))
+            rows.append(_row(number, tolerance, run, reference))
+    return {"mesh_h_um": base.numerics.mesh_h / UM, "dt_us": base.numerics.dt * 1e6, "rows": rows}
+
+
+def _row(number, tolerance, run, reference) -> dict:
+    gap = path_distance(run["_times"], run["_path"], reference["_times"], reference["_path"])
+    summary = run.get("time_steps") or {}
+    return {"scenario": number, "tolerance_um": None if tolerance is None else tolerance / UM,
+            "outlet": run["cells"][0]["outlet"], "reference_outlet": reference["cells"][0]["outlet"],
+            "path_max_um": float(gap.max()) / UM, "path_mean_um": float(gap.mean()) / UM,
+            "steps": run["steps"], "reference_steps": reference["steps"], "steps_per_level": summary.get("steps"),
+            "levels_us": summary.get("levels_us"), "stepping_s": run["wall_time_s"]["stepping"]}
+
+
+def tolerance_lines(result: dict) -> list[str]:
+    lines = [f"time steps chosen by a tolerance: h = {result['mesh_h_um']:.3g} um, finest dt = {result['dt_us']:g} us, "
+             "against fixed steps of dt (the paper's literal method)",
+             "  scenario  tolerance  outlet (ref)    path max / mean (um)  steps (ref)    steps per level"
+             "   stepping (s)"]
+    for row in result["rows"]:
+        tolerance = "fixed" if row["tolerance_um"] is None else f"{row['tolerance_um']:g} um"
+        levels = "/".join(str(n) for n in row["steps_per_level"]) if row["steps_per_level"] else "-"
+        lines.append(f"  {row['scenario']:>8}  {tolerance:>9}  {row['outlet']:>6} ({row['reference_outlet']})  "
+                     f"{row['path_max_um']:8.3f} / {row['path_mean_um']:.3f}   "
+                     f"{row['steps']:>5} ({row['reference_steps']})"
+                     f"   {levels:>15}   {row['stepping_s']:8.1f}")
+    return lines

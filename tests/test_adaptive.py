@@ -124,7 +124,7 @@ def test_default_stream_within_tolerance():
     (["paper", "2", "--tolerance=-1um"], "--tolerance: must be a positive length"),
     (["paper", "1", "--tolerance", "nan"], "--tolerance: cannot read 'nan'"),
     (["stream", "--model", "rom", "--tolerance", "1um"], "--tolerance: picks the steps of the feib model only"),
-    (["bench", "tolerance", "--tolerances", "1us"], "--tolerances needs positive numbers"),
+    (["bench", "tolerance", "--tolerances", "1us"], "--tolerances: needs positive numbers"),
 ])
 def test_bad_tolerances_are_one_line_errors(arguments, message):
     import subprocess

@@ -46,6 +46,7 @@ FIELD_DIMENSIONS = {
     "Saw.amplitude": "length", "Saw.frequency": "frequency", "Saw.streaming_force": "force density",
     "Saw.attenuation_length": "length", "Saw.spin_up_time": "time",
     "Numerics.mesh_h": "length", "Numerics.dt": "time", "Numerics.nonlinear_tolerance": "dimensionless",
+    "Numerics.tolerance": "length",
     "Numerics.membrane_spacing": "dimensionless", "Numerics.max_area_change": "dimensionless",
     "Numerics.spacing_band": "dimensionless", "Numerics.max_stretch": "dimensionless",
     "CellType.kappa_e": "tension", "CellType.kappa_b": "bending modulus", "CellType.semi_axes": "length",

@@ -447,3 +447,14 @@ def test_no_viewer_binary_at_all_means_an_rrd(monkeypatch, capsys):
     assert view.kind == "save" and view.path is None                 # the run's own NAME.rrd
     assert capsys.readouterr().err.strip() == ("vcyto: cannot start a Rerun viewer: the rerun-sdk installation has no "
                                                "viewer binary; saving the view to an .rrd file instead")
+
+
+def test_a_second_paper_run_never_overwrites_the_first_figure(tmp_path):
+    """The default figure gets a new name; a figure named by the user that exists is refused in one line."""
+    args = ["paper", "2", "--mesh-h", "6.67um", "--quiet"]
+    for _ in range(2):
+        assert vcyto(*args, cwd=tmp_path).returncode == 0
+    assert sorted(p.name for p in (tmp_path / "recordings").iterdir()) == ["paper2-2.png", "paper2.png"]
+    refused = vcyto(*args, "--png", str(tmp_path / "recordings" / "paper2.png"), cwd=tmp_path)
+    assert refused.returncode == 2 and "never overwrites" in refused.stderr
+    assert len(refused.stderr.strip().splitlines()) == 1

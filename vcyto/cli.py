@@ -148,16 +148,23 @@ def _tolerance_override(args) -> list[str]:
     return [f"numerics.tolerance={value!r}"]
 
 
-def _output_path(path: str | None) -> Path | None:
-    """Check before any work that an output file can be written."""
+def _output_path(path: str | None, default: bool = False) -> Path | None:
+    """Check before any work that an output file can be written, and reserve it: a file that exists is never
+    overwritten (a default name becomes NAME-2, NAME-3, ...; a name the user gave is refused)."""
     if path is None:
         return None
     target = Path(path)
     directory = target.parent if str(target.parent) else Path(".")
+    if default:
+        directory.mkdir(parents=True, exist_ok=True)
     if not directory.is_dir():
         raise UsageError(f"cannot write {path}: directory {directory} does not exist")
     if not os.access(directory, os.W_OK):
         raise UsageError(f"cannot write {path}: directory {directory} is not writable")
+    if default:
+        return outputs.unique_path(target)
+    if target.exists():
+        raise UsageError(f"{path} exists: a run never overwrites a file; choose another name or remove it")
     return target
 
 
@@ -284,7 +291,7 @@ def command_paper(args):
     # with --tolerance the finest level is --dt or 2.5 us, the step the tolerance is stated against
     scenario = paper.paper_scenario(args.number, _scenario(args, membrane="paper"),
                                     dt_given=args.dt is not None or args.tolerance is not None)
-    png = _output_path(args.png if args.png else f"recordings/paper{args.number}.png") if not args.no_png else None
+    png = None if args.no_png else _output_path(args.png or f"recordings/paper{args.number}.png", default=not args.png)
     progress = Progress(quiet=args.quiet or args.json)
     try:
         result = paper.run_paper(args.number, scenario, args.max_time, progress)
@@ -382,6 +389,8 @@ def command_tradeoff(args):
         progress.close()
     lines = tradeoff.table_lines(result)
     if output is not None:
+        if (output / "tradeoff.md").exists():              # a run never overwrites another's files
+            output = outputs.unique_directory(output)
         result["files"] = tradeoff.save(result, output)
         lines.append(f"saved {', '.join(result['files'].values())}")
     _emit(args, result, lines)

@@ -97,6 +97,18 @@ def write_into(path: Path, text: str) -> None:
         os.fsync(file.fileno())
 
 
+def unique_directory(path: Path) -> Path:
+    """A new directory ``path-2``, ``path-3``, ... beside ``path`` (created exclusively)."""
+    for attempt in range(2, 1002):
+        candidate = path.with_name(f"{path.name}-{attempt}")
+        try:
+            candidate.mkdir()
+            return candidate
+        except FileExistsError:
+            continue
+    raise OSError(f"no free directory name like {path}")
+
+
 def unique_path(path: Path) -> Path:
     """``path`` if no file is there, else ``stem-2.suffix``, ``stem-3.suffix``, ... (created exclusively)."""
     for attempt in range(1000):

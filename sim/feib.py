@@ -170,7 +170,7 @@ class ImmersedBoundary:
 
 
 def injection_point(scenario: Scenario, cell_type: CellType, gap: float = 1e-6) -> tuple[float, float]:
-    """Where a cell starts (PHYSICS.md decision 4): just inside the channel, centred on the injection inlet."""
+    """The start of a cell: just inside the channel, centred on the injection inlet (docs/physics.md)."""
     inlet = scenario.channel.inlet(scenario.channel.injection_inlet)
     return cell_type.semi_axes[0] + gap, 0.5 * (inlet.span[0] + inlet.span[1])
 

@@ -152,7 +152,7 @@ def test_volume_flux_in_equals_flux_out(coarse_scenario, model):
         if model == "streaming" or actuation == 0.0:
             assert abs(jet) <= 1e-12 * outflow          # a body force adds no mass
         else:
-            assert jet > 0.3 * inflow                   # the Dirichlet jet injects mass (PHYSICS.md)
+            assert jet > 0.3 * inflow                   # the Dirichlet jet injects mass (docs/physics.md, "SAW models")
 
 
 def test_steady_flow_is_discretely_divergence_free(coarse_scenario):

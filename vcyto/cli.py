@@ -19,6 +19,7 @@ from sim.fluid import NumericalBlowUp
 from sim.linalg import SolverError
 
 from .stream import StreamStopped
+from sim import plants
 from sim.scenario import CONVECTIONS, MEMBRANE_METHODS, SAW_MODELS, ScenarioError
 
 from . import arguments as limits
@@ -815,7 +816,7 @@ def _stream_options(parser: argparse.ArgumentParser):
                         help="uncertainty of one predicted arrival; the purity window is the envelope widened by twice "
                              "this (ms; default 0.027)")
     optics.add_argument("--no-controller", action="store_true", help="never switch the IDT on")
-    parser.add_argument("--model", choices=("feib", "auto", "oneway", "rom", "streamline"), default="feib",
+    parser.add_argument("--model", choices=plants.MODELS, default="feib",
                         help="plant: full FE-IB (default); auto (rom, switching to feib while a melanoma "
                              "shares the channel or cells are close together); oneway (membranes deforming in "
                              "the blended steady flows, no feedback); "
@@ -836,7 +837,7 @@ def _stream_options(parser: argparse.ArgumentParser):
 
 
 def _calibration_options(parser: argparse.ArgumentParser):
-    parser.add_argument("--model", choices=("rom", "auto", "oneway", "feib"), default="rom",
+    parser.add_argument("--model", choices=plants.CALIBRATION_MODELS, default="rom",
                         help="plant the calibration cells go through (default rom: about 1 s; feib: minutes to hours, "
                              "coarsen --pulse-step/--lead-step/--offset-step or give --pulse and --lead)")
     parser.add_argument("--detection-window", default="30,60", metavar="X0,X1", help="as for vcyto stream (um)")

@@ -50,7 +50,9 @@ import numpy as np
 from .arguments import MAX_SWEEP_POINTS, Integer, Quantity
 from .cli import stream_run, stream_run_options
 from .config import check_input_file, parse_quantity, scenario_to_toml
-from .stream import MODELS, make_plant, run_stream
+from sim.plants import MODELS
+
+from .stream import make_plant, run_stream
 
 if sys.version_info >= (3, 11):
     import tomllib

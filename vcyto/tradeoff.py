@@ -119,22 +119,18 @@ class _Flows:
 
 
 def make_plant(scenario: Scenario, level: Level, flows: _Flows):
+    """A fresh plant of ``level`` (the registry ``sim.plants``) on the level's mesh and time step."""
+    from sim import plants
+    numerics = {"mesh_h": level.mesh_h} if level.model == "rom" else {"mesh_h": level.mesh_h, "dt": level.dt}
+    scenario = scenario.with_numerics(**numerics)
     if level.model == "feib":
-        from sim.plant import FeibPlant
-        return FeibPlant(scenario.with_numerics(mesh_h=level.mesh_h, dt=level.dt))
-    if level.model == "oneway":
-        from sim.oneway import OneWayPlant
-        return OneWayPlant(scenario.with_numerics(mesh_h=level.mesh_h, dt=level.dt), flows=flows.get(level))
-    if level.model == "rom":
-        from sim.rom import RomPlant
-        return RomPlant(scenario.with_numerics(mesh_h=level.mesh_h), control_period=level.dt, flows=flows.get(level))
+        return plants.build("feib", scenario)
     if level.model == "auto":
-        from sim.auto import AutoPlant
         rule = {name: value for name, value in (("coupling", level.coupling), ("stiff_capillary", level.stiff))
                 if value is not None}
-        return AutoPlant(scenario.with_numerics(mesh_h=level.mesh_h, dt=level.dt), grid_spacing=level.grid,
-                         window_mesh_h=level.window_mesh_h, **rule)
-    raise ValueError(f"unknown model {level.model!r}")
+        return plants.build("auto", scenario, grid_spacing=level.grid, window_mesh_h=level.window_mesh_h, **rule)
+    period = level.dt if level.model == "rom" else None
+    return plants.build(level.model, scenario, control_period=period, flows=flows.get(level))
 
 
 def run_scene(plant, scene: Scene) -> dict:

@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import logging
 import time as clock
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -104,7 +104,6 @@ class Timings:
     fluid: float = 0.0
     health: float = 0.0
     steps: int = 0
-    extra: dict = field(default_factory=dict)
 
 
 class ImmersedBoundary:
@@ -119,9 +118,6 @@ class ImmersedBoundary:
         self.timings = Timings()
 
     # ------------------------------------------------------------------ cells
-    def injection_point(self, cell_type: CellType, gap: float = 1e-6) -> tuple[float, float]:
-        return injection_point(self.scenario, cell_type, gap)
-
     def new_cell(self, cell_type: CellType, cell_id: int, time: float, centre=None, warn: bool = True) -> Cell:
         return new_cell(self.scenario, cell_type, cell_id, time, centre, warn)
 

@@ -251,10 +251,6 @@ def _many(base, fast):
     return Setting(base.with_numerics(mesh_h=20 * UM / 3, dt=10e-6), cells, 0.0)
 
 
-def _outlet_of(run: Run) -> str:
-    return ", ".join(cell.fate for cell in run.cells)
-
-
 def _upper(run, base, fast):
     return "" if run.cells[0].fate == "upper" else f"melanoma left by {run.cells[0].fate}, not upper"
 

@@ -24,9 +24,9 @@ import math
 
 import numpy as np
 
+from .contract import Observation, Schedule, Truth
 from .feib import Cell, membrane_forces, new_cell, settle
 from .health import HealthLimits, check_cells
-from .contract import Observation, Schedule, Truth
 from .plant import membrane_truths, membrane_views
 from .rom import RomFlows, default_response_time
 from .scenario import Scenario

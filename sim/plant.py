@@ -17,7 +17,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .contract import CellTruth, CellView, Observation, Schedule, Truth, check_plant  # noqa: F401 (re-exported)
-from .feib import Cell, ImmersedBoundary, State
+from .feib import ImmersedBoundary, State
 from .fluid import NavierStokes
 from .scenario import Scenario
 from .streamline import outlet_at

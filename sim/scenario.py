@@ -214,7 +214,8 @@ class Saw:
         _choice(self, "model", SAW_MODELS)
         _positive(self, "amplitude", "frequency", "attenuation_length")
         if not (math.isfinite(self.streaming_force) and self.streaming_force >= 0):
-            raise ScenarioError("streaming_force", f"must be a non-negative force density (got {self.streaming_force!r})")
+            raise ScenarioError("streaming_force",
+                                f"must be a non-negative force density (got {self.streaming_force!r})")
         if not (math.isfinite(self.spin_up_time) and self.spin_up_time >= 0):
             raise ScenarioError("spin_up_time", f"must be >= 0 s (got {self.spin_up_time!r})")
 
@@ -360,7 +361,8 @@ class Scenario:
                                               "RBC and melanoma)")
         names = [cell.name for cell in self.cell_types]
         if not names:
-            raise ScenarioError("cell_types", "needs at least one [[cell_types]] entry (or none at all for the defaults)")
+            raise ScenarioError("cell_types",
+                                "needs at least one [[cell_types]] entry (or none at all for the defaults)")
         if len(set(names)) != len(names):
             raise ScenarioError("cell_types", f"names must be unique (got {names})")
         narrowest = min(self.channel.inlets + self.channel.outlets, key=lambda b: b.span[1] - b.span[0])
@@ -385,7 +387,8 @@ class Scenario:
 
     def with_inlets_shut(self) -> "Scenario":
         """The device with every inlet's speed set to zero: fluid at rest unless a membrane moves it."""
-        return replace(self, channel=replace(self.channel, inlets=tuple(replace(i, v_hat=0.0) for i in self.channel.inlets)))
+        inlets = tuple(replace(inlet, v_hat=0.0) for inlet in self.channel.inlets)
+        return replace(self, channel=replace(self.channel, inlets=inlets))
 
     def with_membrane(self, method: str) -> "Scenario":
         """The scenario with the membrane method ``paper`` (literal, leaks) or ``conserving`` (keeps area)."""

@@ -2,10 +2,9 @@
 
 import csv
 import json
+import math
 import subprocess
 import sys
-
-import math
 
 import numpy as np
 import pytest
@@ -86,7 +85,8 @@ def windowed():
 
 def test_windows_run_on_the_coarser_mesh_and_rom_on_the_scenarios_own(windowed):
     scenario, auto, feib = windowed
-    assert auto.window_mesh_h == pytest.approx(20 * UM / 3) and auto.diagnostics()["window_mesh_h"] == auto.window_mesh_h
+    assert auto.window_mesh_h == pytest.approx(20 * UM / 3)
+    assert auto.diagnostics()["window_mesh_h"] == auto.window_mesh_h
     assert auto.feib.ib.fluid.space.dofs < 0.7 * feib.ib.fluid.space.dofs
     own = AutoPlant(scenario, grid_spacing=2 * UM, window_mesh_h=scenario.numerics.mesh_h)
     assert own.feib.ib.fluid.space.dofs == feib.ib.fluid.space.dofs
@@ -144,8 +144,10 @@ def test_extra_scenes_are_the_close_pair_with_another_gap_or_without_the_melanom
 
 @pytest.mark.slow
 def test_tradeoff_fast_writes_table_csv_plot_and_auto_is_within_tolerance(tmp_path):
-    result = subprocess.run([sys.executable, "-m", "vcyto.cli", "tradeoff", "--fast", "--output", str(tmp_path), "--json",
-                             "--stiff-capillary", "0", "--pair-gap", "1.0"], capture_output=True, text=True, timeout=1200)
+    result = subprocess.run([sys.executable, "-m", "vcyto.cli", "tradeoff", "--fast", "--output", str(tmp_path),
+                             "--json",
+                             "--stiff-capillary", "0", "--pair-gap", "1.0"], capture_output=True, text=True,
+                            timeout=1200)
     assert result.returncode == 0, result.stderr
     rows = json.loads(result.stdout)["rows"]
     levels = list(dict.fromkeys(row["level"] for row in rows))

@@ -6,9 +6,19 @@ import sys
 
 import pytest
 
-from sim.contract import (CellTruth, CellView, HasDiagnostics, HasFields, Observation, Plant, ReportsTruthUpdates,
-                          StepsUntil, Truth, check_plant)
 from sim import plants
+from sim.contract import (
+    CellTruth,
+    CellView,
+    HasDiagnostics,
+    HasFields,
+    Observation,
+    Plant,
+    ReportsTruthUpdates,
+    StepsUntil,
+    Truth,
+    check_plant,
+)
 from sim.plants import CALIBRATION_MODELS, MODELS
 from sim.scenario import UM, Scenario
 

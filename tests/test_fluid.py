@@ -2,7 +2,7 @@
 
 import numpy as np
 import pytest
-from skfem import ElementTriP1, ElementTriP2, FacetBasis, Functional, LinearForm, asm, Basis
+from skfem import Basis, ElementTriP1, ElementTriP2, FacetBasis, Functional, LinearForm, asm
 
 from sim.boundary import inlet_flux
 from sim.fluid import NavierStokes
@@ -190,7 +190,8 @@ def test_implicit_oseen_and_imex_agree_on_a_short_transient(transients):
     assert relative_difference(transients["oseen"], reference) <= 1e-3
     assert relative_difference(transients["imex"], reference) <= 2e-3
     # dropping convection altogether is a visibly different flow: the comparison can fail
-    assert relative_difference(transients["stokes"], reference) >= 10 * relative_difference(transients["imex"], reference)
+    assert relative_difference(transients["stokes"], reference) >= 10 * relative_difference(transients["imex"],
+                                                                                            reference)
 
 
 def test_implicit_treatment_solves_its_nonlinear_system(transients):

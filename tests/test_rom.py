@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 from controller.detector import DetectorSettings
+from controller.events import TYPE_II
 from controller.sorter import ControllerSettings
 from sim.arrivals import Arrivals
 from sim.fluid import NavierStokes
@@ -18,7 +19,6 @@ from sim.rom import JET_RESPONSE_TIME, RomFlows, RomPlant, area_mean_rule, measu
 from sim.scenario import UM, Scenario
 from sim.streamline import trace
 from sim.transfer import PointLocator
-from controller.events import TYPE_II
 from vcyto.outcomes import SORTED_OUTLET
 from vcyto.stream import StreamSettings, run_stream
 
@@ -153,7 +153,8 @@ def test_a_cell_at_an_outlet_edge_is_steered_round_the_corner_into_the_outlet():
     # the injection inlet moved to (84, 110) um: a melanoma (radius 8 um) starts at y = 97 um, 3 um below the
     # end (300, 100) um of the wall between the outlets, and the flow runs straight to the right
     paper = Scenario()
-    inlets = (paper.channel.inlets[0], replace(paper.channel.inlets[1], span=(84 * UM, 110 * UM)), paper.channel.inlets[2])
+    inlets = (paper.channel.inlets[0], replace(paper.channel.inlets[1], span=(84 * UM, 110 * UM)),
+              paper.channel.inlets[2])
     scenario = replace(paper, channel=replace(paper.channel, inlets=inlets))
     plant = RomPlant(scenario, flows=RomFlows.uniform(scenario, off=(0.1, 0.0), on=(0.1, 0.0)), response_time=0.0)
     plant.reset([(0.0, "melanoma")])

@@ -10,8 +10,8 @@ import pytest
 from controller.detector import DetectorSettings
 from controller.sorter import ControllerSettings
 from sim.arrivals import Arrivals, schedule
-from sim.plant import FeibPlant, StreamlinePlant
-from sim.scenario import UM, Scenario
+from sim.plant import StreamlinePlant
+from sim.scenario import Scenario
 from vcyto.stream import StreamSettings, run_stream, statistics_of
 
 

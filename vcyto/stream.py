@@ -20,10 +20,10 @@ import numpy as np
 from controller.detector import Detector, DetectorSettings
 from controller.events import Sighting
 from controller.sorter import ControllerSettings, SortController
+from sim import plants
 from sim.arrivals import Arrivals, offer
 from sim.fluid import NumericalBlowUp
 from sim.linalg import SolverError
-from sim import plants
 from sim.scenario import Scenario
 
 from . import sortreport

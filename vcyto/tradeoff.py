@@ -38,7 +38,8 @@ SCENES = (
     Scene("isolated RBC, IDT off", ((0.0, "RBC"),)),
     Scene("isolated melanoma, IDT on", ((0.0, "melanoma"),), ((0.0, math.inf),)),
     # the melanoma's pulse (from its detection to after its passage) catches the RBC 0.25 ms behind it
-    Scene("melanoma and RBC 0.25 ms apart, pulse 0.9-2.1 ms", ((0.0, "melanoma"), (0.25e-3, "RBC")), ((0.9e-3, 2.1e-3),)),
+    Scene("melanoma and RBC 0.25 ms apart, pulse 0.9-2.1 ms", ((0.0, "melanoma"), (0.25e-3, "RBC")), ((0.9e-3, 2.1e-3),
+                                                                                                      )),
 )
 
 
@@ -74,7 +75,8 @@ class Level:
 
     @property
     def label(self) -> str:
-        text = f"{self.model} h={self.mesh_h / UM:.3g}um {'dt' if self.model != 'rom' else 'period'}={self.dt * 1e6:g}us"
+        step = "dt" if self.model != "rom" else "period"
+        text = f"{self.model} h={self.mesh_h / UM:.3g}um {step}={self.dt * 1e6:g}us"
         text += f" grid={self.grid / UM:g}um" if self.model in ("rom", "oneway", "auto") else ""
         if self.model == "auto":
             text += f" window h={self.window_mesh_h / UM:.3g}um"

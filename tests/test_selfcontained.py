@@ -56,8 +56,9 @@ def test_no_tracked_file_references_a_path_outside_the_repository():
     assert offences == {}
 
 
-@pytest.mark.parametrize("text", ["see ../shared/notes.md", "in /wo" + "rk/main/x", "decision 1 of PHYSICS" + ".md",
-                                  "[physics](docs/missing.md)", "[up](.." + "/../README.md)"])
+@pytest.mark.parametrize("text", ["see .." + "/shared/notes.md", "in /wo" + "rk/main/x",
+                                  "decision 1 of PHYSICS" + ".md", "[physics](docs/missing.md)",
+                                  "[up](.." + "/../README.md)"])
 def test_the_check_catches_an_outside_reference(text):
     assert outside_references("README.md", ROOT / "README.md", text)
 

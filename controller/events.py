@@ -1,23 +1,21 @@
-"""The plain data the instrument and the controller exchange (no numerics library, no ground truth)."""
+"""The plain data the instrument and the controller exchange (no numerics library, no ground truth).
+
+Of ``sim`` the controller imports only the plant contract (``sim.contract``: numpy and the standard library).
+"""
 
 from __future__ import annotations
 
 from dataclasses import dataclass
 
+from sim.contract import CellView
+
 TYPE_I = "I"      # leaves by the default (lower) outlet: IDT off
 TYPE_II = "II"    # to be sorted to the upper outlet: IDT on
 
 
-@dataclass(frozen=True)
-class Sighting:
-    """What the optics see of one object in the channel at one instant: an opaque key, where it is,
-    how big it is (area, m^2) and how brightly its label fluoresces (arbitrary units)."""
-
-    key: int
-    x: float
-    y: float
-    area: float
-    brightness: float
+# What the optics see of one object in the channel at one instant: the plant contract's ``CellView`` (an opaque
+# key, where it is, its area in m^2 and its label brightness in a.u.). One type for the plant and the controller.
+Sighting = CellView
 
 
 @dataclass(frozen=True)

@@ -5,7 +5,8 @@ plants of ``vcyto.make_plant``): ``reset(arrivals, seed) -> Observation`` with `
 (time in s, cell type name); ``step(actuation) -> Observation`` advances one control period with the IDT
 drive ``actuation`` (0 or 1); ``observe() -> Observation`` (what the optics see: ``CellView``s);
 ``truth() -> Truth`` (``CellTruth``s: fates, membranes; never shown to the controller); ``done``;
-``control_period`` (s). ``check_plant(make_plant, arrivals)`` checks a plant against the contract.
+``control_period`` (s); ``sim.contract`` states it (``Plant`` and its optional capabilities).
+``check_plant(make_plant, arrivals)`` checks a factory of fresh plants against the contract.
 Exports are imported on first use.
 """
 
@@ -13,9 +14,9 @@ import importlib as _importlib
 
 _EXPORTS = {
     "Scenario": "sim.scenario", "ScenarioError": "sim.scenario", "Arrivals": "sim.arrivals",
-    "schedule": "sim.arrivals", "Observation": "sim.plant", "CellView": "sim.plant", "Truth": "sim.plant",
-    "CellTruth": "sim.plant", "FeibPlant": "sim.plant", "StreamlinePlant": "sim.plant",
-    "check_plant": "sim.plant",
+    "schedule": "sim.arrivals", "Observation": "sim.contract", "CellView": "sim.contract", "Truth": "sim.contract",
+    "CellTruth": "sim.contract", "Plant": "sim.contract", "Schedule": "sim.contract", "check_plant": "sim.contract",
+    "FeibPlant": "sim.plant", "StreamlinePlant": "sim.plant",
 }
 __all__ = list(_EXPORTS)
 

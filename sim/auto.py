@@ -51,7 +51,6 @@ from .plant import FeibPlant, Observation, Truth
 from .rom import RomFlows, RomPlant
 from .scenario import Scenario
 
-
 WINDOW_MESH_H = 20e-6 / 3       # m: the coarsest FE-IB mesh within tolerance on the tradeoff scenes
 STIFF_CAPILLARY = 100.0         # cells with eta U_saw / kappa_e below this interact with every other cell
 

@@ -1,4 +1,4 @@
-"""Calibration of the ``streaming`` SAW model against the paper's jet (PHYSICS.md decision 1).
+"""Calibration of the ``streaming`` SAW model against the paper's jet (docs/physics.md, "SAW models").
 
 The streaming force amplitude is chosen so that the steady centre streamline of the injection inlet
 leaves at the ordinate the paper's Dirichlet jet gives (about 141 um on the paper's device): the

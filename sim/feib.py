@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import logging
 import time as clock
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -104,7 +104,6 @@ class Timings:
     fluid: float = 0.0
     health: float = 0.0
     steps: int = 0
-    extra: dict = field(default_factory=dict)
 
 
 class ImmersedBoundary:
@@ -123,9 +122,6 @@ class ImmersedBoundary:
             self.adaptive = AdaptiveSteps(self)
 
     # ------------------------------------------------------------------ cells
-    def injection_point(self, cell_type: CellType, gap: float = 1e-6) -> tuple[float, float]:
-        return injection_point(self.scenario, cell_type, gap)
-
     def new_cell(self, cell_type: CellType, cell_id: int, time: float, centre=None, warn: bool = True) -> Cell:
         return new_cell(self.scenario, cell_type, cell_id, time, centre, warn)
 
@@ -183,7 +179,7 @@ class ImmersedBoundary:
 
 
 def injection_point(scenario: Scenario, cell_type: CellType, gap: float = 1e-6) -> tuple[float, float]:
-    """Where a cell starts (PHYSICS.md decision 4): just inside the channel, centred on the injection inlet."""
+    """The start of a cell: just inside the channel, centred on the injection inlet (docs/physics.md)."""
     inlet = scenario.channel.inlet(scenario.channel.injection_inlet)
     return cell_type.semi_axes[0] + gap, 0.5 * (inlet.span[0] + inlet.span[1])
 

@@ -243,11 +243,6 @@ class Membrane:
         return Membrane(spline_at(self.points, whole, parameter - whole), self.cell_type, self.reference_length)
 
 
-def polygon_area(points: np.ndarray) -> float:
-    x, y = points[:, 0], points[:, 1]
-    return 0.5 * float(x[:-1] @ y[1:] - x[1:] @ y[:-1] + x[-1] * y[0] - x[0] * y[-1])
-
-
 def polygon_perimeter(points: np.ndarray) -> float:
     return float(np.sum(np.linalg.norm(np.roll(points, -1, axis=0) - points, axis=1)))
 

@@ -24,9 +24,10 @@ import math
 
 import numpy as np
 
+from .contract import Observation, Schedule, Truth
 from .feib import Cell, membrane_forces, new_cell, settle
 from .health import HealthLimits, check_cells
-from .plant import Observation, Truth, _Schedule, membrane_truths, membrane_views
+from .plant import membrane_truths, membrane_views
 from .rom import RomFlows, default_response_time
 from .scenario import Scenario
 
@@ -59,7 +60,7 @@ class OneWayPlant:
 
     # ------------------------------------------------------------------ the contract
     def reset(self, arrivals, seed: int | None = None) -> Observation:
-        self.schedule = _Schedule(arrivals)
+        self.schedule = Schedule(arrivals)
         self.time, self.level, self.steps = 0.0, 0.0, 0
         self.cells: list[Cell] = []
         self._inject()

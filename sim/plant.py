@@ -1,10 +1,7 @@
-"""The plant contract of the closed loop, and the plants that implement it.
+"""Two plants of the closed loop, and the FE-IB helpers the membrane plants share.
 
-A plant is reset with a schedule of arrivals (time, cell type) and a seed, then stepped one control period
-at a time with the IDT drive in [0, 1]; each step returns an ``Observation`` (what an instrument can see:
-where each cell in the channel is, its size and label brightness) and ``truth()`` gives the ground truth
-for logging and statistics only (types, fates, exit times). ``check_plant`` tests any plant against the
-contract: determinism, time advance, cells conserved.
+The contract they implement (``Plant``, ``Observation``, ``Truth``, ``check_plant``, ...) is ``sim.contract``;
+its names stay importable from here.
 
 - ``FeibPlant``: the full two-way coupled FE-IB model (``sim.feib``), several physics steps per control
   period when the period is longer than dt.
@@ -19,67 +16,14 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .feib import Cell, ImmersedBoundary, State
+from .contract import CellTruth, CellView, Observation, Schedule, Truth, check_plant  # noqa: F401 (re-exported)
+from .feib import ImmersedBoundary, State
 from .fluid import NavierStokes
 from .scenario import Scenario
 from .streamline import outlet_at
 from .transfer import PointLocator
 
-
-@dataclass(frozen=True)
-class CellView:
-    """What the optics can see of one cell."""
-
-    key: int
-    x: float
-    y: float
-    area: float
-    brightness: float
-
-
-@dataclass(frozen=True)
-class Observation:
-    time: float
-    cells: tuple[CellView, ...]
-
-
-@dataclass(frozen=True)
-class CellTruth:
-    key: int
-    type: str
-    born: float
-    fate: str                 # "in_channel", an outlet name, "wall" or "lost"
-    exit_time: float
-    exit_y: float
-    x: float
-    y: float
-    area_ratio: float                     # FE-IB: measured while the whole membrane is in the channel
-    membrane: np.ndarray | None = None    # (R, 2) material points, for logging
-    measures: dict | None = None          # shape figures and their extremes (sim.feib.Measures), FE-IB only
-
-
-@dataclass(frozen=True)
-class Truth:
-    time: float
-    cells: tuple[CellTruth, ...]
-    waiting: int              # scheduled cells not yet injected
-
-
-class _Schedule:
-    """Arrivals not yet injected, in time order."""
-
-    def __init__(self, arrivals):
-        self.items = sorted(arrivals)
-        self.position = 0
-
-    def due(self, time: float, tolerance: float):
-        while self.position < len(self.items) and self.items[self.position][0] <= time + tolerance:
-            yield self.position, self.items[self.position]
-            self.position += 1
-
-    @property
-    def waiting(self) -> int:
-        return len(self.items) - self.position
+_Schedule = Schedule          # the name FeibPlant uses
 
 
 def membrane_views(cells) -> tuple[CellView, ...]:
@@ -227,7 +171,7 @@ class StreamlinePlant:
         self._values = self.flows.reshape(4, -1)
 
     def reset(self, arrivals, seed: int | None = None) -> Observation:
-        self.schedule = _Schedule(arrivals)
+        self.schedule = Schedule(arrivals)
         self.time = 0.0
         self.level = 0.0
         self.points: list[_Point] = []
@@ -290,30 +234,3 @@ class StreamlinePlant:
     @property
     def done(self) -> bool:
         return self.schedule.waiting == 0 and all(p.fate != "in_channel" for p in self.points)
-
-
-def check_plant(make_plant, arrivals, steps: int = 20, seed: int = 1):
-    """Check a plant against the contract; returns a list of violations (empty when it conforms).
-
-    ``make_plant()`` builds a fresh plant. Checked: same seed -> same observations; time advances by one
-    control period per step; every scheduled cell is waiting, in the channel or settled, exactly once.
-    """
-    problems = []
-    runs = []
-    for _ in range(2):
-        plant = make_plant()
-        observations = [plant.reset(arrivals, seed=seed)]
-        for step in range(steps):
-            observations.append(plant.step(1.0 if step % 7 < 3 else 0.0))
-        runs.append((plant, observations))
-    (plant, first), (_, second) = runs
-    if first != second:
-        problems.append("not deterministic: the same seed gave different observations")
-    times = np.array([o.time for o in first])
-    if not np.allclose(np.diff(times), plant.control_period, rtol=1e-9, atol=1e-15):
-        problems.append("time does not advance by one control period per step")
-    truth = plant.truth()
-    keys = [cell.key for cell in truth.cells]
-    if len(set(keys)) != len(keys) or len(keys) + truth.waiting != len(arrivals):
-        problems.append(f"cells not conserved: {len(keys)} known + {truth.waiting} waiting != {len(arrivals)} scheduled")
-    return problems

@@ -1,7 +1,7 @@
 """The scenario: frozen, validated descriptions of the device, the fluid, the SAW model and the numerics.
 
 All quantities are SI (metres, seconds, kilograms, pascal seconds). The defaults are the paper's
-(section 4, with the readings recorded in PHYSICS.md). Every class checks its own fields in
+(section 4, with the readings in docs/physics.md). Every class checks its own fields in
 ``__post_init__`` and raises ``ScenarioError`` naming the field; ``Scenario`` checks what spans parts
 (an inlet outside the wall, overlapping outlets, a mesh that does not resolve an inlet).
 """
@@ -126,7 +126,8 @@ class Channel:
     """The rectangle (0, length) x (0, height) with inlets on x = 0 and outlets on x = length.
 
     ``profile_reading`` says how to read the paper's profile formula: ``paper`` measures lengths in
-    units of 10 um (PHYSICS.md), ``peak`` takes v_hat as the peak speed of the parabola.
+    units of 10 um (docs/physics.md, "Inflow length unit"), ``peak`` takes v_hat as the peak speed of the
+    parabola.
     ``injection_inlet`` names the inlet cells enter through.
     """
 
@@ -194,7 +195,7 @@ class Fluid:
 
 @dataclass(frozen=True)
 class Saw:
-    """The surface acoustic wave actuation (PHYSICS.md decision 1).
+    """The surface acoustic wave actuation (docs/physics.md, "SAW models").
 
     ``paper``: v_2 = 2 pi a f m(x) cos(2 pi f t) on the window, sampled at the step times;
     ``envelope``: the same jet with cos replaced by 1 while the IDT is on;
@@ -213,7 +214,8 @@ class Saw:
         _choice(self, "model", SAW_MODELS)
         _positive(self, "amplitude", "frequency", "attenuation_length")
         if not (math.isfinite(self.streaming_force) and self.streaming_force >= 0):
-            raise ScenarioError("streaming_force", f"must be a non-negative force density (got {self.streaming_force!r})")
+            raise ScenarioError("streaming_force",
+                                f"must be a non-negative force density (got {self.streaming_force!r})")
         if not (math.isfinite(self.spin_up_time) and self.spin_up_time >= 0):
             raise ScenarioError("spin_up_time", f"must be >= 0 s (got {self.spin_up_time!r})")
 
@@ -341,7 +343,7 @@ class CellType:
         return math.pi * self.semi_axes[0] * self.semi_axes[1]
 
 
-# PHYSICS.md decision 3: the RBC is an ellipse of diameter 7.5 um and perimeter 19.8 um (semi-axes 3.75, 2.5 um)
+# The RBC is an ellipse of diameter 7.5 um and perimeter 19.8 um, semi-axes 3.75, 2.5 um (docs/physics.md, "RBC shape")
 RBC = CellType("RBC", kappa_e=6.0e-6, kappa_b=2.0e-19, semi_axes=(3.75e-6, 2.5e-6), fluorescence=0.0)
 MELANOMA = CellType("melanoma", kappa_e=2.8e-4, kappa_b=1.2e-16, semi_axes=(8.0e-6, 8.0e-6), fluorescence=1.0,
                     target=True)
@@ -368,7 +370,8 @@ class Scenario:
                                               "RBC and melanoma)")
         names = [cell.name for cell in self.cell_types]
         if not names:
-            raise ScenarioError("cell_types", "needs at least one [[cell_types]] entry (or none at all for the defaults)")
+            raise ScenarioError("cell_types",
+                                "needs at least one [[cell_types]] entry (or none at all for the defaults)")
         if len(set(names)) != len(names):
             raise ScenarioError("cell_types", f"names must be unique (got {names})")
         narrowest = min(self.channel.inlets + self.channel.outlets, key=lambda b: b.span[1] - b.span[0])
@@ -393,7 +396,8 @@ class Scenario:
 
     def with_inlets_shut(self) -> "Scenario":
         """The device with every inlet's speed set to zero: fluid at rest unless a membrane moves it."""
-        return replace(self, channel=replace(self.channel, inlets=tuple(replace(i, v_hat=0.0) for i in self.channel.inlets)))
+        inlets = tuple(replace(inlet, v_hat=0.0) for inlet in self.channel.inlets)
+        return replace(self, channel=replace(self.channel, inlets=inlets))
 
     def with_membrane(self, method: str) -> "Scenario":
         """The scenario with the membrane method ``paper`` (literal, leaks) or ``conserving`` (keeps area)."""

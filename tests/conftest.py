@@ -8,7 +8,6 @@ import pytest
 from sim.fluid import NavierStokes
 from sim.scenario import UM, Scenario
 
-
 # the command-line tests' set-up cache goes to a directory of this session, never the user's (vcyto/cache.py)
 os.environ["VCYTO_CACHE_DIR"] = tempfile.mkdtemp(prefix="vcyto-test-cache-")
 atexit.register(shutil.rmtree, os.environ["VCYTO_CACHE_DIR"], True)

@@ -5,13 +5,12 @@ import math
 
 import numpy as np
 import pytest
-
-from sim.feib import Cell, ImmersedBoundary, Measures, State
-from sim.fluid import NavierStokes
-from sim.membrane import Membrane, ellipse_by_arc_length
-from sim.scenario import UM, CellType, Scenario
-
 from test_feib import aspect_ratio, quiescent, relax, run_to_exit
+
+from sim.feib import ImmersedBoundary, Measures, State
+from sim.fluid import NavierStokes
+from sim.membrane import Membrane
+from sim.scenario import UM, CellType
 
 ELLIPSE = CellType("ellipse", 2.8e-4, 1.2e-16, (10 * UM, 6 * UM))
 
@@ -27,7 +26,8 @@ def stretched():
 def test_area_gradient_is_the_derivative_of_the_area(stretched):
     direction = np.random.default_rng(1).standard_normal(stretched.points.shape)
     eps = 1e-3 * UM
-    difference = (stretched.area(stretched.points + eps * direction) - stretched.area(stretched.points - eps * direction))
+    difference = (stretched.area(stretched.points + eps * direction)
+                  - stretched.area(stretched.points - eps * direction))
     assert difference / (2 * eps) == pytest.approx(np.sum(stretched.area_gradient() * direction), rel=1e-7)
 
 
@@ -60,7 +60,10 @@ def test_redistribution_spaces_points_evenly_keeps_the_shape_and_releases_stretc
     dense = stretched.evaluate(1024)
     distances = np.min(np.hypot(*(resampled.points[:, None, :] - dense[None]).transpose(2, 0, 1)), axis=1)
     assert distances.max() < 2e-3 * UM         # the samples of the old spline are 2 nm apart
-    stretching = lambda m: 0.5 * m.cell_type.kappa_e * np.sum(m.spacing() ** 2) / m.dq   # kappa_e/2 int |X_q|^2
+
+    def stretching(m):                                                   # kappa_e/2 int |X_q|^2
+        return 0.5 * m.cell_type.kappa_e * np.sum(m.spacing() ** 2) / m.dq
+
     assert stretching(resampled) < stretching(stretched)
     assert resampled.reference_length == stretched.reference_length and resampled.redistributions == 1
     assert resampled.initial_area == stretched.initial_area

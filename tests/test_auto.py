@@ -2,16 +2,15 @@
 
 import csv
 import json
+import math
 import subprocess
 import sys
-
-import math
 
 import numpy as np
 import pytest
 
 from sim.auto import AutoPlant
-from sim.plant import FeibPlant, check_plant
+from sim.plant import FeibPlant
 from sim.scenario import UM, Scenario
 from vcyto.tradeoff import SCENES, TOLERANCE_UM, Scene, compare, run_scene
 
@@ -22,11 +21,6 @@ CLOSE_PAIR = SCENES[2]
 def coarse():
     scenario = Scenario().with_numerics(mesh_h=20 * UM / 3, dt=10e-6)
     return scenario, AutoPlant(scenario, grid_spacing=2 * UM), FeibPlant(scenario)
-
-
-def test_auto_plant_follows_the_contract(coarse):
-    scenario, auto, _ = coarse
-    assert check_plant(lambda: auto, [(0.0, "RBC"), (20e-6, "melanoma")], steps=30) == []
 
 
 def test_an_isolated_cell_never_needs_the_feib_model(coarse):
@@ -91,7 +85,8 @@ def windowed():
 
 def test_windows_run_on_the_coarser_mesh_and_rom_on_the_scenarios_own(windowed):
     scenario, auto, feib = windowed
-    assert auto.window_mesh_h == pytest.approx(20 * UM / 3) and auto.diagnostics()["window_mesh_h"] == auto.window_mesh_h
+    assert auto.window_mesh_h == pytest.approx(20 * UM / 3)
+    assert auto.diagnostics()["window_mesh_h"] == auto.window_mesh_h
     assert auto.feib.ib.fluid.space.dofs < 0.7 * feib.ib.fluid.space.dofs
     own = AutoPlant(scenario, grid_spacing=2 * UM, window_mesh_h=scenario.numerics.mesh_h)
     assert own.feib.ib.fluid.space.dofs == feib.ib.fluid.space.dofs
@@ -149,8 +144,10 @@ def test_extra_scenes_are_the_close_pair_with_another_gap_or_without_the_melanom
 
 @pytest.mark.slow
 def test_tradeoff_fast_writes_table_csv_plot_and_auto_is_within_tolerance(tmp_path):
-    result = subprocess.run([sys.executable, "-m", "vcyto.cli", "tradeoff", "--fast", "--output", str(tmp_path), "--json",
-                             "--stiff-capillary", "0", "--pair-gap", "1.0"], capture_output=True, text=True, timeout=1200)
+    result = subprocess.run([sys.executable, "-m", "vcyto.cli", "tradeoff", "--fast", "--output", str(tmp_path),
+                             "--json",
+                             "--stiff-capillary", "0", "--pair-gap", "1.0"], capture_output=True, text=True,
+                            timeout=1200)
     assert result.returncode == 0, result.stderr
     rows = json.loads(result.stdout)["rows"]
     levels = list(dict.fromkeys(row["level"] for row in rows))

@@ -1,6 +1,5 @@
 """The FE-IB method: transfer adjointness, Laplace's law, a relaxing ellipse, blow-up detection, the paper."""
 
-from dataclasses import replace
 
 import numpy as np
 import pytest

@@ -2,7 +2,7 @@
 
 import numpy as np
 import pytest
-from skfem import ElementTriP1, ElementTriP2, FacetBasis, Functional, LinearForm, asm, Basis
+from skfem import Basis, ElementTriP1, ElementTriP2, FacetBasis, Functional, LinearForm, asm
 
 from sim.boundary import inlet_flux
 from sim.fluid import NavierStokes
@@ -152,7 +152,7 @@ def test_volume_flux_in_equals_flux_out(coarse_scenario, model):
         if model == "streaming" or actuation == 0.0:
             assert abs(jet) <= 1e-12 * outflow          # a body force adds no mass
         else:
-            assert jet > 0.3 * inflow                   # the Dirichlet jet injects mass (PHYSICS.md)
+            assert jet > 0.3 * inflow                   # the Dirichlet jet injects mass (docs/physics.md, "SAW models")
 
 
 def test_steady_flow_is_discretely_divergence_free(coarse_scenario):
@@ -190,7 +190,8 @@ def test_implicit_oseen_and_imex_agree_on_a_short_transient(transients):
     assert relative_difference(transients["oseen"], reference) <= 1e-3
     assert relative_difference(transients["imex"], reference) <= 2e-3
     # dropping convection altogether is a visibly different flow: the comparison can fail
-    assert relative_difference(transients["stokes"], reference) >= 10 * relative_difference(transients["imex"], reference)
+    assert relative_difference(transients["stokes"], reference) >= 10 * relative_difference(transients["imex"],
+                                                                                            reference)
 
 
 def test_implicit_treatment_solves_its_nonlinear_system(transients):

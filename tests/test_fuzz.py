@@ -10,10 +10,9 @@ import json
 import os
 
 import pytest
+from guard import patch_heavy, vcyto_inline
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
-
-from guard import patch_heavy, vcyto_inline
 
 EXAMPLES = int(os.environ.get("VCYTO_FUZZ_EXAMPLES", "40"))
 FUZZ = settings(max_examples=EXAMPLES, deadline=None, derandomize=not os.environ.get("VCYTO_FUZZ_RANDOM"),

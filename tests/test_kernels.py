@@ -2,8 +2,8 @@
 
 import numpy as np
 import pytest
-from skfem import ElementTriP2, LinearForm, asm
-from skfem.helpers import dot, grad
+from skfem import LinearForm, asm
+from skfem.helpers import grad
 
 from sim.fluid import TaylorHood
 from sim.mesh import channel_mesh

@@ -23,7 +23,8 @@ def test_regularised_stokeslet_far_field_is_the_stokeslet():
     points = np.array([[0.0, 0.0], [1 * UM, 0.5 * UM], [200 * UM, 50 * UM]])
     forces = np.array([[1e-6, 2e-6], [-1e-6, -2e-6], [0.0, 0.0]])          # a force pair: no net force
     velocity = stokeslet_velocities(points, forces, ETA, epsilon=0.1 * UM)[2]
-    expected = singular_stokeslet(points[2] - points[0], forces[0]) + singular_stokeslet(points[2] - points[1], forces[1])
+    expected = singular_stokeslet(points[2] - points[0], forces[0]) + singular_stokeslet(points[2] - points[1],
+                                                                                         forces[1])
     assert velocity == pytest.approx(expected, rel=1e-3)
 
 

@@ -1,4 +1,4 @@
-"""The paper's device at the paper's resolution: where the injection streamline leaves (PHYSICS.md)."""
+"""The paper's device at the paper's resolution: where the injection streamline leaves (docs/physics.md)."""
 
 import pytest
 
@@ -22,7 +22,10 @@ def test_injection_streamline_is_sorted_by_the_idt(paper_scenario, model):
 
 
 def test_peak_reading_of_the_profile_also_sorts(paper_scenario):
-    """PHYSICS.md: reading v_hat as the peak speed gives y ~ 73 um (off) and ~ 175 um (on), ~13 ms and ~9 ms."""
+    """Reading v_hat as the peak speed gives y ~ 73 um (off) and ~ 175 um (on), ~13 ms and ~9 ms.
+
+    (docs/physics.md, "Inflow length unit")
+    """
     from dataclasses import replace
     scenario = replace(paper_scenario, channel=replace(paper_scenario.channel, profile_reading="peak"))
     _, off = injection_streamline(scenario, 0.0)

@@ -2,7 +2,6 @@
 end when the sample ends, user-defined target types, and the calibrated sort envelope."""
 
 import json
-import math
 import subprocess
 import sys
 
@@ -73,7 +72,7 @@ def test_a_capped_run_says_so_and_exits_non_zero_unless_allowed(tmp_path):
     assert capped.returncode == 1 and "partial" in capped.stderr and "Traceback" not in capped.stderr
     summary = json.loads(capped.stdout)
     assert summary["status"] == "truncated" and summary["statistics"]["not_injected"] > 0
-    from mcap.reader import make_reader                  # the recording says so too
+    from mcap.reader import make_reader  # the recording says so too
     with open(tmp_path / "capped.mcap", "rb") as handle:
         ending = {m.name: dict(m.metadata) for m in make_reader(handle).iter_metadata()}["run_end"]
     assert ending["status"] == "truncated" and "max-time" in ending["reason"]
@@ -83,7 +82,8 @@ def test_a_capped_run_says_so_and_exits_non_zero_unless_allowed(tmp_path):
 
 def test_a_user_defined_target_type_is_sorted(tmp_path):
     scenario = tmp_path / "blast.toml"
-    scenario.write_text('[[cell_types]]\nname = "RBC"\nkappa_e = 6e-6\nkappa_b = 2e-19\nsemi_axes = ["3.75um", "2.5um"]\n'
+    scenario.write_text('[[cell_types]]\nname = "RBC"\nkappa_e = 6e-6\nkappa_b = 2e-19\n'
+                        'semi_axes = ["3.75um", "2.5um"]\n'
                         '[[cell_types]]\nname = "blast"\nkappa_e = 2.8e-4\nkappa_b = 1.2e-16\n'
                         'semi_axes = ["6um", "6um"]\nfluorescence = 2.0\ntarget = true\n')
     result = vcyto("stream", "--scenario", str(scenario), "--model", "rom", "--cells", "RBC,blast,RBC",

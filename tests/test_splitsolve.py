@@ -9,7 +9,6 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-import scipy.sparse as sp
 
 from sim.fluid import NavierStokes
 from sim.linalg import Pardiso, pardiso_available

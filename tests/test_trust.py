@@ -11,7 +11,6 @@ import time
 from pathlib import Path
 
 import pytest
-
 from guard import assert_one_line_refusal, patch_heavy, vcyto_inline
 
 REPO = Path(__file__).resolve().parent.parent
@@ -153,6 +152,7 @@ def _fake_simulator(scenario, settings):
 
 def _run(spec, output, **options):
     from concurrent.futures import ThreadPoolExecutor
+
     from vcyto import sweep
     output.mkdir(exist_ok=True)
     with ThreadPoolExecutor(1) as pool:
@@ -327,7 +327,9 @@ def test_a_numerical_failure_says_where_its_partial_record_is(tmp_path):
 def test_a_disk_filling_up_mid_run_is_one_line_exit_1(tmp_path, monkeypatch):
     """The MCAP writer hits ENOSPC after a few steps: the run stops with the cause in one line, exit 1."""
     import errno
+
     from guard import vcyto_inline
+
     from vcyto import recording
     written = {"steps": 0}
     original = recording.McapRecorder.on_step
@@ -373,6 +375,7 @@ time.sleep(60)
 
 def test_a_started_viewer_listens_on_localhost_only_unless_asked(tmp_path, monkeypatch):
     import socket
+
     from vcyto import viewer
     fake, record = tmp_path / "fake-rerun", tmp_path / "args.txt"
     fake.write_text(FAKE_VIEWER.format(python=sys.executable, record=str(record)))
@@ -406,8 +409,9 @@ def test_an_unreachable_viewer_means_an_rrd_and_a_finished_run(tmp_path):
 
 def test_a_viewer_that_goes_away_mid_run_does_not_break_it(tmp_path):
     """A real Rerun gRPC server (headless) receives the run and is killed half-way: the run still finishes."""
-    from vcyto import viewer
     import socket
+
+    from vcyto import viewer
     with socket.socket() as probe:
         probe.bind(("127.0.0.1", 0))
         port = probe.getsockname()[1]
@@ -438,6 +442,7 @@ def test_a_viewer_that_goes_away_mid_run_does_not_break_it(tmp_path):
 
 def test_no_viewer_binary_at_all_means_an_rrd(monkeypatch, capsys):
     import argparse
+
     from vcyto import runfiles, viewer
     monkeypatch.setenv("DISPLAY", ":99")
     monkeypatch.setattr(viewer, "find_viewer", lambda: None)

@@ -14,7 +14,7 @@ import time
 import numpy as np
 
 from sim import store
-from sim.fluid import NavierStokes, NumericalBlowUp, TaylorHood
+from sim.fluid import NavierStokes, TaylorHood
 from sim.linalg import Pardiso, SuperLU, pardiso_available
 from sim.mesh import channel_mesh
 from sim.scenario import UM, Scenario
@@ -229,7 +229,8 @@ def bench_controller(events: int = 20_000, rate: float = 1000.0, control_period:
     while index < events:
         now += control_period
         while index < events and times[index] <= now:
-            event = DetectorEvent(index, float(times[index]), float(rng.lognormal()), 50.0, 0.095 * rng.uniform(0.9, 1.1),
+            event = DetectorEvent(index, float(times[index]), float(rng.lognormal()), 50.0, 0.095 * rng.uniform(0.9,
+                                                                                                                1.1),
                                   TYPE_II if rng.random() < 0.3 else TYPE_I, index)
             started = time.perf_counter()
             controller.on_event(event)
@@ -270,7 +271,7 @@ def bench_recording(scenario: Scenario, cells=("RBC", "melanoma"), repeats: int 
 
     from .recording import McapRecorder
     from .sinks import BackgroundSinks
-    from .stream import StreamSettings, StreamStopped, run_stream
+    from .stream import StreamSettings, run_stream
     from .viewer import RerunSink
 
     settings = StreamSettings(Arrivals(cells=tuple(cells)))
@@ -286,7 +287,8 @@ def bench_recording(scenario: Scenario, cells=("RBC", "melanoma"), repeats: int 
                 sinks = []
                 if mode == "with":
                     sinks = [BackgroundSinks([McapRecorder(Path(directory) / "run.mcap", {"benchmark": "recording"},
-                                                           scenario=scenario, detection_window=DetectorSettings().window),
+                                                           scenario=scenario,
+                                                           detection_window=DetectorSettings().window),
                                               RerunSink(scenario, DetectorSettings().window,
                                                         ("save", Path(directory) / "run.rrd"))])]
                 started = time.perf_counter()
@@ -308,7 +310,8 @@ def recording_lines(result: dict) -> list[str]:
             f"  without / with MCAP + Rerun, interleaved pairs: {pairs}",
             f"  overhead per pair {', '.join(f'{100 * o:.1f} %' for o in result['overheads'])}: "
             f"median {100 * result['overhead']:.1f} % (target <= 10 %)",
-            f"  files: MCAP {result['file_bytes']['run.mcap'] / 1e6:.2f} MB, Rerun {result['file_bytes']['run.rrd'] / 1e6:.2f} MB"]
+            f"  files: MCAP {result['file_bytes']['run.mcap'] / 1e6:.2f} MB, "
+            f"Rerun {result['file_bytes']['run.rrd'] / 1e6:.2f} MB"]
 
 def bench_membrane(scenario: Scenario, repeats: int = 2, progress=None) -> dict:
     """The paper's literal membrane method against the conserving one (README, "Cells that keep their size"):
@@ -357,8 +360,8 @@ def bench_membrane(scenario: Scenario, repeats: int = 2, progress=None) -> dict:
                                          for w, run in zip(walls, runs[method])]})
         paper, conserving = rows[-2], rows[-1]
         conserving["cost_ratio"] = [c / p for c, p in zip(conserving["per_step_ms"], paper["per_step_ms"])]
-        conserving["membrane_extra"] = ((statistics.median(conserving["membrane_ms"])
-                                         - statistics.median(paper["membrane_ms"])) / statistics.median(paper["per_step_ms"]))
+        extra_ms = statistics.median(conserving["membrane_ms"]) - statistics.median(paper["membrane_ms"])
+        conserving["membrane_extra"] = extra_ms / statistics.median(paper["per_step_ms"])
     return {"rows": rows, "repeats": repeats}
 
 
@@ -372,7 +375,8 @@ def membrane_lines(result: dict) -> list[str]:
         lines.append(
             f"| {row['case']} | {row['method']} | {row['outlet']} | {100 * row['area_ratio'][0]:.2f}-"
             f"{100 * row['area_ratio'][1]:.2f} % | {100 * row['area_corrected']:.2f} % | "
-            f"{row['spacing_over_h'][0]:.2f}-{row['spacing_over_h'][1]:.2f} | {statistics.median(row['per_step_ms']):.2f} | "
+            f"{row['spacing_over_h'][0]:.2f}-{row['spacing_over_h'][1]:.2f} | "
+            f"{statistics.median(row['per_step_ms']):.2f} | "
             f"{statistics.median(row['membrane_ms']):.3f} | "
             + (f"{', '.join(f'{r:.3f}' for r in ratio)} (median {statistics.median(ratio):.3f})" if ratio else "")
             + (f" | {100 * row['membrane_extra']:+.1f} %" if "membrane_extra" in row else " |") + " |")
@@ -405,7 +409,8 @@ def bench_sweep(spec_path, worker_counts=(1, 2), repeats: int = 1, progress=None
             point_seconds[workers].append(sum(row["wall_time_s"] for row in result["rows"]))
     medians = {workers: statistics.median(times) for workers, times in walls.items()}
     first = worker_counts[0]
-    return {"spec": str(spec_path), "points": len(plan.points), "models": sorted({p.settings.model for p in plan.points}),
+    return {"spec": str(spec_path), "points": len(plan.points),
+            "models": sorted({p.settings.model for p in plan.points}),
             "repeats": repeats, "wall_s": walls, "median_wall_s": medians, "point_work_s": point_seconds,
             "speed_up": {workers: medians[first] / medians[workers] for workers in worker_counts},
             "cpus": len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()}
@@ -551,6 +556,7 @@ def auto_lines(result: dict) -> list[str]:
             f"  purity / yield: auto {_fraction(stats['auto']['purity'])} / {_fraction(stats['auto']['yield'])}, "
             f"feib {_fraction(stats['feib']['purity'])} / {_fraction(stats['feib']['yield'])}",
             f"  wall: auto {result['wall_s']['auto']:.1f} s (set-up {result['setup_s']['auto']:.1f} s), feib "
-            f"{result['wall_s']['feib']:.1f} s (set-up {result['setup_s']['feib']:.1f} s): {result['speedup_run']:.1f}x "
+            f"{result['wall_s']['feib']:.1f} s (set-up {result['setup_s']['feib']:.1f} s): "
+            f"{result['speedup_run']:.1f}x "
             f"faster without set-up, {result['speedup_total']:.1f}x with",
             f"  auto ran feib for {100 * result['feib_fraction']:.1f} % of the periods ({result['switches']} switches)"]

@@ -70,7 +70,8 @@ def passage(plant, type_name: str, pulse=None, detector: DetectorSettings = Dete
         if observation.cells:
             x = observation.cells[0].x
             if previous is not None and previous[1] < window_centre <= x and math.isnan(arrival):
-                arrival = previous[0] + (window_centre - previous[1]) / (x - previous[1]) * (observation.time - previous[0])
+                fraction = (window_centre - previous[1]) / (x - previous[1])
+                arrival = previous[0] + fraction * (observation.time - previous[0])
             previous = (observation.time, x)
     cell = plant.truth().cells[0]
     fate = cell.fate if cell.fate != "in_channel" else "lost"
@@ -243,7 +244,8 @@ class Calibration:
                                     "detected_ms": _finite(p.detected * ms), "velocity_m_s": _finite(p.velocity),
                                     "arrival_ms": _finite(p.arrival * ms)}
                                    for (name, state), p in self.delay.passages.items()]},
-            "pulses": [{"pulse_ms": band.pulse * ms, "good_leads_ms": [v * ms for v in band.band] if band.band else None}
+            "pulses": [{"pulse_ms": band.pulse * ms,
+                        "good_leads_ms": [v * ms for v in band.band] if band.band else None}
                        for band in self.pulse_bands],
             "envelopes_ms": {name: [v * ms for v in env] if env else None for name, env in self.envelopes.items()},
             "scans": {name: [[offset * ms, fate] for offset, fate in runs] for name, runs in self.scans.items()},
@@ -317,8 +319,9 @@ def _class_of(cell_type) -> str:
 
 def make_calibration_plant(scenario: Scenario, model: str, control_period: float | None = None):
     """A plant of ``model`` for calibration cells (``rom``, ``auto``, ``oneway`` or ``feib``)."""
-    from .stream import StreamSettings, make_plant
     from sim.arrivals import Arrivals
+
+    from .stream import StreamSettings, make_plant
     settings = StreamSettings(Arrivals(cells=(scenario.cell_types[0].name,)), model=model,
                               control_period=control_period)
     return make_plant(scenario, settings)
@@ -364,8 +367,9 @@ def save_figure(calibration: Calibration, path) -> None:
 def report_lines(result: dict) -> list[str]:
     """The calibration as text (``result``: ``Calibration.as_dict`` plus model and files)."""
     c = result["controller"]
+    distances = ', '.join(f'class {k} {v:.2f} um' for k, v in result['delay']['distance_um'].items())
     lines = [f"sort delay {c['delay_ms']:.4f} ms at {c['reference_velocity_m_s'] * 1e3:.1f} mm/s "
-             f"(detector to SAW window: {', '.join(f'class {k} {v:.2f} um' for k, v in result['delay']['distance_um'].items())});"
+             f"(detector to SAW window: {distances});"
              f" timing error {c['timing_error_ms'] * 1e3:.1f} us per predicted arrival",
              (f"shortest reliable pulse {c['pulse_ms']:.3f} ms, lead {c['lead_ms']:.3f} ms" if result["pulses"] else
               f"pulse {c['pulse_ms']:.3f} ms, lead {c['lead_ms']:.3f} ms (given; it sorts every target type)")]
@@ -374,7 +378,8 @@ def report_lines(result: dict) -> list[str]:
                                                   f"{envelope[0]:+.4f} to {envelope[1]:+.4f} ms"))
     lines.append(f"controller envelope (type I) {c['envelope_ms'][0]:+.4f} to {c['envelope_ms'][1]:+.4f} ms, width "
                  f"{c['envelope_ms'][1] - c['envelope_ms'][0]:.4f} ms; resolution: edges "
-                 f"{result['resolution_ms']['envelope_edge'] * 1e3:.1f} us, leads {result['resolution_ms']['lead'] * 1e3:.0f} us")
+                 f"{result['resolution_ms']['envelope_edge'] * 1e3:.1f} us, "
+                 f"leads {result['resolution_ms']['lead'] * 1e3:.0f} us")
     lines.append(f"model {result['model']}, SAW model {result['saw_model']}, control period "
                  f"{result['control_period_ms'] * 1e3:.1f} us, {result['runs']} calibration cells in "
                  f"{result['wall_time_s']:.1f} s")

@@ -12,8 +12,9 @@ from __future__ import annotations
 
 import math
 
-from .outcomes import OUTCOME_CLASSES, outcome_class
 from controller.events import TYPE_I, TYPE_II
+
+from .outcomes import OUTCOME_CLASSES, outcome_class
 
 PROVISIONAL_CLASSES = ("in channel", "detected type I", "type II: sort scheduled", "type II: sort aborted")
 CLASS_NAMES = OUTCOME_CLASSES + PROVISIONAL_CLASSES
@@ -21,7 +22,9 @@ CLASS_IDS = {name: index for index, name in enumerate(CLASS_NAMES)}
 CLASS_COLOURS = {                     # RGB, one per class name
     "sorted": (40, 200, 80), "passed": (80, 140, 255), "aborted": (255, 150, 0), "missed": (200, 60, 220),
     "misclassified": (255, 40, 40), "co-deflected": (255, 230, 0), "lost": (140, 140, 140),
-    "not_injected": (90, 90, 90), "unfinished": (60, 60, 60), "in channel": (235, 235, 235), "detected type I": (150, 190, 255),
+    "not_injected": (90, 90, 90), "unfinished": (60, 60, 60), "in channel": (235, 235, 235), "detected type I": (150,
+                                                                                                                 190,
+                                                                                                                 255),
     "type II: sort scheduled": (150, 240, 170), "type II: sort aborted": (255, 200, 120),
 }
 
@@ -65,7 +68,8 @@ class CellClasses:
 
     def settle(self, cell) -> str:
         """The outcome class of a cell (``sim.plant.CellTruth``) that has left; the cell is forgotten."""
-        summary = {"outlet": cell.fate if cell.fate != "in_channel" else "lost", "true_class": self.true_class(cell.type),
+        summary = {"outlet": cell.fate if cell.fate != "in_channel" else "lost",
+                   "true_class": self.true_class(cell.type),
                    "detected_class": self._detected.pop(cell.key, None), "decision": self._action.pop(cell.key, None)}
         for event_id in [e for e, key in self._event_keys.items() if key == cell.key]:
             del self._event_keys[event_id]

@@ -15,19 +15,18 @@ from pathlib import Path
 import numpy as np
 
 from controller.sorter import MODES
+from sim import plants
 from sim.fluid import NumericalBlowUp
 from sim.linalg import SolverError
-
-from .stream import StreamStopped
 from sim.scenario import CONVECTIONS, MEMBRANE_METHODS, SAW_MODELS, ScenarioError
 
 from . import arguments as limits
-from . import units
+from . import outputs, units
 from .arguments import Integer, Number, Parser, Quantity
 from .cache import install_default as install_cache
 from .config import load_scenario
-from . import outputs
 from .outputs import strict_json
+from .stream import StreamStopped
 
 EXIT_INPUT = 2
 EXIT_NUMERICAL = 1
@@ -65,7 +64,8 @@ def _scenario_options(parser: argparse.ArgumentParser):
     group.add_argument("--set", dest="overrides", action="append", default=[], metavar="FIELD=VALUE",
                        help="override one field, e.g. --set fluid.viscosity=1e-3 (repeatable)")
     group.add_argument("--mesh-h", metavar="LENGTH", help="mesh size (default 3.33um, the paper's 54,243 DOFs)")
-    group.add_argument("--dt", metavar="TIME", help="time step (default 2.5us; vcyto paper: the paper's step for the scenario)")
+    group.add_argument("--dt", metavar="TIME",
+                       help="time step (default 2.5us; vcyto paper: the paper's step for the scenario)")
     group.add_argument("--convection", choices=CONVECTIONS, help="convection treatment (default imex)")
     group.add_argument("--saw-model", choices=SAW_MODELS, help="SAW model (default paper)")
     group.add_argument("--solver", choices=("auto", "pardiso", "superlu"), help="linear solver (default auto)")
@@ -465,6 +465,7 @@ def stream_settings(args, scenario):
     """The ``StreamSettings`` of the stream options in ``args`` (vcyto stream, and each point of vcyto sweep);
     the quantities in ``args`` are SI (the option types convert them)."""
     from sim.arrivals import Arrivals
+
     from . import stream
     try:
         if args.count is not None:
@@ -507,6 +508,7 @@ def _detector_settings(args, scenario):
 def _controller_settings(args):
     """The controller file (or the shipped defaults), then the controller options given on the command line."""
     from dataclasses import replace
+
     from controller.sorter import ControllerSettings
     base = ControllerSettings()
     if getattr(args, "controller", None):
@@ -722,7 +724,8 @@ def _calibration_grid(args):
     from .calibrate import Grid
     values = units.parse_list(args.pulse_range, "time", "ms", field="--pulse-range")
     if len(values) != 2 or not 0 < values[0] <= values[1] <= 10e-3:
-        raise UsageError(f"--pulse-range: wants LO,HI with 0 < LO <= HI <= 10 ms, e.g. 0.02,2 (got {args.pulse_range!r})")
+        raise UsageError(f"--pulse-range: wants LO,HI with 0 < LO <= HI <= 10 ms, e.g. 0.02,2 "
+                         f"(got {args.pulse_range!r})")
     count = (values[1] - values[0]) / args.pulse_step + 1
     if count > 2000:
         raise UsageError(f"--pulse-step: {count:.3g} pulse lengths to try (at most 2,000); use a coarser step or a "
@@ -772,8 +775,8 @@ def command_replay(args):
             raise UsageError(str(error)) from None
         raise UsageError(f"{path}: a message of the recording is malformed ({type(error).__name__}: "
                          f"{' '.join(str(error).split())[:120]}); it was not written by this vcyto") from None
-    lines = [f"replayed {result['steps']} steps ({result['messages']} messages, up to t = {result['last_time_ms']:.3f} ms)"
-             f" from {path}"]
+    lines = [f"replayed {result['steps']} steps ({result['messages']} messages, "
+             f"up to t = {result['last_time_ms']:.3f} ms) from {path}"]
     if result["damaged"]:
         lines.append(f"  the file is damaged or truncated ({result['problem']}): everything before the damage "
                      "was replayed, the rest is lost")
@@ -788,6 +791,7 @@ def _run_metadata(scenario, settings) -> dict:
     import numpy
     import scipy
     import skfem
+
     from . import __version__
     from .config import scenario_to_toml
     return {"scenario_toml": scenario_to_toml(scenario), "seed": settings.seed, "model": settings.model,
@@ -815,9 +819,8 @@ def _output_directory(path: str | None) -> Path | None:
 
 
 def command_sweep(args):
-    from . import sweep
+    from . import runfiles, sweep
     from .progress import Progress
-    from . import runfiles
     try:
         if args.scheduler is not None:
             sweep.check_scheduler(args.scheduler)
@@ -919,7 +922,7 @@ def _stream_options(parser: argparse.ArgumentParser):
                         help="uncertainty of one predicted arrival; the purity window is the envelope widened by twice "
                              "this (ms; default 0.027)")
     optics.add_argument("--no-controller", action="store_true", help="never switch the IDT on")
-    parser.add_argument("--model", choices=("feib", "auto", "oneway", "rom", "streamline"), default="feib",
+    parser.add_argument("--model", choices=plants.MODELS, default="feib",
                         help="plant: full FE-IB (default); auto (rom, switching to feib while a melanoma "
                              "shares the channel or cells are close together); oneway (membranes deforming in "
                              "the blended steady flows, no feedback); "
@@ -940,12 +943,13 @@ def _stream_options(parser: argparse.ArgumentParser):
 
 
 def _calibration_options(parser: argparse.ArgumentParser):
-    parser.add_argument("--model", choices=("rom", "auto", "oneway", "feib"), default="rom",
+    parser.add_argument("--model", choices=plants.CALIBRATION_MODELS, default="rom",
                         help="plant the calibration cells go through (default rom: about 1 s; feib: minutes to hours, "
                              "coarsen --pulse-step/--lead-step/--offset-step or give --pulse and --lead)")
     parser.add_argument("--detection-window", default="30,60", metavar="X0,X1", help="as for vcyto stream (um)")
     parser.add_argument("--gate", type=Number(low=0), default="0.5", help="fluorescence gate for type II (default 0.5)")
-    parser.add_argument("--noise", type=Number(low=0, high=10), default="0.2", help="fluorescence noise CV (default 0.2)")
+    parser.add_argument("--noise", type=Number(low=0, high=10), default="0.2",
+                        help="fluorescence noise CV (default 0.2)")
     parser.add_argument("--controller", metavar="FILE", help="start from this controller file (mode and fields not "
                                                              "measured are kept)")
     parser.add_argument("--mode", choices=MODES, help="sort mode written to the controller file (default purity)")
@@ -985,7 +989,8 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--version", action="version", version=f"vcyto {__version__}")
     commands = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
-    flow = commands.add_parser("flow", help="steady flow with the IDT off and on; where the injection streamline leaves")
+    flow = commands.add_parser("flow",
+                               help="steady flow with the IDT off and on; where the injection streamline leaves")
     _scenario_options(flow)
     flow.add_argument("--png", metavar="FILE", help="save the speed field with the streamlines as a PNG")
     flow.add_argument("--calibrate-streaming", action="store_true",
@@ -994,17 +999,20 @@ def build_parser() -> argparse.ArgumentParser:
     flow.set_defaults(handler=command_flow)
 
     paper = commands.add_parser("paper", help="run the paper's scenario 1 (RBC, IDT off) or 2 (melanoma, IDT on)")
-    paper.add_argument("number", type=int, choices=(1, 2), help="1: RBC, IDT off, dt 2.5 us; 2: melanoma, IDT on, dt 25 us")
+    paper.add_argument("number", type=int, choices=(1, 2),
+                       help="1: RBC, IDT off, dt 2.5 us; 2: melanoma, IDT on, dt 25 us")
     _scenario_options(paper)
     _tolerance_options(paper)
-    paper.add_argument("--png", metavar="FILE", help="where to save the path over the flow (default recordings/paperN.png)")
+    paper.add_argument("--png", metavar="FILE",
+                       help="where to save the path over the flow (default recordings/paperN.png)")
     paper.add_argument("--no-png", action="store_true", help="do not save a PNG")
     paper.add_argument("--max-time", type=Quantity("time", "ms", low=0, low_open=True, high=3600.0), default="20",
                        metavar="TIME", help="give up (outlet 'lost') after this much simulated time (ms; default 20)")
     _output_options(paper)
     paper.set_defaults(handler=command_paper)
 
-    stream = commands.add_parser("stream", help="run cells through the closed sorting loop (detector, controller, plant)")
+    stream = commands.add_parser("stream",
+                                 help="run cells through the closed sorting loop (detector, controller, plant)")
     _scenario_options(stream)
     _tolerance_options(stream)
     _stream_options(stream)
@@ -1055,8 +1063,9 @@ def build_parser() -> argparse.ArgumentParser:
 
     sweep = commands.add_parser("sweep", help="a parameter sweep of the closed loop, locally or on a Dask cluster")
     sweep.add_argument("spec", metavar="SPEC", help="sweep spec (TOML): [base] run, [parameters], [sweep] metrics")
-    sweep.add_argument("--output", metavar="DIR", help="where results.csv, summary.png and sweep.json go; a re-run "
-                                                       "skips the points already there (default recordings/sweeps/SPEC)")
+    sweep.add_argument("--output", metavar="DIR",
+                       help="where results.csv, summary.png and sweep.json go; a re-run skips the points already "
+                            "there (default recordings/sweeps/SPEC)")
     sweep.add_argument("--workers", type=Integer(low=1, high=1024), metavar="N",
                        help="worker processes (default: the CPU count)")
     sweep.add_argument("--scheduler", metavar="ADDRESS", help="run on the Dask scheduler at ADDRESS (e.g. "
@@ -1075,9 +1084,11 @@ def build_parser() -> argparse.ArgumentParser:
     tradeoff_parser.add_argument("--fast", action="store_true",
                                  help="the reduced set (coarse mesh, reference FE-IB at h = 6.67 um; a few minutes)")
     tradeoff_parser.add_argument("--output", default="recordings/tradeoff", metavar="DIR",
-                                 help="where tradeoff.md, tradeoff.csv and tradeoff.png go (default recordings/tradeoff)")
+                                 help="where tradeoff.md, tradeoff.csv and tradeoff.png go "
+                                      "(default recordings/tradeoff)")
     tradeoff_parser.add_argument("--coupling", metavar="LIST",
-                                 help="add an auto level for each coupling factor, e.g. 2,2.5 (the default auto level has coupling 3)")
+                                 help="add an auto level for each coupling factor, e.g. 2,2.5 (the default auto "
+                                      "level has coupling 3)")
     tradeoff_parser.add_argument("--stiff-capillary", metavar="LIST",
                                  help="add an auto level for each stiff-cell capillary number, e.g. 0,100 (0 turns the "
                                       "stiff-cell rule off; the default auto level has 100)")
@@ -1086,11 +1097,13 @@ def build_parser() -> argparse.ArgumentParser:
                                       "RBC, e.g. 0.5,1.0 (the fixed scene's gap is 0.25)")
     tradeoff_parser.add_argument("--lone-rbc", metavar="MS",
                                  help="add a scene for each time (ms, below 2) with an RBC alone injected then under "
-                                      "the pair scenes' 0.9-2.1 ms pulse, e.g. 0.565 (the pair's RBC without the melanoma)")
+                                      "the pair scenes' 0.9-2.1 ms pulse, e.g. 0.565 (the pair's RBC without the "
+                                      "melanoma)")
     _scenario_options(tradeoff_parser)
     _output_options(tradeoff_parser)
     tradeoff_parser.set_defaults(handler=command_tradeoff)
-    scenario = commands.add_parser("scenario", help="print the effective scenario (defaults + file + overrides) as TOML")
+    scenario = commands.add_parser("scenario",
+                                   help="print the effective scenario (defaults + file + overrides) as TOML")
     _scenario_options(scenario)
     scenario.set_defaults(handler=command_scenario)
 
@@ -1116,7 +1129,8 @@ def build_parser() -> argparse.ArgumentParser:
     _scenario_options(paper_bench)
     _output_options(paper_bench)
     paper_bench.set_defaults(handler=command_bench)
-    auto_bench = targets.add_parser("auto", help="a mixed stream with --model auto and with feib: outcomes and wall time")
+    auto_bench = targets.add_parser("auto",
+                                    help="a mixed stream with --model auto and with feib: outcomes and wall time")
     auto_bench.add_argument("--count", type=Integer(low=1), default="100", help="cells (default 100)")
     auto_bench.add_argument("--rate", type=Quantity("frequency", "Hz", low=0, low_open=True), default="500",
                             help="Poisson arrival rate, cells/s (default 500)")
@@ -1132,7 +1146,8 @@ def build_parser() -> argparse.ArgumentParser:
     _scenario_options(membrane_bench)
     _output_options(membrane_bench)
     membrane_bench.set_defaults(handler=command_bench)
-    recording_bench = targets.add_parser("recording", help="wall-time overhead of recording (MCAP + Rerun) an FE-IB stream")
+    recording_bench = targets.add_parser("recording",
+                                         help="wall-time overhead of recording (MCAP + Rerun) an FE-IB stream")
     recording_bench.add_argument("--repeats", type=Integer(low=1, high=1000), default="3",
                                  help="interleaved pairs without/with (default 3)")
     _scenario_options(recording_bench)

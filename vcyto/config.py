@@ -228,7 +228,8 @@ def _resolve_index(node, hint, segment: str, where: str) -> tuple[int, object, s
     if not isinstance(node, list):
         raise ScenarioError(where, f"must be an array (got {_shown(node)})")
     if not _INDEX.fullmatch(segment):
-        raise ScenarioError(where, f"is an array; select an entry by its 0-based index, e.g. {where}.0 (got {segment!r})")
+        raise ScenarioError(where,
+                            f"is an array; select an entry by its 0-based index, e.g. {where}.0 (got {segment!r})")
     index = int(segment)
     if index >= len(node):
         valid = f" (indices 0 to {len(node) - 1})" if node else ""

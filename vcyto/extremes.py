@@ -98,7 +98,8 @@ def simulate(setting: Setting) -> Run:
     try:
         plant = ImmersedBoundary(setting.scenario)
         state = plant.start(setting.actuation)
-        cells = tuple(plant.new_cell(kind, index, state.time, centre) for index, (kind, centre) in enumerate(setting.cells))
+        cells = tuple(plant.new_cell(kind, index, state.time, centre) for index, (kind,
+                                                                                  centre) in enumerate(setting.cells))
         state = State(state.flow, cells)
         run.cells = cells
         stepping = time.perf_counter()
@@ -199,7 +200,8 @@ def _inflow(factor, mesh_h=10 * UM, max_stretch=None):
     default 20 lets a membrane at x40 fold before it tears: both stop the run, only tearing names Remark 2.4)."""
     def build(base, fast):
         peak = factor * max(_peak_speed(base, inlet) for inlet in base.channel.inlets)
-        scenario = _with_inflow(base, factor).with_numerics(mesh_h=mesh_h, dt=_round_dt(min(10e-6, CFL * mesh_h / peak)))
+        scenario = _with_inflow(base, factor).with_numerics(mesh_h=mesh_h, dt=_round_dt(min(10e-6,
+                                                                                            CFL * mesh_h / peak)))
         if max_stretch is not None:
             scenario = scenario.with_numerics(max_stretch=max_stretch)
         return Setting(scenario, ((base.cell_type("melanoma"), None),), 0.0)
@@ -249,10 +251,6 @@ def _many(base, fast):
     kinds = (base.cell_type("RBC"), base.cell_type("melanoma"))
     cells = tuple((kinds[(i + j) % 2], (x, y)) for i, x in enumerate(xs) for j, y in enumerate(ys))
     return Setting(base.with_numerics(mesh_h=20 * UM / 3, dt=10e-6), cells, 0.0)
-
-
-def _outlet_of(run: Run) -> str:
-    return ", ".join(cell.fate for cell in run.cells)
 
 
 def _upper(run, base, fast):
@@ -309,7 +307,8 @@ CASES = (
          _inflow(8.0), True, check=_below_tear),
     Case("c2", "inflow x40", "melanoma, all v_hat x40, IDT off, h 10 um, CFL 0.1, max_stretch 10",
          "stops: torn apart, inflow too fast",
-         _inflow(40.0, max_stretch=10.0), False, contains=("torn apart", "too fast for this membrane", "Remark 2.4", "v_hat"),
+         _inflow(40.0, max_stretch=10.0), False, contains=("torn apart", "too fast for this membrane", "Remark 2.4",
+                                                           "v_hat"),
          excludes=("try dt",)),
     Case("d1", "touching a wall", "melanoma at x 100 um, 0.5 um above the lower wall, h 6.67 um, dt 10 us",
          "runs: slides along, lower outlet", _touching_wall, True, fates=("lower",)),

@@ -4,8 +4,6 @@ from __future__ import annotations
 
 import time
 
-import numpy as np
-
 from sim.calibration import FlowPaths, calibrate_streaming_force, injection_streamline
 from sim.fluid import NavierStokes
 from sim.scenario import UM, Scenario
@@ -44,8 +42,8 @@ def report_lines(result: dict) -> list[str]:
     lines = [f"steady flow, SAW model {result['saw_model']}, h = {result['mesh_h_um']:.3g} um, {result['dofs']:,} DOFs"]
     for key, label in (("idt_off", "IDT off"), ("idt_on", "IDT on ")):
         path = result[key]
-        lines.append(f"  {label}: injection streamline leaves by {path['outlet']:>5} at y = {path['exit_y_um']:6.1f} um "
-                     f"after {path['transit_time_ms']:.3f} ms")
+        lines.append(f"  {label}: injection streamline leaves by {path['outlet']:>5} "
+                     f"at y = {path['exit_y_um']:6.1f} um after {path['transit_time_ms']:.3f} ms")
     lines.append(f"  wall time {result['wall_time_s']:.1f} s")
     return lines
 

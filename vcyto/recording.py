@@ -248,5 +248,6 @@ def velocity_field(vertices: np.ndarray, velocity: np.ndarray, pressure: np.ndar
         return base64.b64encode(np.asarray(values)[:count][order].astype(np.float32).tobytes()).decode()
 
     return {"time": time_s, "shape": [len(grid_y), len(grid_x)],
-            "x_um": np.round(np.asarray(grid_x) * 1e6, 4).tolist(), "y_um": np.round(np.asarray(grid_y) * 1e6, 4).tolist(),
+            "x_um": np.round(np.asarray(grid_x) * 1e6, 4).tolist(), "y_um": np.round(np.asarray(grid_y) * 1e6,
+                                                                                     4).tolist(),
             "vx_f32_b64": encoded(velocity[0]), "vy_f32_b64": encoded(velocity[1]), "p_f32_b64": encoded(pressure)}

@@ -31,6 +31,7 @@ import statistics
 import numpy as np
 
 from controller.events import TYPE_I, TYPE_II
+
 from .outcomes import DEFAULT_OUTLET, SORTED_OUTLET, outcome_class
 
 SORTED_MODES = {"purity": True, "single": True, "enrichment": False}
@@ -310,9 +311,10 @@ def sort_report_lines(result: dict) -> list[str]:
         lines.append(f"PARTIAL RESULT ({result['status']}): {result['reason']}")
     if "auto" in result:
         auto = result["auto"]
+        switches = "".join(f"\n  t = {s['time_ms']:7.3f} ms -> {s['model']}: {s['reason']}"
+                           for s in auto["switches"][1:9])
         lines.append(f"auto: feib for {100 * auto['feib_fraction']:.1f} % of the periods, "
-                     f"{len(auto['switches']) - 1} switches" + "".join(
-                         f"\n  t = {s['time_ms']:7.3f} ms -> {s['model']}: {s['reason']}" for s in auto["switches"][1:9])
+                     f"{len(auto['switches']) - 1} switches" + switches
                      + ("\n  ..." if len(auto["switches"]) > 9 else ""))
     return lines
 

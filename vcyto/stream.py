@@ -20,16 +20,16 @@ import numpy as np
 from controller.detector import Detector, DetectorSettings
 from controller.events import Sighting
 from controller.sorter import ControllerSettings, SortController
+from sim import plants
 from sim.arrivals import Arrivals, offer
 from sim.fluid import NumericalBlowUp
 from sim.linalg import SolverError
-from sim.plant import FeibPlant, StreamlinePlant
 from sim.scenario import Scenario
 
 from . import sortreport
 from .sortreport import report_lines, statistics_of, true_class  # noqa: F401  (the loop's public names)
 
-MODELS = ("feib", "streamline", "rom", "oneway", "auto")
+MODELS = plants.MODELS
 STATUSES = ("complete", "truncated", "interrupted", "failed")
 
 
@@ -74,18 +74,9 @@ class StreamSettings:
 
 
 def make_plant(scenario: Scenario, settings: StreamSettings):
-    if settings.model == "streamline":
-        return StreamlinePlant(scenario, control_period=settings.control_period or 10e-6)
-    if settings.model == "rom":
-        from sim.rom import RomPlant
-        return RomPlant(scenario, control_period=settings.control_period)
-    if settings.model == "auto":
-        from sim.auto import AutoPlant
-        return AutoPlant(scenario, control_period=settings.control_period, window_mesh_h=settings.window_mesh_h)
-    if settings.model == "oneway":
-        from sim.oneway import OneWayPlant
-        return OneWayPlant(scenario, control_period=settings.control_period)
-    return FeibPlant(scenario, control_period=settings.control_period)
+    """A fresh plant of ``settings.model`` (the registry ``sim.plants``)."""
+    options = {"window_mesh_h": settings.window_mesh_h} if settings.model == "auto" else {}
+    return plants.build(settings.model, scenario, control_period=settings.control_period, **options)
 
 
 def run_stream(scenario: Scenario, settings: StreamSettings, progress=None, plant=None, sinks=()) -> dict:

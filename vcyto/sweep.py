@@ -47,10 +47,12 @@ from pathlib import Path
 
 import numpy as np
 
+from sim.plants import MODELS
+
 from .arguments import MAX_SWEEP_POINTS, Integer, Quantity
 from .cli import stream_run, stream_run_options
 from .config import check_input_file, parse_quantity, scenario_to_toml
-from .stream import MODELS, make_plant, run_stream
+from .stream import make_plant, run_stream
 
 if sys.version_info >= (3, 11):
     import tomllib
@@ -63,7 +65,8 @@ SWEEP_KEYS = ("metrics", "plot", "sampling", "samples", "sampling_seed")
 RANGE_KEYS = ("start", "stop", "num", "step", "log")
 DISTRIBUTIONS = ("uniform", "log_uniform", "integers")
 STATISTICS = ("yield", "purity", "abort_rate", "aborts", "misclassified", "undetected", "throughput_cells_per_s",
-              "cells", "purity_of_sorting", "offered", "events", "event_rate_per_s", "rejected_at_inlet", "sorted", "co_deflected",
+              "cells", "purity_of_sorting", "offered", "events", "event_rate_per_s", "rejected_at_inlet", "sorted",
+              "co_deflected",
               "co_deflected_unexpected", "not_injected", "yield_estimate")
 RUN_FIGURES = ("simulated_time_ms", "idt_on_time_ms", "wall_time_s")
 DEFAULT_METRICS = ("yield", "purity", "abort_rate", "outlets")
@@ -272,7 +275,8 @@ def _option_value(action: argparse.Action, value, where: str):
         return _typed(action, value, where)
     if isinstance(action.type, Quantity):
         if not isinstance(value, (int, float, str)):
-            raise SweepError(f"{where}: must be a number in the unit of vcyto stream's --{action.dest.replace('_', '-')}"
+            option = action.dest.replace('_', '-')
+            raise SweepError(f"{where}: must be a number in the unit of vcyto stream's --{option}"
                              f" or a text with a unit (got {value!r})")
         return _typed(action, value, where)
     text = _option_text(value)
@@ -435,6 +439,7 @@ def code_identity() -> str:
     """The vcyto version and a digest of the scenario and stream-settings schema (field names and types):
     part of every point's id, so results of other code are not taken for this code's."""
     from sim.scenario import Scenario
+
     from . import __version__
     from .stream import StreamSettings
     return f"{__version__}/{_schema_digest((Scenario, StreamSettings))}"
@@ -737,7 +742,8 @@ def _summary(sweep: Sweep, output: Path, rows: dict, ran: int, repaired: int, wa
     return {"spec": sweep.path, "sampling": sweep.sampling, "parameters": [p.name for p in sweep.parameters],
             "metrics": list(sweep.metrics), "plot_metric": sweep.plot, "points": len(sweep.points),
             "ok": len(ok), "failed": sum(row["status"] == "failed" for row in current),
-            "truncated": sum(row["status"] == "truncated" for row in current), "ran": ran, "done_before": len(sweep.points) - ran,
+            "truncated": sum(row["status"] == "truncated" for row in current), "ran": ran,
+            "done_before": len(sweep.points) - ran,
             "repaired_rows": repaired, "stale_rows": len(rows) - len(current), "wall_time_s": wall,
             "highest": best,
             "files": {"table": str(output / RESULTS)}, "rows": current}
@@ -752,8 +758,8 @@ def _float(value) -> float:
 
 
 def report_lines(result: dict) -> list[str]:
-    lines = [f"{result['points']} points: {result['ok']} ok, {result['failed']} failed, {result['truncated']} truncated "
-             f"(not results: raise max_time or drop it) ({result['ran']} run now, "
+    lines = [f"{result['points']} points: {result['ok']} ok, {result['failed']} failed, "
+             f"{result['truncated']} truncated (not results: raise max_time or drop it) ({result['ran']} run now, "
              f"{result['done_before']} done before) in {result['wall_time_s']:.1f} s"]
     if result["repaired_rows"]:
         lines.append(f"  {result['repaired_rows']} torn row(s) of an interrupted run dropped; those points ran again")

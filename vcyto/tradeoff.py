@@ -38,7 +38,8 @@ SCENES = (
     Scene("isolated RBC, IDT off", ((0.0, "RBC"),)),
     Scene("isolated melanoma, IDT on", ((0.0, "melanoma"),), ((0.0, math.inf),)),
     # the melanoma's pulse (from its detection to after its passage) catches the RBC 0.25 ms behind it
-    Scene("melanoma and RBC 0.25 ms apart, pulse 0.9-2.1 ms", ((0.0, "melanoma"), (0.25e-3, "RBC")), ((0.9e-3, 2.1e-3),)),
+    Scene("melanoma and RBC 0.25 ms apart, pulse 0.9-2.1 ms", ((0.0, "melanoma"), (0.25e-3, "RBC")), ((0.9e-3, 2.1e-3),
+                                                                                                      )),
 )
 
 
@@ -75,7 +76,8 @@ class Level:
 
     @property
     def label(self) -> str:
-        text = f"{self.model} h={self.mesh_h / UM:.3g}um {'dt' if self.model != 'rom' else 'period'}={self.dt * 1e6:g}us"
+        step = "dt" if self.model != "rom" else "period"
+        text = f"{self.model} h={self.mesh_h / UM:.3g}um {step}={self.dt * 1e6:g}us"
         text += f" grid={self.grid / UM:g}um" if self.model in ("rom", "oneway", "auto") else ""
         if self.model == "auto":
             text += f" window h={self.window_mesh_h / UM:.3g}um"
@@ -124,22 +126,18 @@ class _Flows:
 
 
 def make_plant(scenario: Scenario, level: Level, flows: _Flows):
+    """A fresh plant of ``level`` (the registry ``sim.plants``) on the level's mesh and time step."""
+    from sim import plants
+    numerics = {"mesh_h": level.mesh_h} if level.model == "rom" else {"mesh_h": level.mesh_h, "dt": level.dt}
+    scenario = scenario.with_numerics(**numerics)
     if level.model == "feib":
-        from sim.plant import FeibPlant
-        return FeibPlant(scenario.with_numerics(mesh_h=level.mesh_h, dt=level.dt, tolerance=level.tolerance or 0.0))
-    if level.model == "oneway":
-        from sim.oneway import OneWayPlant
-        return OneWayPlant(scenario.with_numerics(mesh_h=level.mesh_h, dt=level.dt), flows=flows.get(level))
-    if level.model == "rom":
-        from sim.rom import RomPlant
-        return RomPlant(scenario.with_numerics(mesh_h=level.mesh_h), control_period=level.dt, flows=flows.get(level))
+        return plants.build("feib", scenario.with_numerics(tolerance=level.tolerance or 0.0))
     if level.model == "auto":
-        from sim.auto import AutoPlant
         rule = {name: value for name, value in (("coupling", level.coupling), ("stiff_capillary", level.stiff))
                 if value is not None}
-        return AutoPlant(scenario.with_numerics(mesh_h=level.mesh_h, dt=level.dt), grid_spacing=level.grid,
-                         window_mesh_h=level.window_mesh_h, **rule)
-    raise ValueError(f"unknown model {level.model!r}")
+        return plants.build("auto", scenario, grid_spacing=level.grid, window_mesh_h=level.window_mesh_h, **rule)
+    period = level.dt if level.model == "rom" else None
+    return plants.build(level.model, scenario, control_period=period, flows=flows.get(level))
 
 
 def run_scene(plant, scene: Scene) -> dict:

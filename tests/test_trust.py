@@ -463,3 +463,11 @@ def test_a_second_paper_run_never_overwrites_the_first_figure(tmp_path):
     refused = vcyto(*args, "--png", str(tmp_path / "recordings" / "paper2.png"), cwd=tmp_path)
     assert refused.returncode == 2 and "never overwrites" in refused.stderr
     assert len(refused.stderr.strip().splitlines()) == 1
+
+
+@pytest.mark.parametrize("argv", [["stream", "--dt", "1ns"], ["paper", "1", "--dt", "1ns"],
+                                  ["stream", "--count", "100000", "--mix", "RBC:1", "--rate", "1000"]])
+def test_runs_that_would_take_days_are_refused_with_the_estimate(argv, inline):
+    status, _, stderr = inline(argv)
+    assert_one_line_refusal(status, stderr)
+    assert "FE-IB steps" in stderr and " h on this machine" in stderr and "--allow-long" in stderr

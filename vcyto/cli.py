@@ -291,6 +291,7 @@ def command_paper(args):
     # with --tolerance the finest level is --dt or 2.5 us, the step the tolerance is stated against
     scenario = paper.paper_scenario(args.number, _scenario(args, membrane="paper"),
                                     dt_given=args.dt is not None or args.tolerance is not None)
+    _check_run_time(args, scenario, args.max_time, "--dt/--max-time")
     png = None if args.no_png else _output_path(args.png or f"recordings/paper{args.number}.png", default=not args.png)
     progress = Progress(quiet=args.quiet or args.json)
     try:
@@ -487,6 +488,8 @@ def stream_settings(args, scenario):
                 scenario.with_numerics(mesh_h=window)           # resolves every inlet and outlet
             except ScenarioError as error:
                 raise UsageError(f"--window-h: {str(error).split(': ', 1)[1]}") from None
+        if args.model == "feib":
+            _check_run_time(args, scenario, _device_time(arrivals, args.max_time), "--dt/--count/--rate")
         return stream.StreamSettings(arrivals, detector, controller, args.model, args.seed,
                                      max_time=args.max_time, window_mesh_h=window)
     except ValueError as error:
@@ -503,6 +506,19 @@ def _detector_settings(args, scenario):
                                 noise_cv=args.noise)
     except ValueError as error:
         raise UsageError(f"--detection-window/--gate/--noise: {error}") from None
+
+
+def _device_time(arrivals, cap) -> float:
+    """The device time a stream will simulate, roughly: its arrivals plus 5 ms for the last cell to leave."""
+    cells = len(arrivals.cells) or arrivals.count
+    span = (cells - 1) / arrivals.rate + 5e-3
+    return min(span, cap) if cap is not None else span
+
+
+def _check_run_time(args, scenario, simulated: float, field: str):
+    limits.check_run_time(simulated, scenario.numerics.dt, limits.mesh_dofs(
+        scenario.channel.length, scenario.channel.height, scenario.numerics.mesh_h), field,
+        allowed=getattr(args, "allow_long", False))
 
 
 def _controller_settings(args):
@@ -940,6 +956,8 @@ def _stream_options(parser: argparse.ArgumentParser):
                              "counted as such); exit status 1 unless --allow-partial")
     parser.add_argument("--allow-partial", action="store_true",
                         help="a run cut short by --max-time (or by cells stuck in the channel) exits 0")
+    parser.add_argument("--allow-long", action="store_true",
+                        help="run an FE-IB stream estimated to take more than 24 h (refused otherwise)")
 
 
 def _calibration_options(parser: argparse.ArgumentParser):
@@ -1006,6 +1024,7 @@ def build_parser() -> argparse.ArgumentParser:
     paper.add_argument("--png", metavar="FILE",
                        help="where to save the path over the flow (default recordings/paperN.png)")
     paper.add_argument("--no-png", action="store_true", help="do not save a PNG")
+    paper.add_argument("--allow-long", action="store_true", help="run even if estimated to take more than 24 h")
     paper.add_argument("--max-time", type=Quantity("time", "ms", low=0, low_open=True, high=3600.0), default="20",
                        metavar="TIME", help="give up (outlet 'lost') after this much simulated time (ms; default 20)")
     _output_options(paper)

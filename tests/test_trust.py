@@ -471,3 +471,19 @@ def test_runs_that_would_take_days_are_refused_with_the_estimate(argv, inline):
     status, _, stderr = inline(argv)
     assert_one_line_refusal(status, stderr)
     assert "FE-IB steps" in stderr and " h on this machine" in stderr and "--allow-long" in stderr
+
+
+def test_every_mcap_json_message_is_strict_json(tmp_path):
+    """A rom stream's recording, JSON channels read back with a parser that refuses NaN and infinities."""
+    from mcap.reader import make_reader
+    done = vcyto("stream", "--model", "rom", "--mesh-h", "10um", "--count", "30", "--mix", "RBC:0.8,melanoma:0.2",
+                 "--rate", "1000", "--no-viewer", "--quiet", "--output", str(tmp_path), "--name", "s")
+    assert done.returncode == 0, done.stderr
+    with open(tmp_path / "s.mcap", "rb") as handle:
+        reader = make_reader(handle)
+        texts = [message.data for _, channel, message in reader.iter_messages() if channel.message_encoding == "json"]
+        texts += [value for record in reader.iter_metadata() for value in record.metadata.values()
+                  if value.startswith(("{", "["))]       # metadata: plain strings, containers as JSON text
+    assert len(texts) > 50
+    for text in texts:
+        strict_load(text)

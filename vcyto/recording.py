@@ -45,6 +45,7 @@ from sim.scenario import UM, Scenario
 
 from . import foxglove
 from .classes import CLASS_COLOURS, CLASS_IDS, CellClasses
+from .outputs import plain
 from .schemas import SCHEMAS
 
 PER_STEP = ("/loop/step", "/cells")
@@ -64,9 +65,9 @@ def plain_metadata(metadata: dict) -> dict:
     """Metadata values as plain strings: settings (dataclasses) and containers as JSON text."""
     def text(value):
         if dataclasses.is_dataclass(value) and not isinstance(value, type):
-            return json.dumps(dataclasses.asdict(value))
+            return json.dumps(plain(dataclasses.asdict(value)), allow_nan=False)
         if isinstance(value, (dict, list, tuple, bool)) or value is None:
-            return json.dumps(value)
+            return json.dumps(plain(value), allow_nan=False)
         return str(value)
     return {key: text(value) for key, value in metadata.items()}
 
@@ -139,7 +140,11 @@ class McapRecorder:
                                  sequence=self._sequence)
 
     def _write(self, topic: str, time_s: float, payload: dict):
-        self._add(topic, time_s, json.dumps(payload, separators=(",", ":")).encode())
+        try:                                   # strict JSON: NaN and infinities are null (outputs.plain)
+            text = json.dumps(payload, separators=(",", ":"), allow_nan=False)
+        except ValueError:
+            text = json.dumps(plain(payload), separators=(",", ":"), allow_nan=False)
+        self._add(topic, time_s, text.encode())
 
     def _write_proto(self, topic: str, time_s: float, message):
         self._add(topic, time_s, message.SerializeToString())

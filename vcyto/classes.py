@@ -29,6 +29,15 @@ CLASS_COLOURS = {                     # RGB, one per class name
 }
 
 
+def provisional_class(detected: str | None, action: str | None) -> str:
+    """The class of a cell still in the channel from its detected class and the latest decision about it."""
+    if detected is None:
+        return "in channel"
+    if detected != "II":
+        return "detected type I"
+    return "type II: sort aborted" if action == "abort" else "type II: sort scheduled"
+
+
 def class_of_type(scenario):
     """A function from a cell type's name to its true class ("II" for the scenario's target types)."""
     targets = {cell.name for cell in scenario.cell_types if cell.target}
@@ -59,12 +68,7 @@ class CellClasses:
 
     def provisional(self, key: int) -> str:
         """The class name of a cell still in the channel."""
-        detected = self._detected.get(key)
-        if detected is None:
-            return "in channel"
-        if detected != "II":
-            return "detected type I"
-        return "type II: sort aborted" if self._action.get(key) == "abort" else "type II: sort scheduled"
+        return provisional_class(self._detected.get(key), self._action.get(key))
 
     def settle(self, cell) -> str:
         """The outcome class of a cell (``sim.plant.CellTruth``) that has left; the cell is forgotten."""

@@ -18,7 +18,7 @@ from zstandard import ZstdError
 
 from sim.scenario import Scenario
 
-from .classes import class_of_type
+from .classes import class_of_type, provisional_class
 from .config import scenario_from_toml
 from .outcomes import outcome_class
 from .viewer import RerunLogger, decision_text
@@ -122,12 +122,7 @@ class _Replayer:
             self.logger.pulse(*self.pulses.pop(data["event_id"]), aborted=True)
 
     def _provisional(self, key: int) -> str:
-        detected = self.detected.get(key)
-        if detected is None:
-            return "in channel"
-        if detected != "II":
-            return "detected type I"
-        return "type II: sort aborted" if self.actions.get(key) == "abort" else "type II: sort scheduled"
+        return provisional_class(self.detected.get(key), self.actions.get(key))
 
     def _settle(self, data) -> str:
         """The outcome class of a format-1 recording's cell, from the events and decisions read so far."""

@@ -25,7 +25,7 @@ the files.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -289,7 +289,6 @@ def calibrate(plant, scenario: Scenario, detector: DetectorSettings = DetectorSe
     others = [envelopes[c.name] for c in scenario.cell_types if not c.target and envelopes[c.name]]
     envelope = (min(e[0] for e in others), max(e[1] for e in others)) if others else (0.0, 0.0)
     reference = delay.passages[next(c.name for c in scenario.cell_types if c.target), "off"].velocity
-    from dataclasses import replace
     settings = replace(base, delay=delay.distance[TYPE_II] / reference, reference_velocity=reference,
                        lead=lead, pulse=pulse_length, envelope=envelope, timing_error=timing_error)
     return Calibration(settings, delay, bands, envelopes, scans, grid, period, plant.resets)
@@ -319,12 +318,8 @@ def _class_of(cell_type) -> str:
 
 def make_calibration_plant(scenario: Scenario, model: str, control_period: float | None = None):
     """A plant of ``model`` for calibration cells (``rom``, ``auto``, ``oneway`` or ``feib``)."""
-    from sim.arrivals import Arrivals
-
-    from .stream import StreamSettings, make_plant
-    settings = StreamSettings(Arrivals(cells=(scenario.cell_types[0].name,)), model=model,
-                              control_period=control_period)
-    return make_plant(scenario, settings)
+    from sim import plants
+    return plants.build(model, scenario, control_period=control_period)
 
 
 def save_figure(calibration: Calibration, path) -> None:

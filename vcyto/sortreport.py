@@ -25,6 +25,7 @@ the lead) if that comes first. Regular arrivals: the neighbours sit at k / r.
 
 from __future__ import annotations
 
+import bisect
 import math
 import statistics
 
@@ -155,12 +156,13 @@ def _unexpected(co_deflected, cells, settings) -> int | None:
     """Co-deflected cells whose predicted offset from every kept sort's target lay outside the widened window."""
     if settings is None:
         return None
-    low, high = settings.window()
+    low, high = (edge * 1e3 for edge in settings.window())            # ms, as the arrivals
     sorts = sorted(c["predicted_arrival_ms"] for c in cells if c["decision"] == "sort")
     count = 0
-    for cell in co_deflected:
+    for cell in co_deflected:            # a sort at ``other`` covers ``mine`` if other in [mine - high, mine - low]
         mine = cell["predicted_arrival_ms"]
-        if mine is None or not any(low <= (mine - other) * 1e-3 <= high for other in sorts):
+        first = bisect.bisect_left(sorts, mine - high) if mine is not None else len(sorts)
+        if first == len(sorts) or sorts[first] > mine - low:
             count += 1
     return count
 
@@ -230,19 +232,20 @@ def _clear_probability(windows, arrivals, step: float = 1e-6) -> float:
 
 def _transit_times(cells) -> dict:
     """Median time (s) from injection to the predicted arrival at the SAW window, per type, in this run."""
-    times = {}
-    for cell in cells:
-        if cell["predicted_arrival_ms"] is not None and cell["detected_class"] is not None:
-            times.setdefault(cell["type"], []).append((cell["predicted_arrival_ms"] - cell["arrival_ms"]) * 1e-3)
-    return {name: statistics.median(values) for name, values in times.items()}
+    return _median_to_arrival(cells, "arrival_ms")
 
 
 def _lookahead(cells) -> dict:
     """Median time (s) from detection to the predicted arrival at the SAW window, per type, in this run."""
+    return _median_to_arrival(cells, "detection_time_ms")
+
+
+def _median_to_arrival(cells, since: str) -> dict:
+    """Per type, the median of (predicted arrival - ``since``) over the detected cells (s)."""
     times = {}
     for cell in cells:
         if cell["predicted_arrival_ms"] is not None:
-            times.setdefault(cell["type"], []).append((cell["predicted_arrival_ms"] - cell["detection_time_ms"]) * 1e-3)
+            times.setdefault(cell["type"], []).append((cell["predicted_arrival_ms"] - cell[since]) * 1e-3)
     return {name: statistics.median(values) for name, values in times.items()}
 
 

@@ -20,8 +20,8 @@ from sim.scenario import Scenario
 from vcyto.classes import CLASS_IDS
 from vcyto.outcomes import outcome_class
 from vcyto.recording import McapRecorder
+from vcyto.rerunlog import RerunSink
 from vcyto.stream import StreamSettings, run_stream
-from vcyto.viewer import RerunSink
 
 FOXGLOVE = {"/foxglove/scene": "foxglove.SceneUpdate", "/foxglove/membranes": "foxglove.PointCloud",
             "/foxglove/speed": "foxglove.RawImage", "/foxglove/log": "foxglove.Log"}
@@ -149,6 +149,18 @@ def test_rerun_mcap_importer_draws_membranes_flow_and_log(feib, sort, tmp_path):
             assert len(rows["/foxglove/log"]["TextLog:text"]) >= 2 * detected + len(cells)
 
 
+def path_classes(rows) -> dict:
+    """cell key -> class ids of its path, from the path slots' rows (labelled "key: class")."""
+    found = {}
+    for entity, entries in rows.items():
+        if entity.startswith("/device/paths/"):
+            for _, values in entries:
+                key = int(values["LineStrips2D:labels"][0].split(":")[0])
+                assert key not in found, f"cell {key}'s path logged twice"
+                found[key] = values["LineStrips2D:class_ids"]
+    return found
+
+
 def _components(path):
     """entity -> component -> values of the rows in file order (static and temporal)."""
     found = {}
@@ -163,8 +175,8 @@ def _components(path):
 def test_rerun_view_keeps_the_plants_coordinates(feib):
     rows, static = rrd_rows(feib["dir"] / "live.rrd")
     compared = 0
-    for time_ns, values in rows["/device/cells/0"]:
-        if time_ns in feib["capture"].membranes and "LineStrips2D:strips" in values:
+    for time_ns, values in rows["/device/membranes"]:
+        if time_ns in feib["capture"].membranes and values.get("LineStrips2D:strips"):
             strip = np.array(values["LineStrips2D:strips"][0])
             plant = feib["capture"].membranes[time_ns][0]
             assert np.allclose(strip[:-1], plant, atol=1e-4)          # float32 of the plant's um, y up, no flip
@@ -180,11 +192,13 @@ def test_each_cell_is_coloured_by_its_outcome_class(sort):
     _, messages = mcap_messages(sort["dir"] / "run.mcap")
     recorded = {json.loads(m.data)["key"]: json.loads(m.data)["class"] for _, c, m in messages
                 if c.topic == "/outcome"}
+    paths = path_classes(rows)
+    assert len(paths) == len(sort["result"]["cells"])            # each cell's path, once, in a slot
     classes = set()
     for cell in sort["result"]["cells"]:
         expected = outcome_class(cell)
         classes.add(expected)
-        assert rows[f"/device/paths/{cell['key']}"][-1][1]["LineStrips2D:class_ids"] == [CLASS_IDS[expected]]
+        assert paths[cell["key"]] == [CLASS_IDS[expected]]
         assert recorded[cell["key"]] == expected
     assert {"sorted", "passed"} <= classes and len(classes) >= 3, classes
 
@@ -220,7 +234,7 @@ def test_a_recording_of_the_first_format_still_replays(tmp_path):
     assert done.returncode == 0, done.stderr
     assert json.loads(done.stdout)["format"] == "1" and json.loads(done.stdout)["steps"] > 500
     rows, _ = rrd_rows(replayed)
-    final = {key: rows[f"/device/paths/{key}"][-1][1]["LineStrips2D:class_ids"] for key in range(3)}
+    final = path_classes(rows)
     assert final == {0: [CLASS_IDS["sorted"]], 1: [CLASS_IDS["passed"]], 2: [CLASS_IDS["sorted"]]}
     assert len(rows["/device/events"]) == 3
 

@@ -628,7 +628,7 @@ def _rerun_sink(args, scenario, settings, view, files) -> list:
     """The Rerun sink of ``view``; if Rerun refuses it (a viewer gone between the check and the connection, a
     file it cannot create), one line says so and the view goes to a new .rrd, else there is none."""
     from . import runfiles
-    from .viewer import RerunSink
+    from .rerunlog import RerunSink
     try:
         return [RerunSink(scenario, settings.detector.window, view.target(files and files.path("rrd")),
                           field_every=args.field_every)]

@@ -42,19 +42,26 @@ def stamp(unix_ns: int) -> Timestamp:
     return Timestamp(seconds=unix_ns // 1_000_000_000, nanos=unix_ns % 1_000_000_000)
 
 
-def _binary(values_um) -> np.ndarray:
-    """Micrometres rounded to 1/1024 um (about 1 nm): float32 with zero low mantissa bits, which compress."""
+def _binary(values_um):
+    """Micrometres rounded to 1/1024 um (about 1 nm): float32 with zero low mantissa bits, which compress (an
+    array, or a tuple of Python floats for a tuple)."""
+    if isinstance(values_um, tuple):
+        return tuple(round(value * 1024.0) / 1024.0 for value in values_um)
     return (np.round(np.asarray(values_um, dtype=float) * 1024.0) / 1024.0).astype(np.float32)
 
 
 def membranes(unix_ns: int, cells) -> PointCloud:
     """Every cell's membrane points (or its centroid for point-like models) with its key, class id and colour.
 
-    ``cells``: (key, class id, RGB, points (n, 2) in um)."""
-    counts = [len(points) for _, _, _, points in cells]
-    data = np.zeros(sum(counts), dtype=POINT)
-    if cells:                               # one vectorised fill (cells of point-like models are one point each)
-        points = np.concatenate([points for _, _, _, points in cells])
+    ``cells``: (key, class id, RGB, points in um: an (n, 2) array, or an (x, y) pair for a point-like cell)."""
+    if all(isinstance(points, tuple) for _, _, _, points in cells):       # point-like cells: one row each
+        data = np.array([(*_binary(points), 0.0, *colour, 255, key, class_id)
+                         for key, class_id, colour, points in cells], dtype=POINT)
+    else:
+        arrays = [np.asarray(points, dtype=float).reshape(-1, 2) for _, _, _, points in cells]
+        counts = [len(points) for points in arrays]
+        data = np.zeros(sum(counts), dtype=POINT)
+        points = np.concatenate(arrays)
         data["x"], data["y"] = _binary(points[:, 0]), _binary(points[:, 1])
         colours = np.repeat(np.array([colour for _, _, colour, _ in cells], dtype=np.uint8), counts, axis=0)
         data["red"], data["green"], data["blue"], data["alpha"] = colours[:, 0], colours[:, 1], colours[:, 2], 255

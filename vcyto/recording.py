@@ -38,6 +38,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+import orjson
 from mcap.writer import CompressionType, Writer
 from mcap_protobuf.schema import register_schema
 
@@ -140,11 +141,11 @@ class McapRecorder:
                                  sequence=self._sequence)
 
     def _write(self, topic: str, time_s: float, payload: dict):
-        try:                                   # strict JSON: NaN and infinities are null (outputs.plain)
-            text = json.dumps(payload, separators=(",", ":"), allow_nan=False)
-        except ValueError:
-            text = json.dumps(plain(payload), separators=(",", ":"), allow_nan=False)
-        self._add(topic, time_s, text.encode())
+        try:                                   # strict JSON: orjson writes NaN and infinities as null
+            data = orjson.dumps(payload, option=orjson.OPT_SERIALIZE_NUMPY)
+        except TypeError:                      # a value orjson does not know (outputs.plain makes it plain)
+            data = json.dumps(plain(payload), separators=(",", ":"), allow_nan=False).encode()
+        self._add(topic, time_s, data)
 
     def _write_proto(self, topic: str, time_s: float, message):
         self._add(topic, time_s, message.SerializeToString())
@@ -193,9 +194,10 @@ class McapRecorder:
     def _membranes(self, now: float, cells):
         rows = []
         for cell in cells:
-            self._paths.setdefault(cell.key, []).append((round(cell.x / UM, 4), round(cell.y / UM, 4)))
+            centroid = (round(cell.x / UM, 4), round(cell.y / UM, 4))
+            self._paths.setdefault(cell.key, []).append(centroid)
             name = self._classes.provisional(cell.key)
-            points = np.asarray(cell.membrane) / UM if cell.membrane is not None else np.array([[cell.x, cell.y]]) / UM
+            points = np.asarray(cell.membrane) / UM if cell.membrane is not None else centroid
             rows.append((cell.key, CLASS_IDS[name], CLASS_COLOURS[name], points))
         self._write_proto("/foxglove/membranes", now, foxglove.membranes(self._stamp(now), rows))
 
@@ -223,13 +225,17 @@ class McapRecorder:
                                                                 CLASS_COLOURS[name], f"{cell.key}: {name}"))
 
     def _cell(self, cell) -> dict:
-        shape = cell.measures or {}
-        return {"key": cell.key, "type": cell.type, "class": self._classes.provisional(cell.key),
-                "x_um": round(cell.x * 1e6, 4), "y_um": round(cell.y * 1e6, 4),
-                "area_ratio": round(cell.area_ratio, 6), "fate": cell.fate,
-                "perimeter_um": _rounded(shape.get("perimeter", float("nan")) * 1e6, 4),
-                "spacing_min_h": _rounded(shape.get("spacing_min", float("nan")), 4),
-                "spacing_max_h": _rounded(shape.get("spacing_max", float("nan")), 4)}
+        shape = cell.measures
+        row = {"key": cell.key, "type": cell.type, "class": self._classes.provisional(cell.key),
+               "x_um": round(cell.x * 1e6, 4), "y_um": round(cell.y * 1e6, 4),
+               "area_ratio": round(cell.area_ratio, 6), "fate": cell.fate}
+        if not shape:                          # a model without membranes (JSON: null)
+            row.update(perimeter_um=None, spacing_min_h=None, spacing_max_h=None)
+            return row
+        row.update(perimeter_um=_rounded(shape.get("perimeter", float("nan")) * 1e6, 4),
+                   spacing_min_h=_rounded(shape.get("spacing_min", float("nan")), 4),
+                   spacing_max_h=_rounded(shape.get("spacing_max", float("nan")), 4))
+        return row
 
     def on_end(self, ending: dict):
         """How the run ended (complete, truncated, interrupted, failed; why; its sort figures): the metadata record

@@ -21,7 +21,7 @@ from sim.scenario import Scenario
 from .classes import class_of_type, provisional_class
 from .config import scenario_from_toml
 from .outcomes import outcome_class
-from .viewer import RerunLogger, decision_text
+from .rerunlog import RerunLogger, decision_text
 
 MEMBRANES = "/foxglove/membranes"
 

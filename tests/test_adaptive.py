@@ -90,9 +90,9 @@ class PathSink:
     def __init__(self):
         self.paths = {}
 
-    def on_step(self, step, observation, truth, actuation, events, decisions, fields=None, diagnostics=None):
-        for view in observation.cells:
-            self.paths.setdefault(view.key, []).append((observation.time, view.x, view.y))
+    def on_step(self, record):
+        for view in record.observation.cells:
+            self.paths.setdefault(view.key, []).append((record.time, view.x, view.y))
 
     def close(self):
         pass

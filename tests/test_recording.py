@@ -86,8 +86,8 @@ def test_a_failing_sink_stops_the_run_with_its_error(plant):
     class FullDisk:
         field_every = 0
 
-        def on_step(self, step, *rest):
-            if step == 5:
+        def on_step(self, record):
+            if record.step == 5:
                 raise OSError(28, "No space left on device")
 
         def close(self):

@@ -35,9 +35,9 @@ class Capture:
     def __init__(self):
         self.membranes = {}
 
-    def on_step(self, step, observation, truth, *rest):
-        self.membranes[round(observation.time * 1e9)] = {c.key: np.asarray(c.membrane) * 1e6 for c in truth.cells
-                                                         if c.fate == "in_channel" and c.membrane is not None}
+    def on_step(self, record):
+        self.membranes[round(record.time * 1e9)] = {c.key: np.asarray(c.membrane) * 1e6 for c in record.truth.cells
+                                                    if c.fate == "in_channel" and c.membrane is not None}
 
     def close(self):
         pass

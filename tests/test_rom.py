@@ -176,7 +176,7 @@ def test_same_seed_same_stream_other_seed_other_stream(paper_scenario, plant):
 class _EveryPeriod:
     """A sink that records nothing: its presence makes the loop step the plant period by period."""
 
-    def on_step(self, *args):
+    def on_step(self, record):
         pass
 
 

@@ -27,7 +27,7 @@ _EXPORTS = {
     "StreamSettings": "vcyto.stream", "run_stream": "vcyto.stream", "make_plant": "vcyto.stream",
     "MODELS": "vcyto.stream", "report_lines": "vcyto.stream", "StreamStopped": "vcyto.stream",
     "outcome_class": "vcyto.outcomes", "OUTCOME_CLASSES": "vcyto.outcomes",
-    "McapRecorder": "vcyto.recording", "RerunSink": "vcyto.viewer", "BackgroundSinks": "vcyto.sinks",
+    "McapRecorder": "vcyto.recording", "RerunSink": "vcyto.rerunlog", "BackgroundSinks": "vcyto.sinks",
     "write_fcs": "vcyto.fcs", "write_gatingml": "vcyto.gatingml",
 }
 __all__ = ["__version__", *_EXPORTS]

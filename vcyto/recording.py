@@ -153,8 +153,10 @@ class McapRecorder:
     def _log(self, time_s: float, text: str, level: str = "INFO"):
         self._write_proto("/foxglove/log", time_s, foxglove.log(self._stamp(time_s), text, level))
 
-    def on_step(self, step: int, observation, truth, actuation: float, events, decisions, fields=None,
-                diagnostics=None):
+    def on_step(self, record):
+        """Write one step (``vcyto.steps.StepRecord``)."""
+        step, observation, truth, actuation = record.step, record.observation, record.truth, record.actuation
+        events, decisions, fields, diagnostics = record.events, record.decisions, record.fields, record.diagnostics
         now = observation.time
         self._classes.observe(events, decisions)
         in_channel = [cell for cell in truth.cells if cell.fate == "in_channel"]

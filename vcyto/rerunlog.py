@@ -300,7 +300,10 @@ class RerunSink:
         self.classes = CellClasses(scenario)
         self._reported: set[int] = set()
 
-    def on_step(self, step, observation, truth, actuation, events, decisions, fields=None, diagnostics=None):
+    def on_step(self, record):
+        """Show one step (``vcyto.steps.StepRecord``)."""
+        step, observation, truth, actuation = record.step, record.observation, record.truth, record.actuation
+        events, decisions, fields = record.events, record.decisions, record.fields
         logger, classes = self.logger, self.classes
         revised = {d.event_id: classes.pulses.get(d.event_id) for d in decisions if d.action == "abort"}
         classes.observe(events, decisions)

@@ -17,6 +17,7 @@ message, as with the sinks called inline; what changes is that their cost overla
 
 from __future__ import annotations
 
+import dataclasses
 import queue
 import threading
 
@@ -38,13 +39,13 @@ class BackgroundSinks:
             try:
                 if item is _STOP:
                     return
-                if self._failure is None and isinstance(item, tuple) and item and item[0] is _END:
+                if self._failure is None and isinstance(item, tuple) and item[0] is _END:
                     for sink in self.sinks:
                         if hasattr(sink, "on_end"):
                             sink.on_end(item[1])
                 elif self._failure is None:
                     for sink in self.sinks:
-                        sink.on_step(*item)
+                        sink.on_step(item)
             except BaseException as error:     # reported to the loop's thread at its next step
                 self._failure = error
             finally:
@@ -53,14 +54,14 @@ class BackgroundSinks:
     def _fields_due(self, step: int) -> bool:
         return any(getattr(sink, "field_every", 0) and step % sink.field_every == 0 for sink in self.sinks)
 
-    def on_step(self, step, observation, truth, actuation, events, decisions, fields=None, diagnostics=None):
+    def on_step(self, record):
         self._raise_failure()
-        if fields is not None and self._fields_due(step):
-            payload = fields()
+        if record.fields is not None and self._fields_due(record.step):
+            payload = record.fields()
             fields = lambda: payload                       # noqa: E731 - a snapshot of this step's field
         else:
             fields = None
-        self._queue.put((step, observation, truth, actuation, list(events), list(decisions), fields, diagnostics))
+        self._queue.put(dataclasses.replace(record, fields=fields))
 
     def on_end(self, ending: dict):
         """The run's end (status, reason, the sort report's figures), after its last step."""

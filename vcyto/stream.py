@@ -28,6 +28,7 @@ from sim.scenario import Scenario
 
 from . import sortreport
 from .sortreport import report_lines, statistics_of, true_class  # noqa: F401  (the loop's public names)
+from .steps import ProgressSink, StepRecord, is_paced
 
 MODELS = plants.MODELS
 STATUSES = ("complete", "truncated", "interrupted", "failed")
@@ -43,7 +44,6 @@ class StreamStopped(Exception):
         super().__init__(reason)
         self.status, self.reason, self.result = status, reason, result
 
-NOTE_LIMIT = 200               # per-cell lines on screen for samples up to this size; beyond, counts only
 DRAIN_TIME = 20e-3             # s after the last arrival by which every cell must have left (else: truncated)
 RECORD_INTERVAL = 0.25e-3      # s: an event-driven plant shows its state to the sinks this often (paths ~25 um)
 
@@ -95,8 +95,9 @@ def run_stream(scenario: Scenario, settings: StreamSettings, progress=None, plan
     arrivals_rng, detector_rng = rng.spawn(2)
     sample = offer(settings.arrivals, arrivals_rng)
     plant = plant or make_plant(scenario, settings)
+    observers = list(sinks) + ([ProgressSink(progress, len(sample.admitted))] if progress is not None else [])
     run = _Run(plant, settings, Detector(settings.detector, detector_rng), SortController(settings.controller),
-               sinks, progress, len(sample.admitted))
+               observers)
     run.observation = plant.reset(sample.admitted, seed=settings.seed)
     setup = time.perf_counter() - started
     rss_setup = _peak_rss_mb()
@@ -159,14 +160,14 @@ def _truncation(plant, settings, cap, drain_cap) -> str:
 class _Run:
     """The state of one closed-loop run between its steps (``run_stream`` owns the loop)."""
 
-    def __init__(self, plant, settings, detector, controller, sinks, progress, count):
+    def __init__(self, plant, settings, detector, controller, sinks):
         self.plant, self.settings, self.detector, self.controller = plant, settings, detector, controller
-        self.sinks, self.progress = sinks, progress
-        self.notes = progress is not None and count <= NOTE_LIMIT
-        self.events, self.settled, self.left = {}, set(), 0
+        self.sinks = tuple(sinks)
+        self.paced = any(is_paced(sink) for sink in self.sinks)      # recordings: the state every record_interval
+        self.events, self.settled = {}, set()
         self.actuation = self.idt_time = 0.0
         self.steps = 0
-        self.fields = _field_payload(plant) if sinks and hasattr(plant, "fields") else None
+        self.fields = _field_payload(plant) if self.paced and hasattr(plant, "fields") else None
         self.grouped = hasattr(plant, "step_until")
         self.observation = None
         self.truth_update = getattr(plant, "truth_update", None)
@@ -181,7 +182,7 @@ class _Run:
         if self.grouped:
             # what the detector reacts to: the cells crossing its lines, one period before and at the crossing
             until = min(controller.next_change(self.now), cap)
-            if self.sinks:
+            if self.paced:
                 until = min(until, self.shown + self.settings.record_interval)
             window_start, window_end = self.settings.detector.window
             periods, seen = plant.step_until(self.actuation, until, stop_lines=(window_end,),
@@ -195,33 +196,22 @@ class _Run:
         for event in new_events:
             controller.on_event(event)
             self.events[event.key] = event
-            if self.notes:
-                decision = controller.decision_for(event.event_id)
-                self.progress.note(f"t = {event.time * 1e3:7.3f} ms  cell {event.key}: detected type "
-                                   f"{event.classification} (fluorescence {event.fluorescence:.2f}), "
-                                   f"decision {decision.action}")
         self.actuation = controller.actuation(self.now)
         self.pending.extend(new_events)
         # an event-driven plant shows its state every record_interval (events and decisions wait for it)
         due = not self.grouped or self.now >= self.shown + self.settings.record_interval - 1e-12 or plant.done
-        if due and (self.sinks or self.progress):
-            if self.grouped:
-                self.observation = plant.observe()
-            self._show(self.pending)
-            self.pending, self.shown = [], self.now
+        if due and self.sinks:
+            self._show()
 
-    def _show(self, new_events):
-        truth = self._truth()
-        if self.sinks:
-            decisions = self.controller.take_changes()
-            diagnostics = self.plant.diagnostics() if hasattr(self.plant, "diagnostics") else None
-            for sink in self.sinks:
-                sink.on_step(self.steps, self.observation, truth, self.actuation, new_events, decisions, self.fields,
-                             diagnostics)
-        if self.progress:
-            self._report(truth)
-            self.progress.update(f"t = {self.now * 1e3:.3f} ms, {len(self.observation.cells)} cells in the channel, "
-                                 f"{self.left} left, {len(self.events)} detected, IDT {'on' if self.actuation else 'off'}")
+    def _show(self):
+        if self.grouped:
+            self.observation = self.plant.observe()
+        record = StepRecord(self.steps, self.observation, self._truth(), self.actuation, tuple(self.pending),
+                            tuple(self.controller.take_changes()), self.fields,
+                            self.plant.diagnostics() if hasattr(self.plant, "diagnostics") else None)
+        for sink in self.sinks:
+            sink.on_step(record)
+        self.pending, self.shown = [], self.now
 
     def _truth(self):
         """The cells in the channel and those that left since the last call (each settled cell once)."""
@@ -232,20 +222,10 @@ class _Run:
         self.settled.update(cell.key for cell in cells if cell.fate != "in_channel")
         return type(truth)(truth.time, cells, truth.waiting)
 
-    def _report(self, truth):
-        for cell in truth.cells:
-            if cell.fate != "in_channel":
-                self.left += 1
-                if self.notes:
-                    self.progress.note(f"t = {cell.exit_time * 1e3:7.3f} ms  cell {cell.key} ({cell.type}) left by: "
-                                       f"{cell.fate}")
-
     def finish(self):
+        """Show the sinks what they have not seen yet (the last step, events and cells that left since)."""
         if self.sinks and self.grouped and (self.pending or self.now > self.shown):
-            self.observation = self.plant.observe()
-            self._show(self.pending)
-        elif self.progress:
-            self._report(self._truth())
+            self._show()
 
 
 def _peak_rss_mb() -> float | None:

@@ -133,6 +133,20 @@ class HasDiagnostics(Protocol):
 
 
 @runtime_checkable
+class ReportsTimeSteps(Protocol):
+    """Reports the time steps it took over the run (an adaptive step: ``sim.adaptive``), as a plain dict."""
+
+    def time_steps(self) -> dict: ...
+
+
+@runtime_checkable
+class SwitchesModels(Protocol):
+    """Switches between models during a run (the auto plant): ``switches`` lists (time s, model, reason)."""
+
+    switches: list
+
+
+@runtime_checkable
 class AdoptsMembranes(Protocol):
     """Continues from a membrane state (``sim.feib.State``) with the first ``injected`` arrivals injected."""
 

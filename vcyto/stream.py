@@ -20,7 +20,7 @@ import numpy as np
 from controller.detector import Detector, DetectorSettings
 from controller.events import Sighting
 from controller.sorter import ControllerSettings, SortController
-from sim import plants
+from sim import contract, plants
 from sim.arrivals import Arrivals, offer
 from sim.fluid import NumericalBlowUp
 from sim.linalg import SolverError
@@ -119,15 +119,13 @@ def run_stream(scenario: Scenario, settings: StreamSettings, progress=None, plan
     result.update(status=status, reason=reason, wall_time_s=time.perf_counter() - started, setup_time_s=setup,
                   idt_on_time_ms=run.idt_time * 1e3, steps=run.steps, memory_mb={"after_setup": rss_setup,
                                                                                   "peak": _peak_rss_mb()})
-    if hasattr(plant, "time_steps"):           # feib: the dt used over time (sim.adaptive with --tolerance)
+    if isinstance(plant, contract.ReportsTimeSteps):     # feib: the dt used over time (--tolerance)
         result["time_steps"] = plant.time_steps()
     _announce_end(sinks, result)
-    if hasattr(plant, "switches"):             # the auto plant: what it picked, when and why
+    if isinstance(plant, contract.SwitchesModels):       # the auto plant: what it picked, when and why
         result["auto"] = {"switches": [{"time_ms": t * 1e3, "model": model, "reason": why}
                                        for t, model, why in plant.switches],
                           "feib_fraction": plant.diagnostics()["feib_fraction"]}
-    if hasattr(plant, "time_steps"):           # feib: the dt used over time (sim.adaptive with --tolerance)
-        result["time_steps"] = plant.time_steps()
     if status == "interrupted":
         raise StreamStopped(status, reason, result)
     if status == "failed":
@@ -167,10 +165,10 @@ class _Run:
         self.events, self.settled = {}, set()
         self.actuation = self.idt_time = 0.0
         self.steps = 0
-        self.fields = _field_payload(plant) if self.paced and hasattr(plant, "fields") else None
-        self.grouped = hasattr(plant, "step_until")
+        self.fields = _field_payload(plant) if self.paced and isinstance(plant, contract.HasFields) else None
+        self.grouped = isinstance(plant, contract.StepsUntil)
         self.observation = None
-        self.truth_update = getattr(plant, "truth_update", None)
+        self.truth_update = plant.truth_update if isinstance(plant, contract.ReportsTruthUpdates) else None
         self.pending, self.shown = [], 0.0          # events not yet shown to the sinks; when they last saw a step
 
     @property
@@ -208,7 +206,7 @@ class _Run:
             self.observation = self.plant.observe()
         record = StepRecord(self.steps, self.observation, self._truth(), self.actuation, tuple(self.pending),
                             tuple(self.controller.take_changes()), self.fields,
-                            self.plant.diagnostics() if hasattr(self.plant, "diagnostics") else None)
+                            self.plant.diagnostics() if isinstance(self.plant, contract.HasDiagnostics) else None)
         for sink in self.sinks:
             sink.on_step(record)
         self.pending, self.shown = [], self.now

@@ -9,6 +9,7 @@ plant's, in micrometres, y up (frame ``channel``: x along the channel, y across 
 from __future__ import annotations
 
 import base64
+import struct
 
 import numpy as np
 from foxglove_schemas_protobuf.Color_pb2 import Color
@@ -32,6 +33,7 @@ TOPICS = {"/foxglove/scene": SceneUpdate, "/foxglove/membranes": PointCloud, "/f
 POINT = np.dtype([("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("red", "u1"), ("green", "u1"), ("blue", "u1"),
                   ("alpha", "u1"), ("key", "<u4"), ("class", "u1")])
 _NUMERIC = {"<f4": PackedElementField.FLOAT32, "|u1": PackedElementField.UINT8, "<u4": PackedElementField.UINT32}
+_POINT = struct.Struct("<fffBBBBIB")                 # one row of POINT
 POINT_FIELDS = [PackedElementField(name=name, offset=POINT.fields[name][1], type=_NUMERIC[POINT.fields[name][0].str])
                 for name in POINT.names]
 SPEED_PIXEL_UM = 2.0
@@ -55,8 +57,8 @@ def membranes(unix_ns: int, cells) -> PointCloud:
 
     ``cells``: (key, class id, RGB, points in um: an (n, 2) array, or an (x, y) pair for a point-like cell)."""
     if all(isinstance(points, tuple) for _, _, _, points in cells):       # point-like cells: one row each
-        data = np.array([(*_binary(points), 0.0, *colour, 255, key, class_id)
-                         for key, class_id, colour, points in cells], dtype=POINT)
+        data = b"".join(_POINT.pack(*_binary(points), 0.0, *colour, 255, key, class_id)
+                        for key, class_id, colour, points in cells)
     else:
         arrays = [np.asarray(points, dtype=float).reshape(-1, 2) for _, _, _, points in cells]
         counts = [len(points) for points in arrays]
@@ -67,8 +69,9 @@ def membranes(unix_ns: int, cells) -> PointCloud:
         data["red"], data["green"], data["blue"], data["alpha"] = colours[:, 0], colours[:, 1], colours[:, 2], 255
         data["key"] = np.repeat([key for key, _, _, _ in cells], counts)
         data["class"] = np.repeat([class_id for _, class_id, _, _ in cells], counts)
+        data = data.tobytes()
     return PointCloud(timestamp=stamp(unix_ns), frame_id=FRAME, pose=Pose(orientation={"w": 1.0}),
-                      point_stride=POINT.itemsize, fields=POINT_FIELDS, data=data.tobytes())
+                      point_stride=POINT.itemsize, fields=POINT_FIELDS, data=data)
 
 
 def membrane_points(message: PointCloud) -> np.ndarray:

@@ -169,6 +169,7 @@ class _Run:
         self.grouped = isinstance(plant, contract.StepsUntil)
         self.observation = None
         self.truth_update = plant.truth_update if isinstance(plant, contract.ReportsTruthUpdates) else None
+        self.diagnostics = plant.diagnostics if isinstance(plant, contract.HasDiagnostics) else None
         self.pending, self.shown = [], 0.0          # events not yet shown to the sinks; when they last saw a step
 
     @property
@@ -206,7 +207,7 @@ class _Run:
             self.observation = self.plant.observe()
         record = StepRecord(self.steps, self.observation, self._truth(), self.actuation, tuple(self.pending),
                             tuple(self.controller.take_changes()), self.fields,
-                            self.plant.diagnostics() if isinstance(self.plant, contract.HasDiagnostics) else None)
+                            self.diagnostics() if self.diagnostics is not None else None)
         for sink in self.sinks:
             sink.on_step(record)
         self.pending, self.shown = [], self.now

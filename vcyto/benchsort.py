@@ -52,18 +52,25 @@ def bench_sort(counts=(1_000, 10_000), rate: float = 2000.0, record: bool = True
             "rows": rows}
 
 
+def _megabytes(memory: dict) -> str:
+    """Peak resident MB at the loop's end / with the report built."""
+    values = [memory.get(key) for key in ("after_loop", "peak")]
+    return " / ".join("-" if value is None else f"{value:.0f}" for value in values)
+
+
 def report_lines(result: dict) -> list[str]:
     recording = ("MCAP + Rerun .rrd" if result["rerun"] else "MCAP") if result["record"] else "no recording"
     lines = [f"rom, Poisson offered at {result['rate_offered_per_s']:g}/s, {recording}",
              f"{'offered':>8} {'events':>7} {'device s':>9} {'loop s':>8} {'us/event':>9} {'x real time':>11} "
-             f"{'loop ratio':>10} {'peak MB':>8} {'purity':>7} {'yield (est.)':>14} files"]
+             f"{'loop ratio':>10} {'MB loop/end':>11} {'purity':>7} {'yield (est.)':>14} files"]
     for row in result["rows"]:
         ratio = (f"{row['loop_ratio_to_first']:.1f} / {row['events_ratio_to_first']:.1f}"
                  if "loop_ratio_to_first" in row else "-")
         files = ", ".join(f"{suffix} {size / 1e6:.1f} MB" for suffix, size in sorted(row["file_bytes"].items()))
         lines.append(f"{row['offered']:>8} {row['events']:>7} {row['device_time_s']:>9.2f} {row['loop_wall_s']:>8.2f} "
                      f"{row['loop_us_per_event']:>9.0f} {row['real_time_factor']:>11.2f} {ratio:>10} "
-                     f"{row['memory_mb']['peak'] or float('nan'):>8.0f} {100 * row['purity']:>6.1f}% "
+                     f"{_megabytes(row['memory_mb']):>11} {100 * row['purity']:>6.1f}% "
                      f"{100 * row['yield']:>5.1f}% ({100 * (row['yield_estimate'] or float('nan')):.1f}%) {files}")
-    lines.append("loop ratio: loop wall over the first row's / events over the first row's (linear cost: equal)")
+    lines.append("loop ratio: loop wall over the first row's / events over the first row's (linear cost: equal); "
+                 "MB: peak resident memory at the loop's end / with the per-cell report built")
     return lines

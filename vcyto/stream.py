@@ -113,12 +113,14 @@ def run_stream(scenario: Scenario, settings: StreamSettings, progress=None, plan
     except (NumericalBlowUp, SolverError) as error:
         status, reason, failure = "failed", str(error), error
     run.finish()
+    rss_loop = _peak_rss_mb()
     if status == "complete" and not plant.done:
         status, reason = "truncated", _truncation(plant, settings, cap, drain_cap)
     result = sortreport.summarise(sample, plant.truth(), run.events, run.controller, scenario, settings)
     result.update(status=status, reason=reason, wall_time_s=time.perf_counter() - started, setup_time_s=setup,
-                  idt_on_time_ms=run.idt_time * 1e3, steps=run.steps, memory_mb={"after_setup": rss_setup,
-                                                                                  "peak": _peak_rss_mb()})
+                  idt_on_time_ms=run.idt_time * 1e3, steps=run.steps,
+                  # peak resident memory after the set-up, at the loop's end (its state), and with the report built
+                  memory_mb={"after_setup": rss_setup, "after_loop": rss_loop, "peak": _peak_rss_mb()})
     if isinstance(plant, contract.ReportsTimeSteps):     # feib: the dt used over time (--tolerance)
         result["time_steps"] = plant.time_steps()
     _announce_end(sinks, result)

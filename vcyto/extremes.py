@@ -1,4 +1,4 @@
-"""`vcyto extremes`: the FE-IB plant at the extremes of its settings (README, "Stability at the extremes").
+"""`vcyto extremes`: the FE-IB plant at the extremes of its settings (docs/results.md, "Stability at the extremes").
 
 Each case runs one extreme setting and says beforehand what must happen: either the run is correct
 (every cell leaves by an outlet, or, for a short run, is still whole at the end, plus the case's own
@@ -26,7 +26,8 @@ OUTLETS = ("lower", "upper")
 
 class UnexpectedOutcome(NumericalBlowUp):
     """A case did not end as expected (the command's exit status 1)."""
-CFL = 0.1       # peak inflow speed x dt / h in the inflow cases: at 0.5 the imex flow itself blows up at x24 (README)
+# peak inflow speed x dt / h in the inflow cases: at 0.5 the imex flow itself blows up at x24 (docs/results.md)
+CFL = 0.1
 
 
 @dataclass
@@ -158,7 +159,7 @@ def _round_dt(dt: float) -> float:
 
 
 PAPER_H = 10 * UM / 3
-LIMIT_DT = 37.5e-6          # the melanoma's measured stable dt at the paper's mesh (README "Stability": 37.6 us)
+LIMIT_DT = 37.5e-6          # the melanoma's stable dt at the paper's mesh (docs/results.md "Stability": 37.6 us)
 
 
 def _dt_at_limit(base, fast):
@@ -174,7 +175,7 @@ def _stiff(base):
 
 
 def _stiff_step(base) -> float:
-    """The stiff membrane's explicit time step eta dq / kappa_e at h = 6.67 um (README, "Stability")."""
+    """The stiff membrane's explicit time step eta dq / kappa_e at h = 6.67 um (docs/results.md, "Stability")."""
     scenario = base.with_numerics(mesh_h=20 * UM / 3)
     numerics = scenario.numerics
     membrane = Membrane.of(_stiff(base), (0.0, 0.0), numerics.membrane_spacing * numerics.mesh_h)

@@ -45,6 +45,7 @@ import math
 
 import numpy as np
 
+from .drive import lagged
 from .feib import ImmersedBoundary, State
 from .fluid import Flow, NavierStokes
 from .plant import FeibPlant, Observation, Truth
@@ -102,8 +103,7 @@ class AutoPlant:
 
     def step(self, actuation: float) -> Observation:
         dt = self.control_period
-        decay = math.exp(-dt / self.rom.response_time) if self.rom.response_time > 0 else 0.0
-        self.level = actuation + (self.level - actuation) * decay
+        self.level = lagged(self.level, actuation, dt, self.rom.response_time)
         active = self.rom if self.model == "rom" else self.feib
         self._observation = active.step(actuation)
         self.steps += 1

@@ -89,11 +89,11 @@ class AutoPlant:
         self.reset([])
 
     # ------------------------------------------------------------------ the contract
-    def reset(self, arrivals, seed: int | None = None) -> Observation:
+    def reset(self, arrivals) -> Observation:
         self.arrivals = sorted(arrivals)
         self._types = [name for _, name in self.arrivals]
-        self.rom.reset(self.arrivals, seed)
-        self.feib.reset(self.arrivals, seed)
+        self.rom.reset(self.arrivals)
+        self.feib.reset(self.arrivals)
         self.model, self.reason, self.level, self._apart_since = "rom", "start: no cells close together", 0.0, None
         self.switches = [(0.0, "rom", self.reason)]
         self.settled = {}

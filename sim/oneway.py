@@ -61,7 +61,7 @@ class OneWayPlant:
         self.reset([])
 
     # ------------------------------------------------------------------ the contract
-    def reset(self, arrivals, seed: int | None = None) -> Observation:
+    def reset(self, arrivals) -> Observation:
         self.schedule = Schedule(arrivals)
         self.time, self.level, self.steps = 0.0, 0.0, 0
         self.cells: list[Cell] = []

@@ -69,7 +69,7 @@ class FeibPlant:
         self.state = None
         self.warn_under_resolved = True       # log cells the mesh does not resolve (sim.health.under_resolved)
 
-    def reset(self, arrivals, seed: int | None = None) -> Observation:
+    def reset(self, arrivals) -> Observation:
         if self._initial is None:
             self._initial = self.ib.fluid.initial_flow(0.0)
         self.schedule = _Schedule(arrivals)
@@ -172,7 +172,7 @@ class StreamlinePlant:
         self.locator = PointLocator(fluid.space.cmesh, fluid.space.velocity_basis.element_dofs)
         self._values = self.flows.reshape(4, -1)
 
-    def reset(self, arrivals, seed: int | None = None) -> Observation:
+    def reset(self, arrivals) -> Observation:
         self.schedule = Schedule(arrivals)
         self.time = 0.0
         self.level = 0.0

@@ -217,7 +217,7 @@ class RomPlant:
         self.timings = dict(self.flows.timings, kernels_s=clock.perf_counter() - started)
 
     # ------------------------------------------------------------------ the contract
-    def reset(self, arrivals, seed: int | None = None) -> Observation:
+    def reset(self, arrivals) -> Observation:
         items = sorted(arrivals)
         n = len(items)
         index = {name: k for k, name in enumerate(self._names)}

@@ -97,7 +97,7 @@ def run_stream(scenario: Scenario, settings: StreamSettings, progress=None, plan
     plant = plant or make_plant(scenario, settings)
     run = _Run(plant, settings, Detector(settings.detector, detector_rng), SortController(settings.controller),
                sinks, progress, len(sample.admitted))
-    run.observation = plant.reset(sample.admitted, seed=settings.seed)
+    run.observation = plant.reset(sample.admitted)
     setup = time.perf_counter() - started
     rss_setup = _peak_rss_mb()
     last_arrival = sample.admitted[-1][0] if sample.admitted else 0.0

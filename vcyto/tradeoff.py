@@ -142,7 +142,7 @@ def make_plant(scenario: Scenario, level: Level, flows: _Flows):
 
 def run_scene(plant, scene: Scene) -> dict:
     """Step ``plant`` through ``scene``; per cell: fate, exit time and ordinate, area kept, centroid path."""
-    observation = plant.reset(list(scene.arrivals), seed=0)
+    observation = plant.reset(list(scene.arrivals))
     paths = defaultdict(list)
     started = time.perf_counter()
     failure = None

@@ -15,10 +15,11 @@ import time
 from dataclasses import dataclass, field, replace
 from typing import Callable
 
-from sim.feib import Cell, ImmersedBoundary, State
+from sim.feib import Cell, ImmersedBoundary
 from sim.fluid import NumericalBlowUp
 from sim.health import membrane_time_step
 from sim.membrane import Membrane
+from sim.openloop import stepping, with_cells
 from sim.scenario import UM, CellType, Scenario
 
 OUTLETS = ("lower", "upper")
@@ -98,17 +99,13 @@ def simulate(setting: Setting) -> Run:
     started = time.perf_counter()
     try:
         plant = ImmersedBoundary(setting.scenario)
-        state = plant.start(setting.actuation)
-        cells = tuple(plant.new_cell(kind, index, state.time, centre) for index, (kind,
-                                                                                  centre) in enumerate(setting.cells))
-        state = State(state.flow, cells)
-        run.cells = cells
-        stepping = time.perf_counter()
-        while any(cell.in_channel for cell in state.cells) and state.time < setting.duration - 1e-12:
-            state = plant.step(state, setting.actuation)
+        state = with_cells(plant, plant.start(setting.actuation).flow, setting.cells)
+        run.cells = state.cells
+        stepping_started = time.perf_counter()
+        for state in stepping(plant.step, state, setting.actuation, until=setting.duration - 1e-12):
             run.cells, run.steps, run.time = state.cells, state.step, state.time
             run.max_stretch = max([run.max_stretch] + [_stretch(cell) for cell in state.cells if cell.in_channel])
-        run.step_ms = 1e3 * (time.perf_counter() - stepping) / max(run.steps, 1)
+        run.step_ms = 1e3 * (time.perf_counter() - stepping_started) / max(run.steps, 1)
     except NumericalBlowUp as error:
         run.diagnosis = str(error)
     finally:

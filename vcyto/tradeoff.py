@@ -18,6 +18,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from sim.health import HealthError
+from sim.openloop import stepping
 from sim.scenario import UM, Scenario
 
 
@@ -147,8 +148,8 @@ def run_scene(plant, scene: Scene) -> dict:
     started = time.perf_counter()
     failure = None
     try:
-        while not plant.done and observation.time < scene.max_time:
-            observation = plant.step(scene.actuation(observation.time))
+        for observation in stepping(lambda _, drive: plant.step(drive), observation, scene.actuation,
+                                    until=scene.max_time, running=lambda _: not plant.done):
             for view in observation.cells:
                 paths[view.key].append((observation.time, view.x, view.y))
     except HealthError as error:

@@ -4,6 +4,11 @@ All quantities are SI (metres, seconds, kilograms, pascal seconds). The defaults
 (section 4, with the readings in docs/physics.md). Every class checks its own fields in
 ``__post_init__`` and raises ``ScenarioError`` naming the field; ``Scenario`` checks what spans parts
 (an inlet outside the wall, overlapping outlets, a mesh that does not resolve an inlet).
+
+One concept, kept in one module though it is over 400 lines: the scenario's dataclasses are one tree
+(``Scenario`` holds a ``Channel`` of ``Inlet``s and ``Outlet``s, a ``Fluid``, a ``Saw``, ``Numerics`` and
+``CellType``s) whose cross-part checks and ``with_*`` copies need all of them; splitting it would spread one
+validated structure over modules that import each other.
 """
 
 from __future__ import annotations

@@ -27,6 +27,8 @@ OUTLETS = ("lower", "upper")
 
 class UnexpectedOutcome(NumericalBlowUp):
     """A case did not end as expected (the command's exit status 1)."""
+
+
 # peak inflow speed x dt / h in the inflow cases: at 0.5 the imex flow itself blows up at x24 (docs/results.md)
 CFL = 0.1
 

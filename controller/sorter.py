@@ -37,7 +37,7 @@ REORDER_SLACK = 1e-3           # s: predicted arrivals may come out of detection
 
 @dataclass(frozen=True)
 class ControllerSettings:
-    """Calibrated on the paper's device with the ``paper`` SAW model (``vcyto calibrate``; README "Sort
+    """Calibrated on the paper's device with the ``paper`` SAW model (``vcyto calibrate``; docs/results.md "The sort
     envelope"): a melanoma reaches the SAW window's centre 0.548 ms after leaving the detection window at
     0.0997 m/s (rom). The shortest pulse that sorts it on ``rom`` is 0.30 ms, but ``feib`` needs the jet
     earlier and longer (a stiff 16 um cell turns more slowly); 0.40 ms started 0.30 ms before the arrival sorts

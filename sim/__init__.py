@@ -1,7 +1,7 @@
 """The plant: the SAW cell sorter's channel flow, cells and reduced models (no I/O, no printing).
 
 The plant contract (every plant: ``FeibPlant``, ``StreamlinePlant`` and the ``rom``, ``oneway`` and ``auto``
-plants of ``vcyto.make_plant``): ``reset(arrivals, seed) -> Observation`` with ``arrivals`` a list of
+plants of ``vcyto.make_plant``): ``reset(arrivals) -> Observation`` with ``arrivals`` a list of
 (time in s, cell type name); ``step(actuation) -> Observation`` advances one control period with the IDT
 drive ``actuation`` (0 or 1); ``observe() -> Observation`` (what the optics see: ``CellView``s);
 ``truth() -> Truth`` (``CellTruth``s: fates, membranes; never shown to the controller); ``done``;

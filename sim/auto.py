@@ -1,26 +1,26 @@
 """The plant ``auto``: the cheapest model whose error stays within tolerance, chosen per time window.
 
-The ladder measured by ``vcyto tradeoff`` (README, "Speed against accuracy") says where the reduced model
+The ladder measured by ``vcyto tradeoff`` (docs/results.md, "Speed against accuracy") says where the reduced model
 ``rom`` is good enough: an isolated RBC with the IDT off and an isolated melanoma with the IDT on leave by
 the FE-IB outlet with a mean centroid path error of 0.3-4 um; two cells close together are not (their
 hydrodynamic interaction, absent from ``rom``, moves them by 10-50 um). A large stiff cell (a melanoma)
 interacts further than that: ``rom`` carries an isolated melanoma 6 % faster than ``feib`` through
 x = 20-100 um (2D confinement of a 16 um rigid body, absent from the undisturbed flow ``rom`` averages), so in
 a stream its detection and its pulse come tens of us early and the cells behind it drift; on the 100-cell
-streams that flips RBCs trailing a sorted melanoma (README). The rule, evaluated every control period on the
+streams that flips RBCs trailing a sorted melanoma (docs/results.md). The rule, evaluated every control period on the
 cells in the channel:
 
 - ``feib`` while a stiff cell shares the channel with any other cell (stiff: capillary number
   Ca = eta U_saw / kappa_e < ``stiff_capillary``, default 100; U_saw = the largest change of the steady flow
   the IDT makes, 0.66 m/s: Ca = 14 for a melanoma, 658 for an RBC);
 - ``feib`` while two cells are closer than ``coupling`` x (r_i + r_j) (r = a cell type's largest semi-axis;
-  default coupling 3: 35 um for a melanoma and an RBC; chosen with ``vcyto tradeoff --coupling``, README);
+  default coupling 3: 35 um for a melanoma and an RBC; chosen with ``vcyto tradeoff --coupling``, docs/results.md);
 - back to ``rom`` once neither has held, with every pair further apart than ``release`` x that distance
   (hysteresis, default 1.25), for ``dwell`` (default 50 us);
 - ``rom`` otherwise: a cell alone, and soft cells further apart. ``stiff_capillary`` = 0 turns the stiff-cell
-  rule off (the rule of the README's earlier tables).
+  rule off (the rule of the earlier tables in docs/results.md).
 
-Known gap (README): a soft cell (an RBC) reaching the SAW window alone as a pulse ends is carried poorly by
+Known gap (docs/results.md): a soft cell (an RBC) reaching the SAW window alone as a pulse ends is carried poorly by
 ``rom`` (up to 18 um), and no rule here catches it; where such a cell exits within a micrometre of an outlet's
 edge (the 0.565 ms pair scene) ``auto`` and the window model itself can disagree with the reference's outlet.
 
@@ -45,6 +45,7 @@ import math
 
 import numpy as np
 
+from .drive import lagged
 from .feib import ImmersedBoundary, State
 from .fluid import Flow, NavierStokes
 from .plant import FeibPlant, Observation, Truth
@@ -88,11 +89,11 @@ class AutoPlant:
         self.reset([])
 
     # ------------------------------------------------------------------ the contract
-    def reset(self, arrivals, seed: int | None = None) -> Observation:
+    def reset(self, arrivals) -> Observation:
         self.arrivals = sorted(arrivals)
         self._types = [name for _, name in self.arrivals]
-        self.rom.reset(self.arrivals, seed)
-        self.feib.reset(self.arrivals, seed)
+        self.rom.reset(self.arrivals)
+        self.feib.reset(self.arrivals)
         self.model, self.reason, self.level, self._apart_since = "rom", "start: no cells close together", 0.0, None
         self.switches = [(0.0, "rom", self.reason)]
         self.settled = {}
@@ -102,8 +103,7 @@ class AutoPlant:
 
     def step(self, actuation: float) -> Observation:
         dt = self.control_period
-        decay = math.exp(-dt / self.rom.response_time) if self.rom.response_time > 0 else 0.0
-        self.level = actuation + (self.level - actuation) * decay
+        self.level = lagged(self.level, actuation, dt, self.rom.response_time)
         active = self.rom if self.model == "rom" else self.feib
         self._observation = active.step(actuation)
         self.steps += 1

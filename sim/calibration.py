@@ -11,6 +11,7 @@ import math
 from dataclasses import dataclass, replace
 
 from .fluid import NavierStokes
+from .geometry import injection_y
 from .scenario import Scenario
 from .streamline import Streamline, trace
 from .transfer import PointLocator
@@ -30,8 +31,7 @@ def injection_streamline(scenario: Scenario, actuation: float, solver: NavierSto
     solver = solver or NavierStokes(scenario)
     flow = solver.steady(actuation)
     locator = PointLocator(solver.space.cmesh, solver.space.velocity_basis.element_dofs)
-    inlet = scenario.channel.inlet(scenario.channel.injection_inlet)
-    start = (0.0, 0.5 * (inlet.span[0] + inlet.span[1]))
+    start = (0.0, injection_y(scenario.channel))
     return flow, trace(locator, flow.velocity, scenario.channel, start, solver.space.cmesh.h)
 
 

@@ -1,7 +1,11 @@
 """The plant contract of the closed loop: what every plant offers, the data it exchanges, and its check.
 
-A plant is reset with a schedule of arrivals (time in s, cell type name) and a seed, then stepped one control
-period at a time with the IDT drive in [0, 1]. Each step returns an ``Observation``: what an instrument can
+A plant is reset with a schedule of arrivals (time in s, cell type name), then stepped one control period at
+a time with the IDT drive in [0, 1]. A plant is deterministic: the same arrivals and the same drive give the
+same observations and truth, so ``reset`` takes no seed. What is random in a run (the arrival times, the
+detector's noise) is drawn outside the plant from the run's seed (``sim.arrivals``, ``controller.detector``);
+a plant that one day draws numbers of its own takes its generator or seed in its constructor, so that
+``check_plant``'s two fresh instances can be built alike. Each step returns an ``Observation``: what an instrument can
 see (each cell in the channel as a ``CellView``: where it is, its size and label brightness). ``truth()``
 gives the ground truth (``CellTruth``: types, fates, exit times) for logging and statistics only; it is
 never shown to the controller. ``Plant`` names the required part; ``StepsUntil``, ``ReportsTruthUpdates``,
@@ -90,7 +94,7 @@ class Plant(Protocol):
 
     control_period: float     # s; ``step`` advances time by exactly this much
 
-    def reset(self, arrivals, seed: int | None = None) -> Observation: ...
+    def reset(self, arrivals) -> Observation: ...
 
     def step(self, actuation: float) -> Observation: ...
 
@@ -160,8 +164,8 @@ class AdoptsCentroids(Protocol):
     def adopt(self, time_s: float, level: float, cells: dict, injected: int): ...
 
 
-def _run(plant, arrivals, steps: int, seed: int):
-    observations = [plant.reset(arrivals, seed=seed)]
+def _run(plant, arrivals, steps: int):
+    observations = [plant.reset(arrivals)]
     for step in range(steps):
         observations.append(plant.step(1.0 if step % 7 < 3 else 0.0))
     outcomes = [tuple(None if value != value else value for value in (c.key, c.type, c.fate, c.exit_time, c.exit_y,
@@ -170,11 +174,11 @@ def _run(plant, arrivals, steps: int, seed: int):
     return observations, outcomes
 
 
-def check_plant(make_plant: Callable[[], Plant], arrivals, steps: int = 20, seed: int = 1) -> list[str]:
+def check_plant(make_plant: Callable[[], Plant], arrivals, steps: int = 20) -> list[str]:
     """Check a plant factory against the contract; returns a list of violations (empty when it conforms).
 
-    ``make_plant()`` must build a fresh plant each call; two are built and run with the same arrivals, seed
-    and drive. Checked: they are distinct objects and give the same observations and outcomes; time advances
+    ``make_plant()`` must build a fresh plant each call; two are built and run with the same arrivals and
+    drive. Checked: they are distinct objects and give the same observations and outcomes; time advances
     by one control period per step; every scheduled cell is waiting, in the channel or settled, exactly once.
     """
     first_plant, second_plant = make_plant(), make_plant()
@@ -184,10 +188,10 @@ def check_plant(make_plant: Callable[[], Plant], arrivals, steps: int = 20, seed
                 if name not in dir(first_plant)]
     if problems:
         return problems
-    first, first_outcomes = _run(first_plant, arrivals, steps, seed)
-    second, second_outcomes = _run(second_plant, arrivals, steps, seed)
+    first, first_outcomes = _run(first_plant, arrivals, steps)
+    second, second_outcomes = _run(second_plant, arrivals, steps)
     if first != second or first_outcomes != second_outcomes:
-        problems.append("not deterministic: two fresh plants with the same seed gave different results")
+        problems.append("not deterministic: two fresh plants with the same arrivals and drive gave different results")
     times = np.array([o.time for o in first])
     if not np.allclose(np.diff(times), first_plant.control_period, rtol=1e-9, atol=1e-15):
         problems.append("time does not advance by one control period per step")

@@ -23,6 +23,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from .fluid import Flow, NavierStokes
+from .geometry import MESH_INSET, clip_to_channel, injection_point
 from .health import HealthLimits, check_cells, under_resolved
 from .membrane import Membrane
 from .scenario import CellType, Scenario
@@ -171,17 +172,10 @@ class ImmersedBoundary:
 
     def _inside(self, points):
         """Points past x = length (through an outlet) are evaluated at x = length, just inside the mesh."""
-        length = self.scenario.channel.length
-        return np.column_stack([np.minimum(points[:, 0], length * (1 - 1e-12)), points[:, 1]])
+        return clip_to_channel(points, self.scenario.channel, inset=MESH_INSET, walls=False)
 
     def _settle(self, cell: Cell, points: np.ndarray, time: float) -> Cell:
         return settle(cell, points, time, self.scenario)
-
-
-def injection_point(scenario: Scenario, cell_type: CellType, gap: float = 1e-6) -> tuple[float, float]:
-    """The start of a cell: just inside the channel, centred on the injection inlet (docs/physics.md)."""
-    inlet = scenario.channel.inlet(scenario.channel.injection_inlet)
-    return cell_type.semi_axes[0] + gap, 0.5 * (inlet.span[0] + inlet.span[1])
 
 
 def new_cell(scenario: Scenario, cell_type: CellType, cell_id: int, time: float, centre=None,

@@ -22,7 +22,6 @@ is scaled inside the saddle-point matrix so both blocks have comparable entries;
 from __future__ import annotations
 
 import logging
-import math
 import time as clock
 from dataclasses import dataclass, field
 
@@ -35,6 +34,7 @@ from skfem.quadrature import get_quadrature
 
 from . import kernels
 from .boundary import inflow_velocity, saw_jet_factor, saw_window_profile
+from .drive import lagged
 from .linalg import factorize, mkl_version, resolved_solver_name
 from .mesh import ChannelMesh, channel_mesh
 from .scenario import Scenario
@@ -348,9 +348,7 @@ class NavierStokes:
         saw = self.scenario.saw
         if saw.model != "streaming":
             return 0.0
-        if saw.spin_up_time == 0.0:
-            return actuation
-        return actuation + (previous_level - actuation) * math.exp(-dt / saw.spin_up_time)
+        return lagged(previous_level, actuation, dt, saw.spin_up_time)
 
     # ------------------------------------------------------------------ solves
     def _free_rhs(self, momentum=None, continuity=None):

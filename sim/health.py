@@ -3,13 +3,13 @@
 Checks per cell in the channel: finite positions; the membrane not torn apart (its length at most
 ``numerics.max_stretch`` times its resting length: the paper's Remark 2.4, an inflow too fast for the
 membrane); no self-intersection of the membrane polygon; enclosed area within ``numerics.max_area_change``
-of the initial area (the paper's method leaks area, see README; the default 75 % lets the paper's
+of the initial area (the paper's method leaks area, see docs/numerics.md; the default 75 % lets the paper's
 scenarios run and stops a collapse or an explosion); membrane points inside the channel (or past
 x = length through an outlet). A cell that left the channel in this step is checked for finite positions
 and tearing too, so a membrane that explodes through the outlet is not counted as an outcome.
 
 Which hint a failure carries depends on the membrane's explicit time step ``membrane_time_step``, about
-eta dq / kappa_e (tension) or eta dq^3 / kappa_b (bending), dq the reference spacing of its points (README,
+eta dq / kappa_e (tension) or eta dq^3 / kappa_b (bending), dq the reference spacing of its points (docs/results.md,
 "Stability"): a step beyond a quarter of it may be the cause, and the hint is a smaller dt; a step far
 below it is not, and the hint names what is (the flow folding or tearing the membrane).
 """
@@ -72,7 +72,7 @@ class HealthLimits:
 def under_resolved(cell_type, mesh_h: float) -> str | None:
     """Why a cell of ``cell_type`` is under-resolved on a mesh of size ``mesh_h`` (diameter below two mesh
     cells), or None. Such a cell still runs: it moves like a tracer (its outlet agrees with a fine mesh's,
-    README "Stability at the extremes"), but its deformation and area are not resolved."""
+    docs/results.md, "Stability at the extremes"), but its deformation and area are not resolved."""
     if cell_type.diameter >= 2 * mesh_h * (1 - 1e-9):
         return None
     return (f"{cell_type.name} is resolved by fewer than two mesh cells (diameter {cell_type.diameter / UM:.3g} um, "
@@ -81,7 +81,7 @@ def under_resolved(cell_type, mesh_h: float) -> str | None:
 
 
 def membrane_time_step(membrane, viscosity: float) -> float:
-    """The explicit membrane's time scale eta * min(dq / kappa_e, dq^3 / kappa_b) (README, "Stability")."""
+    """The explicit membrane's time scale eta * min(dq / kappa_e, dq^3 / kappa_b) (docs/results.md, "Stability")."""
     kind, dq = membrane.cell_type, membrane.dq
     tension = viscosity * dq / kind.kappa_e
     return min(tension, viscosity * dq**3 / kind.kappa_b) if kind.kappa_b > 0 else tension

@@ -25,7 +25,9 @@ import math
 import numpy as np
 
 from .contract import Observation, Schedule, Truth
+from .drive import lagged
 from .feib import Cell, membrane_forces, new_cell, settle
+from .geometry import clip_to_channel
 from .health import HealthLimits, check_cells
 from .plant import membrane_truths, membrane_views
 from .rom import RomFlows, default_response_time
@@ -59,7 +61,7 @@ class OneWayPlant:
         self.reset([])
 
     # ------------------------------------------------------------------ the contract
-    def reset(self, arrivals, seed: int | None = None) -> Observation:
+    def reset(self, arrivals) -> Observation:
         self.schedule = Schedule(arrivals)
         self.time, self.level, self.steps = 0.0, 0.0, 0
         self.cells: list[Cell] = []
@@ -79,8 +81,7 @@ class OneWayPlant:
     def _step(self, actuation: float):
         numerics, channel = self.scenario.numerics, self.scenario.channel
         dt = numerics.dt
-        self.level = actuation + (self.level - actuation) * (math.exp(-dt / self.response_time)
-                                                              if self.response_time > 0 else 0.0)
+        self.level = lagged(self.level, actuation, dt, self.response_time)
         self.time += dt
         self.steps += 1
         moved = []
@@ -90,8 +91,7 @@ class OneWayPlant:
             points = cell.membrane.points
             inside = points[:, 0] < channel.length
             forces = membrane_forces(cell.membrane, numerics) * inside[:, None]
-            clipped = np.column_stack([np.minimum(points[:, 0], channel.length), points[:, 1]])
-            velocity = self.flows.velocity(clipped, self.level)
+            velocity = self.flows.velocity(clip_to_channel(points, channel), self.level)
             velocity += stokeslet_velocities(points, forces, self.scenario.fluid.viscosity, self.epsilon)
             self.cells[index] = settle(cell, points + dt * velocity, self.time, self.scenario)
             moved.append(self.cells[index])

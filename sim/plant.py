@@ -17,8 +17,10 @@ from dataclasses import dataclass
 import numpy as np
 
 from .contract import CellTruth, CellView, Observation, Schedule, Truth, check_plant  # noqa: F401 (re-exported)
+from .drive import lagged
 from .feib import ImmersedBoundary, State
 from .fluid import NavierStokes
+from .geometry import MESH_INSET, clip_to_channel, injection_point
 from .scenario import Scenario
 from .streamline import outlet_at
 from .transfer import PointLocator
@@ -67,7 +69,7 @@ class FeibPlant:
         self.state = None
         self.warn_under_resolved = True       # log cells the mesh does not resolve (sim.health.under_resolved)
 
-    def reset(self, arrivals, seed: int | None = None) -> Observation:
+    def reset(self, arrivals) -> Observation:
         if self._initial is None:
             self._initial = self.ib.fluid.initial_flow(0.0)
         self.schedule = _Schedule(arrivals)
@@ -170,7 +172,7 @@ class StreamlinePlant:
         self.locator = PointLocator(fluid.space.cmesh, fluid.space.velocity_basis.element_dofs)
         self._values = self.flows.reshape(4, -1)
 
-    def reset(self, arrivals, seed: int | None = None) -> Observation:
+    def reset(self, arrivals) -> Observation:
         self.schedule = Schedule(arrivals)
         self.time = 0.0
         self.level = 0.0
@@ -179,11 +181,8 @@ class StreamlinePlant:
         return self.observe()
 
     def _inject(self):
-        channel = self.scenario.channel
-        inlet = channel.inlet(channel.injection_inlet)
         for key, (_, name) in self.schedule.due(self.time, 0.5 * self.control_period):
-            radius = self.scenario.cell_type(name).semi_axes[0]
-            start = np.array([radius + 1e-6, 0.5 * (inlet.span[0] + inlet.span[1])])
+            start = np.array(injection_point(self.scenario, self.scenario.cell_type(name)))
             self.points.append(_Point(key, name, self.time, start))
 
     def _velocity(self, positions, level):
@@ -193,12 +192,12 @@ class StreamlinePlant:
     def step(self, actuation: float) -> Observation:
         dt = self.control_period
         previous = self.level
-        self.level = actuation + (self.level - actuation) * math.exp(-dt / self.response_time)
+        self.level = lagged(self.level, actuation, dt, self.response_time)
         active = [p for p in self.points if p.fate == "in_channel"]
         if active:
             positions = np.array([p.position for p in active])
             half = positions + 0.5 * dt * self._velocity(positions, previous)
-            inside = np.column_stack([np.minimum(half[:, 0], self.scenario.channel.length * (1 - 1e-12)), half[:, 1]])
+            inside = clip_to_channel(half, self.scenario.channel, inset=MESH_INSET, walls=False)
             moved = positions + dt * self._velocity(inside, 0.5 * (previous + self.level))
             for point, old, new in zip(active, positions, moved):
                 self._settle(point, old, new)

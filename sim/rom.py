@@ -31,7 +31,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from . import rom_kernels as kernels
+from .drive import lag_decay
 from .fluid import NavierStokes
+from .geometry import clip_to_channel, injection_point
 from .plant import CellTruth, CellView, Observation, Truth
 from .scenario import Channel, Scenario
 from .transfer import PointLocator
@@ -124,10 +126,9 @@ class RomFlows:
         y = np.linspace(0.0, channel.height, math.ceil(channel.height / spacing - 1e-9) + 1)
         nodes = np.stack(np.meshgrid(x, y, indexing="ij"), axis=-1).reshape(-1, 2)
         locator = PointLocator(fluid.space.cmesh, fluid.space.velocity_basis.element_dofs)
-        upper = np.array([channel.length, channel.height])
 
         def at(points):
-            return locator.interpolate(values, np.clip(points, 0.0, upper))
+            return locator.interpolate(values, clip_to_channel(points, channel))
 
         point = at(nodes).reshape(len(x), len(y), 4)
         cells = np.zeros((len(scenario.cell_types), len(x), len(y), 4))
@@ -196,8 +197,7 @@ class RomPlant:
             raise ValueError("the flows were sampled for other cell types than the scenario's")
         self.substeps = max(1, math.ceil(control_period / max_substep - 1e-9))
         step = control_period / self.substeps
-        decay = [math.exp(-fraction * step / self.response_time) if self.response_time > 0 else 0.0
-                 for fraction in (1.0, 0.5)]
+        decay = [lag_decay(fraction * step, self.response_time) for fraction in (1.0, 0.5)]
         channel = scenario.channel
         self._params = np.array([control_period, self.substeps, *decay, channel.length, channel.height,
                                  *self.flows.spacing, stall_speed, stall_time])
@@ -206,8 +206,7 @@ class RomPlant:
         self._outlet_names = {kernels.OUTLET + k: outlet.name for k, outlet in enumerate(channel.outlets)}
         types = scenario.cell_types
         self._semi_axes = np.array([c.semi_axes for c in types])
-        inlet = channel.inlet(channel.injection_inlet)
-        self._start = np.array([(c.semi_axes[0] + 1e-6, 0.5 * (inlet.span[0] + inlet.span[1])) for c in types])
+        self._start = np.array([injection_point(scenario, c) for c in types])
         self._area = [c.area for c in types]
         self._brightness = [c.fluorescence for c in types]
         self._names = [c.name for c in types]
@@ -218,7 +217,7 @@ class RomPlant:
         self.timings = dict(self.flows.timings, kernels_s=clock.perf_counter() - started)
 
     # ------------------------------------------------------------------ the contract
-    def reset(self, arrivals, seed: int | None = None) -> Observation:
+    def reset(self, arrivals) -> Observation:
         items = sorted(arrivals)
         n = len(items)
         index = {name: k for k, name in enumerate(self._names)}

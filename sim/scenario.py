@@ -4,6 +4,11 @@ All quantities are SI (metres, seconds, kilograms, pascal seconds). The defaults
 (section 4, with the readings in docs/physics.md). Every class checks its own fields in
 ``__post_init__`` and raises ``ScenarioError`` naming the field; ``Scenario`` checks what spans parts
 (an inlet outside the wall, overlapping outlets, a mesh that does not resolve an inlet).
+
+One concept, kept in one module though it is over 400 lines: the scenario's dataclasses are one tree
+(``Scenario`` holds a ``Channel`` of ``Inlet``s and ``Outlet``s, a ``Fluid``, a ``Saw``, ``Numerics`` and
+``CellType``s) whose cross-part checks and ``with_*`` copies need all of them; splitting it would spread one
+validated structure over modules that import each other.
 """
 
 from __future__ import annotations
@@ -236,7 +241,7 @@ class Numerics:
     back-solve's substitutions run sequentially); False lets them run in parallel: faster, but the last
     bits of the results then vary from run to run.
 
-    Cells keeping their size (README, "Cells that keep their size"): ``area_constraint`` is ``none`` (the
+    Cells keeping their size (docs/numerics.md, "Cells that keep their size"): ``area_constraint`` is ``none`` (the
     paper's literal method, which leaks area), ``pressure`` (an interior pressure, the Lagrange multiplier
     of the area constraint, balances the membrane force's area-changing part), ``projection`` (after each
     step the membrane moves along its normal to restore the area) or both. ``redistribute`` re-spaces a
@@ -252,7 +257,7 @@ class Numerics:
     checks stop the run saying the flow is too fast for it. The paper's energy has no rupture law, so
     this is a stand-in; the default 20 lies above every stretch the paper's scenarios and IDT pulses
     produce (at most 5.3 and 8.3 at the paper's mesh, 10 for an under-resolved RBC on the 6.67 um mesh of
-    ``vcyto tradeoff --fast``; README "Stability at the extremes").
+    ``vcyto tradeoff --fast``; docs/results.md "Stability at the extremes").
     """
 
     mesh_h: float = 10e-6 / 3

@@ -19,10 +19,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .feib import ImmersedBoundary, State
+from .feib import ImmersedBoundary
 from .fluid import Flow, NavierStokes
 from .health import HealthError
 from .membrane import Membrane
+from .openloop import stepping, with_cells
 from .scenario import CellType, Scenario
 
 
@@ -55,9 +56,7 @@ def _run(scenario, cell_type, dt, start, steps):
     trial_scenario = scenario.with_numerics(dt=dt)
     plant = ImmersedBoundary(trial_scenario, NavierStokes(trial_scenario))
     actuation = actuation_for(cell_type)
-    state = State(start, (plant.new_cell(cell_type, 0, start.time),))
-    for _ in range(steps):
-        state = plant.step(state, actuation)
+    for state in stepping(plant.step, with_cells(plant, start, [(cell_type, None)]), actuation, max_steps=steps):
         cell = state.cells[0]
         if not cell.in_channel:
             return

@@ -1,4 +1,4 @@
-"""Cells that keep their size (README, "Cells that keep their size"): the area constraint and the
+"""Cells that keep their size (docs/numerics.md, "Cells that keep their size"): the area constraint and the
 redistribution of membrane points, against the paper's literal method which leaks."""
 
 import math

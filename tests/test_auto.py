@@ -49,7 +49,7 @@ def test_the_capillary_numbers_put_the_melanoma_among_stiff_cells_and_the_rbc_am
     scenario, auto, _ = coarse
     off, on = (flow.velocity for flow in auto._steady)
     saw_speed = np.abs(np.hypot(*(on - off))).max()
-    assert 0.3 < saw_speed < 1.5                                  # m/s: the IDT's jet (README: 0.66 m/s)
+    assert 0.3 < saw_speed < 1.5                                  # m/s: the IDT's jet (docs/results.md: 0.66 m/s)
     for cell in scenario.cell_types:
         assert auto.capillary[cell.name] == pytest.approx(scenario.fluid.viscosity * saw_speed / cell.kappa_e)
     assert auto.capillary["melanoma"] < auto.stiff_capillary < auto.capillary["RBC"]

@@ -33,7 +33,7 @@ class CountingPlant:
     def __init__(self, jitter=False):
         self.jitter = random.Random() if jitter else None
 
-    def reset(self, arrivals, seed=None):
+    def reset(self, arrivals):
         self.steps, self.arrivals = 0, list(arrivals)
         return self.observe()
 
@@ -63,7 +63,7 @@ def test_a_deterministic_plant_passes_and_is_a_plant():
 
 def test_check_plant_flags_two_fresh_plants_that_differ():
     problems = check_plant(lambda: CountingPlant(jitter=True), ARRIVALS, steps=5)
-    assert problems == ["not deterministic: two fresh plants with the same seed gave different results"]
+    assert problems == ["not deterministic: two fresh plants with the same arrivals and drive gave different results"]
 
 
 def test_check_plant_refuses_one_instance_handed_out_twice():
@@ -79,6 +79,23 @@ def test_check_plant_flags_a_plant_that_loses_a_cell():
             return Truth(full.time, full.cells[1:], full.waiting)
     problems = check_plant(Leaky, ARRIVALS, steps=5)
     assert len(problems) == 1 and problems[0].startswith("cells not conserved")
+
+
+PLANT_CLASSES = {"feib": ("sim.plant", "FeibPlant"), "streamline": ("sim.plant", "StreamlinePlant"),
+                 "rom": ("sim.rom", "RomPlant"), "oneway": ("sim.oneway", "OneWayPlant"),
+                 "auto": ("sim.auto", "AutoPlant")}
+
+
+@pytest.mark.parametrize("model", MODELS)
+def test_reset_takes_the_arrivals_and_no_seed(model):
+    """Plants are deterministic (the run's seed draws arrivals and detector noise outside them): ``reset``
+    has no seed to ignore, in the contract and in every registry entry."""
+    import importlib
+    import inspect
+    module, name = PLANT_CLASSES[model]
+    plant_class = getattr(importlib.import_module(module), name)
+    assert list(inspect.signature(plant_class.reset).parameters) == ["self", "arrivals"]
+    assert list(inspect.signature(Plant.reset).parameters) == ["self", "arrivals"]
 
 
 def test_the_contract_and_the_controller_load_no_numerics_library_and_no_other_part_of_sim():
@@ -129,7 +146,7 @@ def test_every_registry_entry_conforms_on_fresh_instances(model, coarse):
 
 
 def test_the_registry_lists_every_model_the_tests_build():
-    assert set(STEPS) == set(MODELS) and set(CALIBRATION_MODELS) == set(MODELS) - {"streamline"}
+    assert set(STEPS) == set(MODELS) == set(PLANT_CLASSES) and set(CALIBRATION_MODELS) == set(MODELS) - {"streamline"}
 
 
 def test_the_command_line_offers_the_registry():

@@ -1,4 +1,4 @@
-"""Stability at the extremes (README): each extreme setting runs correctly or stops with a specific diagnosis.
+"""Stability at the extremes (docs/results.md): each extreme setting runs correctly or stops with a specific diagnosis.
 
 The fast variants of `vcyto extremes` (coarse meshes, short runs), one test per case, each asserting its
 own outcome; plus the health checks' new diagnoses on hand-made membranes.

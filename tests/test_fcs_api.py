@@ -15,7 +15,7 @@ from vcyto.fcs import CHANNELS, gate_consistent, write_fcs
 from vcyto.gatingml import GATE_IDS, write_gatingml
 from vcyto.stream import StreamSettings, run_stream
 
-README = Path(__file__).resolve().parent.parent / "README.md"
+USAGE = Path(__file__).resolve().parent.parent / "docs" / "usage.md"
 
 
 @pytest.fixture(scope="module")
@@ -69,8 +69,8 @@ def test_python_m_vcyto_prints_the_version():
     assert done.returncode == 0 and done.stdout.strip() == f"vcyto {__version__}"
 
 
-def test_the_readme_python_example_runs(tmp_path):
-    text = README.read_text()
+def test_the_documented_python_example_runs(tmp_path):
+    text = USAGE.read_text()
     section = text.split("## Use from Python", 1)[1]
     code = re.search(r"```python\n(.*?)```", section, re.S).group(1)
     done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=600, cwd=tmp_path)

@@ -92,7 +92,8 @@ def test_relaxing_ellipse_loses_energy_and_becomes_a_circle(relaxations):
 
 
 def test_relaxing_ellipse_area_loss_falls_with_h(relaxations):
-    """The paper's method leaks area (README): about 23 %/ms at h = 5 um and 12 %/ms at 2.5 um."""
+    """The paper's method leaks area (docs/development.md, verification): about 23 %/ms at h = 5 um and
+    12 %/ms at 2.5 um."""
     losses = {h: 1 - history[-1].area() / history[0].area() for h, history in relaxations.items()}
     coarse, fine = losses[5 * UM], losses[2.5 * UM]
     assert 0 < fine < 0.7 * coarse

@@ -22,7 +22,8 @@ from sim.transfer import PointLocator
 from vcyto.outcomes import SORTED_OUTLET
 from vcyto.stream import StreamSettings, run_stream
 
-# The FE-IB plant on the paper's scenarios (README, `vcyto paper 1`, `vcyto paper 2`): outlet and exit ordinate.
+# The FE-IB plant on the paper's scenarios (docs/results.md, `vcyto paper 1`, `vcyto paper 2`): outlet and exit
+# ordinate.
 FEIB_SCENARIO_I = ("lower", 72.2 * UM)        # RBC, IDT off
 FEIB_SCENARIO_II = ("upper", 140.8 * UM)      # melanoma, IDT on
 
@@ -116,7 +117,7 @@ def test_paper_scenarios_leave_by_the_feib_plants_outlets(paper_scenario, flows)
 
 def test_isolated_cells_in_the_closed_loop_agree_with_the_feib_and_streamline_plants(paper_scenario, paper_solver,
                                                                                      plant):
-    # FE-IB in the loop (tests/test_stream.py, README): RBC passed -> lower, melanoma sorted -> upper
+    # FE-IB in the loop (tests/test_stream.py, docs/results.md): RBC passed -> lower, melanoma sorted -> upper
     streamline = StreamlinePlant(paper_scenario, fluid=paper_solver)
     for name, expected in (("RBC", ("pass", "lower")), ("melanoma", ("sort", "upper"))):
         rom = stream(paper_scenario, plant, cells=(name,))["cells"][0]
@@ -240,7 +241,7 @@ def test_rom_and_feib_agree_on_the_outlet_of_every_isolated_cell_scene():
     sorted): the same outlet from both plants, and at a constant drive exit ordinates within 1 um
     (measured: 0.3-0.8 um; exit times within 2 %)."""
     from sim.plant import FeibPlant
-    scenario = Scenario().with_numerics(dt=10e-6)        # stable for both cell types (README, stability)
+    scenario = Scenario().with_numerics(dt=10e-6)        # stable for both cell types (docs/results.md, stability)
     feib = FeibPlant(scenario)
     rom = RomPlant(scenario, flows=RomFlows.of(scenario, fluid=feib.ib.fluid))
     for name in ("RBC", "melanoma"):

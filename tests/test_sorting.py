@@ -45,7 +45,7 @@ def test_the_yield_estimate_follows_the_modes_on_a_dense_stream(paper_scenario, 
     assert yields["purity"]["purity"] > 0.98 > yields["yield"]["purity"]
     assert yields["yield"]["co_deflected"] > 0
     # the envelope is measured for one pulse; a type-I cell between two pulses well apart can still be nudged
-    # upwards by the first and caught by the second (1 of ~400 sorts here, README "Sort envelope")
+    # upwards by the first and caught by the second (1 of ~400 sorts here, docs/results.md, "The sort envelope")
     assert yields["purity"]["co_deflected_unexpected"] <= 0.01 * yields["purity"]["sorted"]
 
 

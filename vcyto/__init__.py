@@ -11,7 +11,7 @@ The public Python API (imported on first use, so ``import vcyto`` stays cheap):
 - recordings: ``McapRecorder`` (a sink), ``RerunSink`` (a sink), ``BackgroundSinks``, ``write_fcs``,
   ``write_gatingml``.
 
-See the README, "Use from Python".
+See docs/usage.md, "Use from Python".
 """
 
 import importlib as _importlib

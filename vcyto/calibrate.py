@@ -54,7 +54,7 @@ def passage(plant, type_name: str, pulse=None, detector: DetectorSettings = Dete
     """Run one ``type_name`` cell injected at t = 0 through ``plant`` with the IDT on during ``pulse`` (on, off)."""
     window_centre = 0.5 * sum(plant.scenario.channel.saw_window.span)
     eye = Detector(detector, np.random.default_rng(0))
-    observation = plant.reset([(0.0, type_name)], seed=0)
+    observation = plant.reset([(0.0, type_name)])
     detected = velocity = arrival = math.nan
     previous = None
     while not plant.done and observation.time < limit:

@@ -11,7 +11,8 @@ Numbers are SI unless written as a string with a unit suffix from ``UNITS`` ("3.
 e.g. ``channel.inlets[0].span: ...``.
 
 The sections are built generically from ``dataclasses.fields`` and their type hints, so a field added
-to a scenario dataclass is read, overridden and written without changes here.
+to a scenario dataclass is read, overridden and written without changes here. Writing a scenario back to
+TOML (``scenario_to_toml``) lives in ``vcyto.scenariotoml`` and is re-exported here.
 """
 
 from __future__ import annotations
@@ -36,6 +37,7 @@ else:  # pragma: no cover - exercised on Python 3.10 only
 from sim.scenario import Scenario, ScenarioError, as_dict
 
 from . import units
+from .scenariotoml import _init_fields, _join, scenario_to_toml  # noqa: F401 (scenario_to_toml: re-exported)
 
 # the dimension of every float field of the scenario dataclasses ("Class.field"); a bare number is SI
 FIELD_DIMENSIONS = {
@@ -110,13 +112,6 @@ def _inherit_sort_class(tree: dict) -> dict:
             if isinstance(entry, dict) and "target" not in entry and entry.get("name") in builtin:
                 entry["target"] = builtin[entry["name"]]
     return tree
-
-
-def scenario_to_toml(scenario: Scenario) -> str:
-    """A complete TOML document, in plain SI numbers, that ``load_scenario`` reads back to ``scenario``."""
-    lines = ["# vcyto scenario; SI units (m, s, kg/m^3, Pa s, Hz, rad)"]
-    _write_table(scenario, "", lines)
-    return "\n".join(lines) + "\n"
 
 
 def parse_quantity(text: str) -> float:
@@ -361,61 +356,7 @@ def _item_hints(hint, length: int) -> tuple:
     return args
 
 
-# --- writing TOML -------------------------------------------------------------------------------
-
-
-def _write_table(obj, path: str, lines: list[str]) -> None:
-    """Append to ``lines`` the key/value pairs of the dataclass ``obj``, then its sub-tables and arrays of tables."""
-    sections = []
-    for name in _init_fields(type(obj)):
-        value = getattr(obj, name)
-        if dataclasses.is_dataclass(value) or _is_table_array(value):
-            sections.append((_join(path, name), value))
-        elif value is not None:
-            lines.append(f"{name} = {_toml_value(value)}")
-    for section_path, value in sections:
-        for entry in (value if _is_table_array(value) else [value]):
-            lines += ["", f"[[{section_path}]]" if _is_table_array(value) else f"[{section_path}]"]
-            _write_table(entry, section_path, lines)
-
-
-def _toml_value(value) -> str:
-    """``value`` (bool, number, string or a sequence of them) as a TOML value."""
-    if isinstance(value, bool):
-        return "true" if value else "false"
-    if isinstance(value, numbers.Integral):
-        return str(int(value))
-    if isinstance(value, numbers.Real):
-        return repr(float(value))  # shortest text that reads back to the same float; inf and nan are TOML too
-    if isinstance(value, str):
-        return _toml_string(value)
-    if isinstance(value, (tuple, list)):
-        return "[" + ", ".join(_toml_value(item) for item in value) + "]"
-    raise TypeError(f"cannot write {value!r} as a TOML value")
-
-
-def _toml_string(text: str) -> str:
-    """``text`` as a TOML basic string, with quotes, backslashes and control characters escaped."""
-    def escaped(char: str) -> str:
-        if char in '"\\':
-            return "\\" + char
-        if ord(char) < 0x20 or ord(char) == 0x7F:
-            return f"\\u{ord(char):04x}"
-        return char
-    return '"' + "".join(map(escaped, text)) + '"'
-
-
-def _is_table_array(value) -> bool:
-    """Whether ``value`` is a non-empty sequence of dataclass instances, written as [[...]] tables."""
-    return isinstance(value, (tuple, list)) and bool(value) and all(dataclasses.is_dataclass(item) for item in value)
-
-
 # --- small helpers ------------------------------------------------------------------------------
-
-
-def _init_fields(cls: type) -> dict[str, dataclasses.Field]:
-    """The fields of the dataclass ``cls`` that its constructor takes, by name, in declaration order."""
-    return {spec.name: spec for spec in dataclasses.fields(cls) if spec.init}
 
 
 def _is_required(spec: dataclasses.Field) -> bool:
@@ -431,11 +372,6 @@ def _is_dataclass_type(hint) -> bool:
 def _unknown_field(cls: type) -> str:
     """The message for a key that is not a field of ``cls``."""
     return f"unknown field; known fields: {', '.join(sorted(_init_fields(cls)))}"
-
-
-def _join(where: str, name: str) -> str:
-    """The dotted path of ``name`` inside ``where`` (just ``name`` at the top)."""
-    return f"{where}.{name}" if where else name
 
 
 def _shown(value) -> str:

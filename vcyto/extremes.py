@@ -1,4 +1,4 @@
-"""`vcyto extremes`: the FE-IB plant at the extremes of its settings (README, "Stability at the extremes").
+"""`vcyto extremes`: the FE-IB plant at the extremes of its settings (docs/results.md, "Stability at the extremes").
 
 Each case runs one extreme setting and says beforehand what must happen: either the run is correct
 (every cell leaves by an outlet, or, for a short run, is still whole at the end, plus the case's own
@@ -15,10 +15,11 @@ import time
 from dataclasses import dataclass, field, replace
 from typing import Callable
 
-from sim.feib import Cell, ImmersedBoundary, State
+from sim.feib import Cell, ImmersedBoundary
 from sim.fluid import NumericalBlowUp
 from sim.health import membrane_time_step
 from sim.membrane import Membrane
+from sim.openloop import stepping, with_cells
 from sim.scenario import UM, CellType, Scenario
 
 OUTLETS = ("lower", "upper")
@@ -26,7 +27,10 @@ OUTLETS = ("lower", "upper")
 
 class UnexpectedOutcome(NumericalBlowUp):
     """A case did not end as expected (the command's exit status 1)."""
-CFL = 0.1       # peak inflow speed x dt / h in the inflow cases: at 0.5 the imex flow itself blows up at x24 (README)
+
+
+# peak inflow speed x dt / h in the inflow cases: at 0.5 the imex flow itself blows up at x24 (docs/results.md)
+CFL = 0.1
 
 
 @dataclass
@@ -97,17 +101,13 @@ def simulate(setting: Setting) -> Run:
     started = time.perf_counter()
     try:
         plant = ImmersedBoundary(setting.scenario)
-        state = plant.start(setting.actuation)
-        cells = tuple(plant.new_cell(kind, index, state.time, centre) for index, (kind,
-                                                                                  centre) in enumerate(setting.cells))
-        state = State(state.flow, cells)
-        run.cells = cells
-        stepping = time.perf_counter()
-        while any(cell.in_channel for cell in state.cells) and state.time < setting.duration - 1e-12:
-            state = plant.step(state, setting.actuation)
+        state = with_cells(plant, plant.start(setting.actuation).flow, setting.cells)
+        run.cells = state.cells
+        stepping_started = time.perf_counter()
+        for state in stepping(plant.step, state, setting.actuation, until=setting.duration - 1e-12):
             run.cells, run.steps, run.time = state.cells, state.step, state.time
             run.max_stretch = max([run.max_stretch] + [_stretch(cell) for cell in state.cells if cell.in_channel])
-        run.step_ms = 1e3 * (time.perf_counter() - stepping) / max(run.steps, 1)
+        run.step_ms = 1e3 * (time.perf_counter() - stepping_started) / max(run.steps, 1)
     except NumericalBlowUp as error:
         run.diagnosis = str(error)
     finally:
@@ -158,7 +158,7 @@ def _round_dt(dt: float) -> float:
 
 
 PAPER_H = 10 * UM / 3
-LIMIT_DT = 37.5e-6          # the melanoma's measured stable dt at the paper's mesh (README "Stability": 37.6 us)
+LIMIT_DT = 37.5e-6          # the melanoma's stable dt at the paper's mesh (docs/results.md "Stability": 37.6 us)
 
 
 def _dt_at_limit(base, fast):
@@ -174,7 +174,7 @@ def _stiff(base):
 
 
 def _stiff_step(base) -> float:
-    """The stiff membrane's explicit time step eta dq / kappa_e at h = 6.67 um (README, "Stability")."""
+    """The stiff membrane's explicit time step eta dq / kappa_e at h = 6.67 um (docs/results.md, "Stability")."""
     scenario = base.with_numerics(mesh_h=20 * UM / 3)
     numerics = scenario.numerics
     membrane = Membrane.of(_stiff(base), (0.0, 0.0), numerics.membrane_spacing * numerics.mesh_h)

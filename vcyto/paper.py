@@ -13,6 +13,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from sim.feib import ImmersedBoundary
+from sim.openloop import stepping, with_cells
 from sim.scenario import UM, Scenario
 
 from . import STARTED, figures
@@ -49,33 +50,25 @@ def run_paper(number: int, scenario: Scenario, max_time: float = 20e-3, progress
     plant = ImmersedBoundary(scenario)
     setup = time.perf_counter() - started
     note("steady start flow " + ("(IDT on)" if spec.actuation else "(IDT off)"))
-    state = plant.start(spec.actuation)
-    cell = plant.new_cell(scenario.cell_type(spec.cell), 0, state.time)
-    state = type(state)(state.flow, (cell,), 0)
+    state = with_cells(plant, plant.start(spec.actuation).flow, [(scenario.cell_type(spec.cell), None)])
+    cell = state.cells[0]
     steady = time.perf_counter() - started - setup
     path, outlines, times = [cell.membrane.centroid()], [(0.0, cell.membrane.points)], [state.time]
-    stepping = time.perf_counter()
-    while state.cells[0].in_channel and state.time < max_time:
-        state = plant.step(state, spec.actuation)
+    stepping_started = time.perf_counter()
+    for state in stepping(plant.step, state, spec.actuation, until=max_time):
         membrane = state.cells[0].membrane
         path.append(membrane.centroid())
         times.append(state.time)
         update(f"step {state.step}, t = {state.time * 1e3:.3f} ms, centroid x = {path[-1][0] / UM:.1f} um")
-    step_wall = time.perf_counter() - stepping
+    step_wall = time.perf_counter() - stepping_started
     final = state.cells[0]
-    fate = final.fate if not final.in_channel else "lost"
     timings = plant.timings
     fluid = plant.fluid.timings
-    measures = final.measures
     return {
         "scenario": number,
         "method": method_description(scenario),
         "membrane_method": scenario.membrane_method(),
-        "cells": [{"type": spec.cell, "outlet": fate, "exit_time_ms": final.exit_time * 1e3,
-                   "exit_y_um": final.exit_y / UM, "area_ratio_final": measures.area_ratio,
-                   "area_ratio_min": measures.area_ratio_min, "area_ratio_max": measures.area_ratio_max,
-                   "spacing_over_h": [measures.spacing_lowest, measures.spacing_highest],
-                   "membrane_points": final.membrane.count, "redistributions": final.membrane.redistributions}],
+        "cells": [_cell_summary(spec.cell, final)],
         "paper_outlet": spec.paper_outlet,
         "paper_wall_time": spec.paper_wall_time,
         "dt_us": scenario.numerics.dt * 1e6,
@@ -103,6 +96,17 @@ def run_paper(number: int, scenario: Scenario, max_time: float = 20e-3, progress
         "_plant": plant,
         "_final": final,
     }
+
+
+def _cell_summary(type_name: str, final) -> dict:
+    """The cell's outlet (``lost`` if still in the channel), exit, area kept and membrane points at the end."""
+    measures = final.measures
+    return {"type": type_name, "outlet": final.fate if not final.in_channel else "lost",
+            "exit_time_ms": final.exit_time * 1e3, "exit_y_um": final.exit_y / UM,
+            "area_ratio_final": measures.area_ratio, "area_ratio_min": measures.area_ratio_min,
+            "area_ratio_max": measures.area_ratio_max,
+            "spacing_over_h": [measures.spacing_lowest, measures.spacing_highest],
+            "membrane_points": final.membrane.count, "redistributions": final.membrane.redistributions}
 
 
 def method_description(scenario: Scenario) -> str:

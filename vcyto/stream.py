@@ -98,7 +98,7 @@ def run_stream(scenario: Scenario, settings: StreamSettings, progress=None, plan
     observers = list(sinks) + ([ProgressSink(progress, len(sample.admitted))] if progress is not None else [])
     run = _Run(plant, settings, Detector(settings.detector, detector_rng), SortController(settings.controller),
                observers)
-    run.observation = plant.reset(sample.admitted, seed=settings.seed)
+    run.observation = plant.reset(sample.admitted)
     setup = time.perf_counter() - started
     rss_setup = _peak_rss_mb()
     last_arrival = sample.admitted[-1][0] if sample.admitted else 0.0

@@ -18,6 +18,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from sim.health import HealthError
+from sim.openloop import stepping
 from sim.scenario import UM, Scenario
 
 
@@ -142,13 +143,13 @@ def make_plant(scenario: Scenario, level: Level, flows: _Flows):
 
 def run_scene(plant, scene: Scene) -> dict:
     """Step ``plant`` through ``scene``; per cell: fate, exit time and ordinate, area kept, centroid path."""
-    observation = plant.reset(list(scene.arrivals), seed=0)
+    observation = plant.reset(list(scene.arrivals))
     paths = defaultdict(list)
     started = time.perf_counter()
     failure = None
     try:
-        while not plant.done and observation.time < scene.max_time:
-            observation = plant.step(scene.actuation(observation.time))
+        for observation in stepping(lambda _, drive: plant.step(drive), observation, scene.actuation,
+                                    until=scene.max_time, running=lambda _: not plant.done):
             for view in observation.cells:
                 paths[view.key].append((observation.time, view.x, view.y))
     except HealthError as error:

@@ -50,8 +50,8 @@ import numpy as np
 from sim.plants import MODELS
 
 from .arguments import MAX_SWEEP_POINTS, Integer, Quantity
-from .cli import stream_run, stream_run_options
 from .config import check_input_file, parse_quantity, scenario_to_toml
+from .options import stream_run, stream_run_options
 from .stream import make_plant, run_stream
 
 if sys.version_info >= (3, 11):

@@ -20,9 +20,16 @@ HEAVY = {
     "vcyto.tradeoff": ["tradeoff"],
     "vcyto.sweep": ["run_sweep", "executor"],
     "vcyto.calibrate": ["make_calibration_plant", "calibrate"],
-    "vcyto.benchsort": ["bench_sort"],
-    "vcyto.bench": ["bench_controller", "bench_sweep", "bench_realtime", "bench_recording", "bench_auto",
-                    "bench_membrane", "bench_paper_treatments", "bench_treatments", "bench_fluid"],
+    "vcyto.bench.sort": ["bench_sort"],
+    "vcyto.bench.controller": ["bench_controller"],
+    "vcyto.bench.sweep": ["bench_sweep"],
+    "vcyto.bench.realtime": ["bench_realtime"],
+    "vcyto.bench.recording": ["bench_recording"],
+    "vcyto.bench.auto": ["bench_auto"],
+    "vcyto.bench.membrane": ["bench_membrane"],
+    "vcyto.bench.treatments": ["bench_paper_treatments", "bench_treatments"],
+    "vcyto.bench.fluid": ["bench_fluid"],
+    "vcyto.bench.tolerance": ["bench_tolerance"],
 }
 
 

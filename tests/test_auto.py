@@ -121,7 +121,7 @@ def test_auto_reports_what_it_runs_in_its_diagnostics(coarse):
 
 
 def test_bench_auto_compares_the_two_models_cell_by_cell(coarse):
-    from vcyto.bench import auto_lines, bench_auto
+    from vcyto.bench.auto import auto_lines, bench_auto
     scenario, _, _ = coarse
     result = bench_auto(scenario, count=3, rate=1000.0, seed=1)
     outcomes = result["outcomes"]

@@ -12,6 +12,7 @@ import pytest
 
 from vcyto import sweep
 from vcyto.cli import main
+from vcyto.sweep.run import _chunks
 
 # the cheap plant on a coarse mesh (1.5 s to build); a few cells per point so the metrics vary
 BASE = {"model": "streamline", "mesh_h": "5um"}
@@ -97,10 +98,10 @@ def test_a_point_is_identified_by_its_effective_inputs():
 def test_points_sharing_a_plant_are_chunked_at_most_an_even_share_per_worker():
     built = sweep.parse_sweep({"base": BASE, "parameters": {"saw.streaming_force": [1e7, 2e7],
                                                             "lead": [0.1, 0.2, 0.3, 0.4, 0.5]}})
-    chunks = sweep._chunks(list(built.points), slots=2, chunk=8)
+    chunks = _chunks(list(built.points), slots=2, chunk=8)
     assert [len(chunk) for chunk in chunks] == [3, 2, 3, 2]
     assert all(len({point.plant_key for point in chunk}) == 1 for chunk in chunks)
-    assert [len(chunk) for chunk in sweep._chunks(list(built.points), slots=1, chunk=4)] == [4, 1, 4, 1]
+    assert [len(chunk) for chunk in _chunks(list(built.points), slots=1, chunk=4)] == [4, 1, 4, 1]
 
 
 @pytest.mark.parametrize("text, words", [

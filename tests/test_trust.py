@@ -126,10 +126,10 @@ def test_units_of_the_right_dimension_are_accepted(argv, inline):
 
 
 def test_option_values_reach_the_settings_in_si(monkeypatch):
-    from vcyto import cli
+    from vcyto import cli, options
     args = cli.build_parser().parse_args(["stream", "--max-time", "5ms", "--pulse", "150us", "--rate", "1kHz",
                                           "--lead", "0.25", "--detection-window", "30um,0.06mm"])
-    settings = cli.stream_settings(args, cli._scenario(args))
+    settings = options.stream_settings(args, options.scenario_from(args))
     assert settings.max_time == pytest.approx(5e-3)
     assert settings.controller.pulse == pytest.approx(150e-6)
     assert settings.controller.lead == pytest.approx(0.25e-3)

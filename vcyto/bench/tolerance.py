@@ -12,7 +12,7 @@ import numpy as np
 
 from sim.scenario import UM, Scenario
 
-from .paper import paper_scenario, run_paper
+from ..paper import paper_scenario, run_paper
 
 
 def path_distance(times, path, reference_times, reference_path) -> np.ndarray:

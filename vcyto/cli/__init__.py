@@ -1,0 +1,93 @@
+"""The `vcyto` command line. Bad input ends with one line on stderr and exit status 2; a numerical
+failure with one line and status 1; never a traceback (set VCYTO_DEBUG=1 to see one).
+
+One module per command, each with its parser (``add_command``) and its handler (``command_NAME``): flow, paper,
+stream, calibrate, replay, stability, extremes, sweep, tradeoff, scenario, cache, bench; ``common`` holds what
+they share (exit statuses, output paths, --json). The options of a run and their conversion to a scenario and
+stream settings are ``vcyto.options``. Nothing in the package imports the command line."""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+
+from sim.fluid import NumericalBlowUp
+from sim.linalg import SolverError
+from sim.scenario import ScenarioError
+
+from .. import units
+from ..arguments import Parser
+from ..cache import install_default as install_cache
+from ..stream import StreamStopped
+from . import bench, cache, calibrate, extremes, flow, paper, replay, scenario, stability, stream, sweep, tradeoff
+from .common import (
+    EXIT_INPUT,
+    EXIT_INTERNAL,
+    EXIT_NUMERICAL,
+    EXIT_SIGINT,
+    EXIT_SIGTERM,
+    RunStopped,
+    UsageError,
+    signals_seen,
+)
+
+COMMANDS = (flow, paper, stream, calibrate, replay, stability, extremes, sweep, tradeoff, scenario, cache, bench)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = Parser(prog="vcyto", description="A virtual cytometer: a simulated SAW cell sorter. Quantities take a "
+                                               "unit (25us, 0.5ms, 1kHz, 30um); a bare number is in the unit each "
+                                               "option names. Exit status: 0 done, 1 numerical failure or a "
+                                               "file that cannot be written, 2 bad input, 130/143 interrupted "
+                                               "(SIGINT/SIGTERM).")
+    from .. import __version__
+    parser.add_argument("--version", action="version", version=f"vcyto {__version__}")
+    commands = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    for command in COMMANDS:                # in the order of `vcyto --help`
+        command.add_command(commands)
+    return parser
+
+
+def main(argv=None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    try:
+        install_cache()
+        status = args.handler(args)
+    except (ScenarioError, UsageError, units.QuantityError) as error:
+        return _fail(error, EXIT_INPUT)
+    except (NumericalBlowUp, SolverError) as error:
+        return _fail(error, EXIT_NUMERICAL)
+    except RunStopped as stopped:
+        return stopped.status
+    except StreamStopped as stopped:            # a loop run by another command than stream (bench, tradeoff)
+        if stopped.status != "interrupted":
+            return _fail(stopped, EXIT_NUMERICAL)
+        print("vcyto: interrupted", file=sys.stderr)
+        return EXIT_SIGTERM if signals_seen.get("last") == "SIGTERM" else EXIT_SIGINT
+    except KeyboardInterrupt:
+        print("vcyto: interrupted", file=sys.stderr)
+        return EXIT_SIGTERM if signals_seen.get("last") == "SIGTERM" else EXIT_SIGINT
+    except MemoryError:
+        return _fail(MemoryError("out of memory: the run needs more memory than this machine has; use a coarser "
+                                 "mesh, fewer cells or fewer sweep points"), EXIT_NUMERICAL)
+    except OSError as error:          # a disk that fills up, a file that vanished: the environment, not a bug
+        where = f" {error.filename}" if getattr(error, "filename", None) else ""
+        return _fail(OSError(f"cannot write or read{where}: {error.strerror or error}"), EXIT_NUMERICAL)
+    except Exception as error:  # a bug, not bad input: say so in one line, keep the traceback on request
+        if os.environ.get("VCYTO_DEBUG"):
+            raise
+        print(f"vcyto: internal error: {type(error).__name__}: {' '.join(str(error).split())} (set VCYTO_DEBUG=1 for "
+              "the traceback; please report it)", file=sys.stderr)
+        return EXIT_INTERNAL
+    return status or 0
+
+
+def _fail(error: Exception, status: int) -> int:
+    if os.environ.get("VCYTO_DEBUG"):
+        raise error
+    print(f"vcyto: error: {' '.join(str(error).split())}", file=sys.stderr)
+    return status
+
+

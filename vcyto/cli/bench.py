@@ -1,0 +1,277 @@
+"""`vcyto bench TARGET`: the benchmarks (``vcyto.bench``), one parser and one run per target, dispatched by
+the table ``TARGETS``."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+from typing import Callable, NamedTuple
+
+from .. import arguments as limits
+from ..arguments import Integer, Quantity
+from ..options import check_cells_fit, length_value, parse_mix, scenario_from, scenario_options
+from .common import UsageError, emit, output_options, positive_list, stderr_progress
+
+EXAMPLES = Path(__file__).resolve().parent.parent.parent / "examples"
+
+
+def _tolerance_parser(targets):
+    tolerance = targets.add_parser("tolerance", help="the paper scenarios with --tolerance levels against fixed "
+                                   "steps: outlets, path distance, steps per level")
+    scenario_options(tolerance)
+    tolerance.add_argument("--tolerances", default="1um,3um", metavar="LIST", help="tolerances (default 1um,3um)")
+    tolerance.add_argument("--numbers", type=int, nargs="+", choices=(1, 2), default=[1, 2], metavar="N",
+                           help="paper scenarios (default 1 2)")
+    output_options(tolerance)
+    tolerance.set_defaults(handler=command_bench)
+
+
+def _fluid_parser(targets):
+    fluid = targets.add_parser("fluid", help="set-up and per-step cost of the fluid solver, per convection treatment")
+    scenario_options(fluid)
+    fluid.add_argument("--repeats", type=Integer(low=2, high=100_000), default="40",
+                       help="timed repetitions per median, >= 2 (default 40)")
+    output_options(fluid)
+    fluid.set_defaults(handler=command_bench)
+
+
+def _treatments_parser(targets):
+    treatments = targets.add_parser("treatments", help="how far imex, oseen and stokes steps differ from implicit ones")
+    scenario_options(treatments)
+    treatments.add_argument("--steps", type=Integer(low=1, high=1_000_000), default="20",
+                            help="steps after switching the IDT on (default 20)")
+    output_options(treatments)
+    treatments.set_defaults(handler=command_bench)
+
+
+def _paper_parser(targets):
+    paper_bench = targets.add_parser("paper", help="a paper scenario with imex and with implicit convection: "
+                                                   "outlet, exit time and path differences")
+    paper_bench.add_argument("number", type=int, choices=(1, 2))
+    scenario_options(paper_bench)
+    output_options(paper_bench)
+    paper_bench.set_defaults(handler=command_bench)
+
+
+def _auto_parser(targets):
+    auto_bench = targets.add_parser("auto",
+                                    help="a mixed stream with --model auto and with feib: outcomes and wall time")
+    auto_bench.add_argument("--count", type=Integer(low=1), default="100", help="cells (default 100)")
+    auto_bench.add_argument("--rate", type=Quantity("frequency", "Hz", low=0, low_open=True), default="500",
+                            help="Poisson arrival rate, cells/s (default 500)")
+    auto_bench.add_argument("--mix", default="RBC:0.8,melanoma:0.2", help="type mix (default RBC:0.8,melanoma:0.2)")
+    auto_bench.add_argument("--seed", type=Integer(low=0, high=2**63 - 1), default="0", help="random seed (default 0)")
+    scenario_options(auto_bench)
+    output_options(auto_bench)
+    auto_bench.set_defaults(handler=command_bench)
+
+
+def _membrane_parser(targets):
+    membrane_bench = targets.add_parser("membrane", help="the paper's literal membrane method against the conserving "
+                                                         "one: area kept, point spacing, outlets, cost per step")
+    membrane_bench.add_argument("--repeats", type=Integer(low=1, high=1000), default="2",
+                                help="interleaved runs per scenario (default 2)")
+    scenario_options(membrane_bench)
+    output_options(membrane_bench)
+    membrane_bench.set_defaults(handler=command_bench)
+
+
+def _recording_parser(targets):
+    recording_bench = targets.add_parser("recording",
+                                         help="wall-time overhead of recording (MCAP + Rerun) an FE-IB stream")
+    recording_bench.add_argument("--repeats", type=Integer(low=1, high=1000), default="3",
+                                 help="interleaved pairs without/with (default 3)")
+    scenario_options(recording_bench)
+    output_options(recording_bench)
+    recording_bench.set_defaults(handler=command_bench)
+
+
+def _sweep_parser(targets):
+    sweep_bench = targets.add_parser("sweep", help="one sweep on 1 and on 2 local workers: the speed-up")
+    sweep_bench.add_argument("spec", nargs="?", metavar="SPEC",
+                             help="sweep spec (default examples/sweeps/bench-rom.toml: 8 rom plants, 200 cells each)")
+    sweep_bench.add_argument("--workers", default="1,2", metavar="N,M", help="pool sizes to compare (default 1,2)")
+    sweep_bench.add_argument("--repeats", type=Integer(low=1, high=1000), default="1",
+                             help="runs per pool size; medians (default 1)")
+    output_options(sweep_bench)
+    sweep_bench.set_defaults(handler=command_bench)
+
+
+def _sort_parser(targets):
+    sort_bench = targets.add_parser("sort", help="long rom sorting runs with recording: loop cost per event, "
+                                                 "linearity in run length, peak memory, file sizes")
+    scenario_options(sort_bench)
+    sort_bench.add_argument("--counts", default="1000,10000", help="cells offered per run (default 1000,10000)")
+    sort_bench.add_argument("--rate", type=float, default=2000.0,
+                            help="offered rate, cells/s (default 2000: about 1000 events/s after the dead time)")
+    sort_bench.add_argument("--seed", type=int, default=3, help="random seed (default 3)")
+    sort_bench.add_argument("--no-record", action="store_true", help="no MCAP and no Rerun")
+    sort_bench.add_argument("--no-rerun", action="store_true", help="MCAP only")
+    output_options(sort_bench)
+    sort_bench.set_defaults(handler=command_bench)
+
+
+def _realtime_parser(targets):
+    realtime_bench = targets.add_parser("realtime", help="real-time factor of the closed loop with the rom plant: "
+                                                         "a Poisson stream, detector and controller, no recording")
+    scenario_options(realtime_bench)
+    realtime_bench.add_argument("--rate", type=Quantity("frequency", "Hz", low=0, low_open=True), default="1000",
+                                help="arrival rate in cells/s (default 1000; e.g. 1kHz)")
+    realtime_bench.add_argument("--duration", type=Quantity("time", "s", low=0, low_open=True), default="1s",
+                                metavar="TIME",
+                                help="device time of arrivals (s); count = rate x duration (default 1s)")
+    realtime_bench.add_argument("--mix", default="RBC:0.9,melanoma:0.1", help="type mix (default RBC:0.9,melanoma:0.1)")
+    realtime_bench.add_argument("--repeats", type=Integer(low=1, high=1000), default="3",
+                                help="runs of the same stream (default 3)")
+    realtime_bench.add_argument("--control-period", type=Quantity("time", "s", low=0, low_open=True, high=1.0),
+                                metavar="TIME", help="control period (s; default: the plant's, 20us)")
+    realtime_bench.add_argument("--seed", type=Integer(low=0, high=2**63 - 1), default="0",
+                                help="random seed (default 0)")
+    output_options(realtime_bench)
+    realtime_bench.set_defaults(handler=command_bench)
+
+
+def _controller_parser(targets):
+    controller_bench = targets.add_parser("controller", help="decision latency of the sorting controller")
+    controller_bench.add_argument("--events", type=Integer(low=1, high=10_000_000), default="20000",
+                                  help="synthetic events (default 20000)")
+    output_options(controller_bench)
+    controller_bench.set_defaults(handler=command_bench)
+
+
+
+def _tolerance(args, scenario, progress):
+    from ..bench import tolerance
+    tolerances = positive_list(args.tolerances, "--tolerances", "1um,3um", length_value)
+    result = tolerance.bench_tolerance(scenario, tuple(args.numbers), tuple(tolerances), progress)
+    return result, tolerance.tolerance_lines(result)
+
+
+def _fluid(args, scenario, progress):
+    from ..bench import fluid
+    result = fluid.bench_fluid(scenario, args.repeats, progress)
+    return result, fluid.report_lines(result)
+
+
+def _treatments(args, scenario, progress):
+    from ..bench import treatments
+    result = treatments.bench_treatments(scenario, args.steps, progress)
+    return result, treatments.treatment_lines(result)
+
+
+def _paper(args, scenario, progress):
+    from ..bench import treatments
+    from ..progress import Progress
+    result = treatments.bench_paper_treatments(args.number, scenario, progress=Progress(quiet=args.quiet or args.json))
+    return result, treatments.paper_treatment_lines(result)
+
+
+def _auto(args, scenario, progress):
+    from ..bench import auto
+    from ..progress import Progress
+    limits.check_cells(args.count)
+    result = auto.bench_auto(scenario, args.count, args.rate, parse_mix(args.mix), args.seed,
+                             progress=Progress(quiet=args.quiet or args.json))
+    return result, auto.auto_lines(result)
+
+
+def _membrane(args, scenario, progress):
+    from ..bench import membrane
+    from ..progress import Progress
+    result = membrane.bench_membrane(scenario, args.repeats, progress=Progress(quiet=args.quiet or args.json))
+    return result, membrane.membrane_lines(result)
+
+
+def _recording(args, scenario, progress):
+    from ..bench import recording
+    from ..progress import Progress
+    result = recording.bench_recording(scenario, repeats=args.repeats, progress=Progress(quiet=args.quiet or args.json))
+    return result, recording.recording_lines(result)
+
+
+def _sweep(args, scenario, progress):
+    from .. import sweep
+    from ..bench import sweep as sweep_bench
+    from ..progress import Progress
+    try:
+        counts = tuple(int(part) for part in args.workers.split(","))
+    except ValueError:
+        raise UsageError(f"--workers wants pool sizes such as 1,2 (got {args.workers!r})") from None
+    if args.repeats < 1 or not counts or min(counts) < 1:
+        raise UsageError("--repeats and every pool size in --workers must be at least 1")
+    spec = args.spec or str(EXAMPLES / "sweeps" / "bench-rom.toml")
+    progress = Progress(quiet=args.quiet or args.json)
+    try:
+        result = sweep_bench.bench_sweep(spec, counts, args.repeats, progress)
+    except sweep.SweepError as error:
+        raise UsageError(str(error)) from None
+    finally:
+        progress.close()
+    return result, sweep_bench.sweep_lines(result)
+
+
+def _sort(args, scenario, progress):
+    from ..bench import sort
+    try:
+        counts = [int(v) for v in args.counts.split(",") if v.strip()]
+    except ValueError:
+        counts = []
+    if not counts or min(counts) < 1 or max(counts) > 10**7:
+        raise UsageError(f"--counts wants positive cell counts such as 1000,10000 (got {args.counts!r})")
+    result = sort.bench_sort(counts, args.rate, not args.no_record, not args.no_rerun, args.seed, progress)
+    return result, sort.report_lines(result)
+
+
+def _realtime(args, scenario, progress):
+    from ..bench import realtime
+    mix = parse_mix(args.mix)
+    check_cells_fit(scenario, [name for name, _ in mix])
+    limits.check_cells(math.ceil(args.rate * args.duration), "--rate x --duration")
+    result = realtime.bench_realtime(scenario, args.rate, args.duration, mix, args.repeats, args.control_period,
+                                     args.seed, progress)
+    return result, realtime.realtime_lines(result)
+
+
+def _controller(args, scenario, progress):
+    from ..bench import controller
+    result = controller.bench_controller(args.events)
+    return result, controller.controller_lines(result)
+
+
+class Target(NamedTuple):
+    """A benchmark of `vcyto bench`: its parser, its run ``(args, scenario, progress) -> (result, lines)``, and
+    whether it takes a scenario (read from the scenario options before it runs)."""
+    parser: Callable
+    run: Callable
+    scenario: bool = True
+
+
+# in the order of `vcyto bench --help`
+TARGETS = {
+    "tolerance": Target(_tolerance_parser, _tolerance),
+    "fluid": Target(_fluid_parser, _fluid),
+    "treatments": Target(_treatments_parser, _treatments),
+    "paper": Target(_paper_parser, _paper),
+    "auto": Target(_auto_parser, _auto),
+    "membrane": Target(_membrane_parser, _membrane),
+    "recording": Target(_recording_parser, _recording),
+    "sweep": Target(_sweep_parser, _sweep, scenario=False),
+    "sort": Target(_sort_parser, _sort),
+    "realtime": Target(_realtime_parser, _realtime),
+    "controller": Target(_controller_parser, _controller, scenario=False),
+}
+
+
+def add_command(commands):
+    bench = commands.add_parser("bench", help="benchmarks")
+    targets = bench.add_subparsers(dest="target", required=True, metavar="TARGET")
+    for target in TARGETS.values():
+        target.parser(targets)
+
+
+def command_bench(args):
+    target = TARGETS[args.target]
+    progress = stderr_progress(args.quiet or args.json)
+    scenario = scenario_from(args) if target.scenario else None
+    result, lines = target.run(args, scenario, progress)
+    emit(args, result, lines)

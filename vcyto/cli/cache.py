@@ -1,0 +1,28 @@
+"""`vcyto cache [clear]`: the disk cache of set-up results (steady flows, solver couplings)."""
+
+from __future__ import annotations
+
+from .common import emit
+
+
+def add_command(commands):
+    cache = commands.add_parser("cache", help="the disk cache of set-up results (steady flows, solver couplings): "
+                                "where it is, its size; 'clear' empties it")
+    cache.add_argument("action", nargs="?", choices=("info", "clear"), default="info",
+                       help="info (default): directory and size; clear: delete every entry")
+    cache.add_argument("--json", action="store_true", help="print the result as JSON")
+    cache.set_defaults(handler=command_cache)
+
+
+def command_cache(args):
+    """`vcyto cache [clear]`: where the set-up cache is and what it holds; `clear` empties it."""
+    from ..cache import clear, usage
+    removed = clear() if args.action == "clear" else None
+    result = usage()
+    if removed is not None:
+        result["removed"] = removed
+    lines = [f"set-up cache: {result['directory']} ({'on' if result['enabled'] else 'off: VCYTO_CACHE=off'}), "
+             f"{result['entries']} entries, {result['bytes'] / 1e6:.1f} MB"]
+    if removed is not None:
+        lines.append(f"removed {removed} files")
+    emit(args, result, lines)

@@ -1,0 +1,127 @@
+"""`vcyto calibrate`: measure the sort envelope (sort delay, shortest reliable pulse, deflection envelope) and
+write a controller file."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+
+import numpy as np
+
+from controller.sorter import MODES
+from sim import plants
+
+from .. import outputs, units
+from ..arguments import Number, Quantity
+from ..options import controller_settings, detector_settings, scenario_from, scenario_options
+from ..outputs import strict_json
+from .common import UsageError, emit, output_directory, output_options
+
+
+def add_command(commands):
+    calibration = commands.add_parser("calibrate", help="measure the sort envelope (sort delay, shortest reliable "
+                                                        "pulse, deflection envelope) and write a controller file")
+    scenario_options(calibration)
+    _calibration_options(calibration)
+    calibration.set_defaults(handler=command_calibrate)
+
+
+def _calibration_options(parser: argparse.ArgumentParser):
+    parser.add_argument("--model", choices=plants.CALIBRATION_MODELS, default="rom",
+                        help="plant the calibration cells go through (default rom: about 1 s; feib: minutes to hours, "
+                             "coarsen --pulse-step/--lead-step/--offset-step or give --pulse and --lead)")
+    parser.add_argument("--detection-window", default="30,60", metavar="X0,X1", help="as for vcyto stream (um)")
+    parser.add_argument("--gate", type=Number(low=0), default="0.5", help="fluorescence gate for type II (default 0.5)")
+    parser.add_argument("--noise", type=Number(low=0, high=10), default="0.2",
+                        help="fluorescence noise CV (default 0.2)")
+    parser.add_argument("--controller", metavar="FILE", help="start from this controller file (mode and fields not "
+                                                             "measured are kept)")
+    parser.add_argument("--mode", choices=MODES, help="sort mode written to the controller file (default purity)")
+    for name in ("delay", "envelope", "timing_error"):
+        parser.set_defaults(**{name: None})
+    parser.set_defaults(no_controller=False)
+    time = Quantity("time", "ms", low=0, low_open=True, high=10.0)
+    parser.add_argument("--pulse", type=time, metavar="TIME", help="with --lead: skip the pulse search and measure "
+                                                                    "the envelope of this pulse (ms)")
+    parser.add_argument("--lead", type=Quantity("time", "ms", low=0, high=10.0), metavar="TIME",
+                        help="with --pulse: its lead (ms)")
+    parser.add_argument("--pulse-range", default="0.02,2", metavar="LO,HI", help="pulse lengths searched (ms; "
+                                                                                  "default 0.02,2)")
+    parser.add_argument("--pulse-step", type=time, default="0.02", metavar="TIME",
+                        help="pulse search step (ms; default 0.02)")
+    parser.add_argument("--lead-step", type=time, default="0.01", metavar="TIME", help="lead search step (ms; "
+                                                                                         "default 0.01)")
+    parser.add_argument("--offset-step", type=time, default="0.02", metavar="TIME",
+                        help="envelope scan step (ms; default 0.02); its edges are bisected to --resolution")
+    parser.add_argument("--offset-range", type=time, default="1.5", metavar="TIME",
+                        help="envelope scan from -this to +this (ms; default 1.5)")
+    parser.add_argument("--resolution", type=time, default="0.0025", metavar="TIME",
+                        help="envelope edge resolution (ms; default 0.0025)")
+    parser.add_argument("--output", default="recordings", metavar="DIR",
+                        help="where the controller file (.toml), the record (.json) and the plot (.png) go "
+                             "(default recordings/; '' writes nothing)")
+    output_options(parser)
+
+
+def command_calibrate(args):
+    from .. import calibrate
+    from ..controllerfile import controller_toml
+    scenario = scenario_from(args)
+    output = output_directory(args.output)
+    base = controller_settings(args)
+    grid = _calibration_grid(args)
+    pulse = None
+    if args.pulse is not None or args.lead is not None:
+        if args.pulse is None or args.lead is None:
+            raise UsageError("--pulse and --lead go together: give both to measure the envelope of that pulse, "
+                             "or neither to search for the shortest reliable pulse")
+        pulse = (base.pulse, base.lead)
+    detector = detector_settings(args, scenario)
+    from ..progress import Progress
+    progress = Progress(quiet=args.quiet or args.json)
+    started = time.perf_counter()
+    try:
+        plant = calibrate.make_calibration_plant(scenario, args.model)
+        result = calibrate.calibrate(plant, scenario, detector, grid, pulse, base, progress)
+    except calibrate.CalibrationError as error:
+        raise UsageError(str(error)) from None
+    finally:
+        progress.close()
+    record = dict(result.as_dict(), model=args.model, saw_model=scenario.saw.model,
+                  wall_time_s=time.perf_counter() - started, files={})
+    if output is not None:
+        run_id = outputs.reserve_run(output, ("toml", "json", "png"), None,
+                                     prefix=f"calibration-{args.model}")
+        stem = output / run_id
+        provenance = {"command": " ".join(sys.argv), "model": args.model, "saw_model": scenario.saw.model,
+                      "mesh_h_um": scenario.numerics.mesh_h * 1e6, "dt_us": scenario.numerics.dt * 1e6,
+                      "date": time.strftime("%Y-%m-%d %H:%M:%S")}
+        paths = {"controller": stem.with_suffix(".toml"), "summary": stem.with_suffix(".json"),
+                 "figure": stem.with_suffix(".png")}
+        outputs.write_into(paths["controller"], controller_toml(result.settings, provenance))
+        calibrate.save_figure(result, paths["figure"])
+        record["files"] = {kind: str(path) for kind, path in paths.items()}
+        outputs.write_into(paths["summary"], strict_json(record) + "\n")
+    emit(args, record, calibrate.report_lines(record))
+
+
+def _calibration_grid(args):
+    from ..calibrate import Grid
+    values = units.parse_list(args.pulse_range, "time", "ms", field="--pulse-range")
+    if len(values) != 2 or not 0 < values[0] <= values[1] <= 10e-3:
+        raise UsageError(f"--pulse-range: wants LO,HI with 0 < LO <= HI <= 10 ms, e.g. 0.02,2 "
+                         f"(got {args.pulse_range!r})")
+    count = (values[1] - values[0]) / args.pulse_step + 1
+    if count > 2000:
+        raise UsageError(f"--pulse-step: {count:.3g} pulse lengths to try (at most 2,000); use a coarser step or a "
+                         "narrower --pulse-range")
+    leads = (values[1] + 0.4e-3) / args.lead_step
+    offsets = 2 * args.offset_range / args.offset_step
+    for option, runs in (("--lead-step", leads), ("--offset-step", offsets)):
+        if runs > 5000:
+            raise UsageError(f"{option}: {runs:.3g} calibration cells per scan (at most 5,000); use a coarser step "
+                             "(the envelope's edges are bisected to --resolution anyway)")
+    pulses = tuple(float(v) for v in np.round(np.arange(values[0], values[1] + 1e-12, args.pulse_step), 9))
+    return Grid(pulses=pulses, lead_step=args.lead_step, offset_step=args.offset_step,
+                offset_range=args.offset_range, resolution=args.resolution)

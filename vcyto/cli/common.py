@@ -1,0 +1,117 @@
+"""What every command shares: exit statuses, the run-stopped signal, progress on stderr, --json/--quiet, output
+paths checked (and reserved) before any work, and the number lists several options take."""
+
+from __future__ import annotations
+
+import argparse
+import math
+import os
+import shutil
+import sys
+from pathlib import Path
+
+from .. import outputs, units
+from ..options import UsageError
+from ..outputs import strict_json
+
+__all__ = ["EXIT_INPUT", "EXIT_INTERNAL", "EXIT_NUMERICAL", "EXIT_SIGINT", "EXIT_SIGTERM", "RunStopped", "UsageError",
+           "emit", "non_negative_list", "output_directory", "output_options", "output_path", "plain_number",
+           "positive_list", "signals_seen", "stderr_progress"]
+
+
+EXIT_INPUT = 2
+EXIT_NUMERICAL = 1
+EXIT_INTERNAL = 3
+EXIT_SIGINT = 130           # 128 + SIGINT, as shells report it
+EXIT_SIGTERM = 143          # 128 + SIGTERM
+MIN_FREE_BYTES = 100e6
+
+
+class RunStopped(Exception):
+    """A run that stopped early and has said so (files written, paths printed); ``status`` is the exit status."""
+
+    def __init__(self, status: int):
+        super().__init__(status)
+        self.status = status
+
+
+signals_seen: dict[str, str] = {}      # "last": the name of the last signal turned into KeyboardInterrupt
+
+
+def stderr_progress(quiet: bool):
+    def report(message: str):
+        if not quiet:
+            print(f"  .. {message}", file=sys.stderr, flush=True)
+    return report
+
+
+def output_options(parser: argparse.ArgumentParser):
+    parser.add_argument("--json", action="store_true", help="print a machine-readable result on stdout")
+    parser.add_argument("--quiet", action="store_true", help="no progress messages on stderr")
+
+
+def output_path(path: str | None, default: bool = False) -> Path | None:
+    """Check before any work that an output file can be written, and reserve it: a file that exists is never
+    overwritten (a default name becomes NAME-2, NAME-3, ...; a name the user gave is refused)."""
+    if path is None:
+        return None
+    target = Path(path)
+    directory = target.parent if str(target.parent) else Path(".")
+    if default:
+        directory.mkdir(parents=True, exist_ok=True)
+    if not directory.is_dir():
+        raise UsageError(f"cannot write {path}: directory {directory} does not exist")
+    if not os.access(directory, os.W_OK):
+        raise UsageError(f"cannot write {path}: directory {directory} is not writable")
+    if default:
+        return outputs.unique_path(target)
+    if target.exists():
+        raise UsageError(f"{path} exists: a run never overwrites a file; choose another name or remove it")
+    return target
+
+
+def emit(args, result: dict, lines: list[str]):
+    if args.json:
+        print(strict_json(result))
+    else:
+        print("\n".join(lines))
+
+
+def output_directory(path: str | None) -> Path | None:
+    """Create (if needed) and check the output directory before any work."""
+    if path is None or path == "":
+        return None
+    directory = Path(path)
+    try:
+        directory.mkdir(parents=True, exist_ok=True)
+    except OSError as error:
+        raise UsageError(f"cannot create output directory {path}: {error.strerror}") from None
+    if not os.access(directory, os.W_OK):
+        raise UsageError(f"output directory {path} is not writable")
+    free = shutil.disk_usage(directory).free
+    if free < MIN_FREE_BYTES:
+        raise UsageError(f"only {free / 1e6:.0f} MB free in {path}: recordings need at least "
+                         f"{MIN_FREE_BYTES / 1e6:.0f} MB; free some space or choose another --output")
+    return directory
+
+
+def positive_list(text: str, option: str, example: str, parse) -> list[float]:
+    return _number_list(text, option, example, parse, lambda v: v > 0, "positive")
+
+
+def non_negative_list(text: str, option: str, example: str) -> list[float]:
+    return _number_list(text, option, example, plain_number(option), lambda v: v >= 0, "non-negative")
+
+
+def plain_number(option: str):
+    return lambda part: units.parse_quantity(part, "dimensionless", field=option)
+
+
+def _number_list(text: str, option: str, example: str, parse, valid, kind: str) -> list[float]:
+    try:
+        values = [parse(part) for part in text.split(",")]
+    except ValueError:
+        values = []
+    if not values or not all(math.isfinite(v) and valid(v) for v in values):
+        raise UsageError(f"{option}: needs {kind} numbers separated by commas, such as {example} (got {text!r})")
+    return values

@@ -1,0 +1,44 @@
+"""`vcyto paper`: the paper's scenario 1 (RBC, IDT off) or 2 (melanoma, IDT on)."""
+
+from __future__ import annotations
+
+from ..arguments import Quantity
+from ..options import check_run_time, scenario_from, scenario_options, tolerance_options
+from .common import emit, output_options, output_path
+
+
+def add_command(commands):
+    paper = commands.add_parser("paper", help="run the paper's scenario 1 (RBC, IDT off) or 2 (melanoma, IDT on)")
+    paper.add_argument("number", type=int, choices=(1, 2),
+                       help="1: RBC, IDT off, dt 2.5 us; 2: melanoma, IDT on, dt 25 us")
+    scenario_options(paper)
+    tolerance_options(paper)
+    paper.add_argument("--png", metavar="FILE",
+                       help="where to save the path over the flow (default recordings/paperN.png)")
+    paper.add_argument("--no-png", action="store_true", help="do not save a PNG")
+    paper.add_argument("--allow-long", action="store_true", help="run even if estimated to take more than 24 h")
+    paper.add_argument("--max-time", type=Quantity("time", "ms", low=0, low_open=True, high=3600.0), default="20",
+                       metavar="TIME", help="give up (outlet 'lost') after this much simulated time (ms; default 20)")
+    output_options(paper)
+    paper.set_defaults(handler=command_paper)
+
+
+def command_paper(args):
+    from .. import paper
+    from ..progress import Progress
+    # with --tolerance the finest level is --dt or 2.5 us, the step the tolerance is stated against
+    scenario = paper.paper_scenario(args.number, scenario_from(args, membrane="paper"),
+                                    dt_given=args.dt is not None or args.tolerance is not None)
+    check_run_time(args, scenario, args.max_time, "--dt/--max-time")
+    png = None if args.no_png else output_path(args.png or f"recordings/paper{args.number}.png", default=not args.png)
+    progress = Progress(quiet=args.quiet or args.json)
+    try:
+        result = paper.run_paper(args.number, scenario, args.max_time, progress)
+    finally:
+        progress.close()
+    lines = paper.report_lines(result)
+    if png:
+        paper.save_png(str(png), result, scenario)
+        result["png"] = str(png)
+        lines.append(f"  saved {png}")
+    emit(args, paper.public(result), lines)

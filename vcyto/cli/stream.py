@@ -1,0 +1,208 @@
+"""`vcyto stream`: cells through the closed sorting loop (detector, controller, plant), with the run's files
+(MCAP recording, FCS events, Gating-ML gate, JSON summary) and the Rerun view."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+
+from .. import outputs
+from ..arguments import Integer
+from ..options import scenario_from, scenario_options, stream_options, stream_settings, tolerance_options
+from .common import (
+    EXIT_NUMERICAL,
+    EXIT_SIGINT,
+    EXIT_SIGTERM,
+    RunStopped,
+    UsageError,
+    emit,
+    output_directory,
+    output_options,
+    signals_seen,
+)
+
+
+def add_command(commands):
+    stream = commands.add_parser("stream",
+                                 help="run cells through the closed sorting loop (detector, controller, plant)")
+    scenario_options(stream)
+    tolerance_options(stream)
+    stream_options(stream)
+    stream.add_argument("--output", default="recordings", metavar="DIR",
+                        help="where the run's files go: the MCAP recording, FCS 3.1 detector events, the gate "
+                             "(Gating-ML 2.0) and a JSON summary (default recordings/; --output '' writes nothing)")
+    stream.add_argument("--name", metavar="NAME",
+                        help="name the run's files NAME.mcap, NAME.json, NAME.fcs, NAME.gating.xml, NAME.rrd (default "
+                             "stream-DATE-TIME-MILLISECONDS-PID); a name whose files exist is refused")
+    stream.add_argument("--no-record", action="store_true", help="no MCAP recording")
+    stream.add_argument("--flush-every", type=Integer(low=1), default="50", metavar="N",
+                        help="flush the recording every N control periods: a crash loses at most N (default 50)")
+    stream.add_argument("--field-every", type=Integer(low=0), default="200", metavar="N",
+                        help="record the velocity field every N control periods, 0 = never (default 200)")
+    _viewer_options(stream)
+    output_options(stream)
+    stream.set_defaults(handler=command_stream)
+
+
+def _viewer_options(parser: argparse.ArgumentParser, live: bool = True):
+    group = parser.add_argument_group("Rerun viewer (default: " + ("start the viewer installed with rerun-sdk if "
+                                      "there is a display, else " if live else "") + "save an .rrd)")
+    group.add_argument("--spawn", action="store_true",
+                       help="start the Rerun viewer installed with rerun-sdk and stream to it (if it cannot start: "
+                            "an .rrd instead)")
+    group.add_argument("--connect", nargs="?", const="", metavar="URL",
+                       help="stream to a running viewer (default rerun+http://127.0.0.1:9876/proxy; unreachable: "
+                            "an .rrd instead)")
+    group.add_argument("--viewer-bind", metavar="ADDRESS", default="127.0.0.1",
+                       help="address a viewer started by vcyto listens on (default 127.0.0.1: this machine only; "
+                            "0.0.0.0 opens port 9876 to the network)")
+    group.add_argument("--save", metavar="FILE.rrd", help="write the Rerun view to this new file")
+    group.add_argument("--no-viewer", action="store_true", help="no Rerun output")
+
+
+def command_stream(args):
+    from .. import runfiles
+    scenario = scenario_from(args)
+    settings = stream_settings(args, scenario)
+    output = output_directory(args.output)
+    if args.name is not None:
+        if output is None:
+            raise UsageError("--name: names the run's files in --output, which is '' (nothing is written)")
+        try:
+            outputs.check_name(args.name)
+        except ValueError as error:
+            raise UsageError(str(error)) from None
+    signals_seen.clear()
+    view = runfiles.choose_view(args, output is not None, spawn_by_default=True, error=UsageError)
+    files = None
+    if output is not None:
+        try:
+            files = runfiles.StreamFiles(output, args.name, record=not args.no_record,
+                                         rrd=view.kind == "save" and view.path is None)
+        except outputs.NameTaken as error:
+            raise UsageError(str(error)) from None
+    result, stopped = _run_with_sinks(args, scenario, settings, view, files)
+    _report_stream(args, result, stopped, view, files, settings, scenario)
+    return _partial_status(args, result)
+
+
+def _run_with_sinks(args, scenario, settings, view, files):
+    """Run the loop with the MCAP and Rerun sinks; (summary, StreamStopped or None). The sinks are closed
+    whatever happens; a run stopped by Ctrl-C, SIGTERM or a numerical failure returns its partial summary."""
+    from .. import runfiles, stream
+    from ..progress import Progress
+    from ..sinks import BackgroundSinks
+    sinks = []
+    if files is not None and files.path("mcap") is not None:
+        from ..recording import McapRecorder
+        sinks.append(McapRecorder(files.path("mcap"), _run_metadata(scenario, settings),
+                                  flush_every=args.flush_every, field_every=args.field_every))
+    if view.kind is not None and (view.kind == "connect" or view.path or files is not None):
+        sinks += _rerun_sink(args, scenario, settings, view, files)
+    progress = Progress(quiet=args.quiet or args.json)
+    background = BackgroundSinks(sinks) if sinks else None      # their work overlaps the plant's solve
+    stopped = None
+    try:
+        with runfiles.signals_as_interrupt(signals_seen):
+            try:
+                result = stream.run_stream(scenario, settings, progress, sinks=[background] if background else [])
+            except stream.StreamStopped as error:
+                stopped, result = error, error.result
+            except KeyboardInterrupt:                      # before the loop began (setting up the plant)
+                stopped = stream.StreamStopped("interrupted", "interrupted while setting up, before the first step",
+                                               runfiles.stopped_summary(settings, "interrupted while setting up"))
+                result = stopped.result
+        progress.close()
+        view.notes += runfiles.close_quietly(background, files and files.path("mcap"))   # a full disk surfaces here too
+    except BaseException:
+        progress.close()
+        try:
+            runfiles.close_quietly(background)
+        finally:
+            if files is not None:
+                files.discard_unwritten()
+        raise
+    return result, stopped
+
+
+def _rerun_sink(args, scenario, settings, view, files) -> list:
+    """The Rerun sink of ``view``; if Rerun refuses it (a viewer gone between the check and the connection, a
+    file it cannot create), one line says so and the view goes to a new .rrd, else there is none."""
+    from .. import runfiles
+    from ..rerunlog import RerunSink
+    try:
+        return [RerunSink(scenario, settings.detector.window, view.target(files and files.path("rrd")),
+                          field_every=args.field_every)]
+    except (RuntimeError, OSError) as problem:
+        reason = " ".join(str(problem).split())[:160]
+        if view.kind == "connect" and files is not None:
+            view.kind, view.path = "save", outputs.unique_path(files.directory / f"{files.run_id}.rrd")
+            runfiles.say(f"the Rerun viewer refused the connection ({reason}); saving the view to {view.path}")
+            return _rerun_sink(args, scenario, settings, view, files)
+        runfiles.say(f"cannot write the Rerun view ({reason}); the run goes on without it")
+        view.kind = None
+        return []
+
+
+def _report_stream(args, result, stopped, view, files, settings, scenario):
+    """Write the FCS events and the summary (partial ones marked), print the report and the paths; a stopped
+    run then ends with its exit status (130 SIGINT, 143 SIGTERM, 1 numerical failure)."""
+    from .. import runfiles, stream
+    if stopped is not None and stopped.status == "interrupted":
+        result["reason"] = f"interrupted by {signals_seen.get('last', 'SIGINT')}"
+    lines = stream.report_lines(result) if result.get("cells") else []
+    result["files"] = {}
+    if files is not None and files.path("mcap") is not None:
+        mcap = files.path("mcap")
+        result["files"]["mcap"] = str(mcap)
+        lines.append(f"recording: {mcap} (MCAP; replay with: vcyto replay {mcap})")
+    if view.kind is not None and (view.kind == "connect" or view.path or files is not None):
+        rrd = files.path("rrd") if files is not None else None
+        result["files"]["rerun"] = view.url if view.kind == "connect" else str(view.path or rrd)
+        lines.append(f"Rerun: {view.describe(rrd)}")
+    if files is not None:
+        result["run_id"] = files.run_id
+        result["files"].update({"fcs": str(files.path("fcs")), "gatingml": str(files.path("gating.xml")),
+                                "summary": str(files.path("json"))})
+        files.finish(result, settings, scenario)
+        lines.append(f"detector events: {files.path('fcs')} (FCS 3.1; classification gate: "
+                     f"{files.path('gating.xml')}, Gating-ML 2.0); summary: {files.path('json')}")
+    for note in view.notes:
+        runfiles.say(note)
+    emit(args, result, lines)
+    if stopped is None:
+        return
+    written = ", ".join(result["files"].get(key) for key in ("mcap", "summary", "fcs") if key in result["files"])
+    kept = f"; what ran is in {written}" if written else ""
+    if stopped.status == "failed":
+        runfiles.say(f"error: the run failed at t = {result.get('simulated_time_ms', 0):.3f} ms: "
+                     f"{' '.join(stopped.reason.split())}{kept}")
+        raise RunStopped(EXIT_NUMERICAL)
+    signal_name = signals_seen.get("last", "SIGINT")
+    runfiles.say(f"interrupted by {signal_name} at t = {result.get('simulated_time_ms', 0):.3f} ms{kept} "
+                 "(the summary's status is \"interrupted\")")
+    raise RunStopped(EXIT_SIGTERM if signal_name == "SIGTERM" else EXIT_SIGINT)
+
+
+def _partial_status(args, result) -> int:
+    """Exit status of a finished run: 0, or 1 for a run cut short that the user did not cap (README "Exit status")."""
+    if result.get("status", "complete") == "complete":
+        return 0
+    asked = getattr(args, "allow_partial", False)
+    print(f"vcyto: {'note' if asked else 'error'}: the run is partial ({result['status']}): {result['reason']}"
+          + ("" if asked else "; its statistics are not those of the whole sample (--allow-partial to accept it)"),
+          file=sys.stderr)
+    return 0 if asked else EXIT_NUMERICAL
+
+
+def _run_metadata(scenario, settings) -> dict:
+    import numpy
+    import scipy
+    import skfem
+
+    from .. import __version__
+    from ..config import scenario_to_toml
+    return {"scenario_toml": scenario_to_toml(scenario), "seed": settings.seed, "model": settings.model,
+            "arrivals": settings.arrivals, "detector": settings.detector, "controller": settings.controller,
+            "command_line": " ".join(sys.argv), "vcyto": __version__, "numpy": numpy.__version__,
+            "scipy": scipy.__version__, "scikit-fem": skfem.__version__, "python": sys.version.split()[0]}

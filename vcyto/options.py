@@ -1,0 +1,317 @@
+"""The options of a closed-loop run as plain data -> the ``Scenario`` and the ``StreamSettings`` they describe.
+
+The scenario options (``--scenario``, ``--set``, ``--mesh-h``, ...), the time-step tolerance and the stream
+options (arrivals, detector, controller, plant model, seed, duration) are defined here once, with their types
+and defaults (``vcyto.arguments``: quantities are read with their units and converted to SI), and converted
+here: ``vcyto stream`` and its siblings read them from the command line, ``vcyto sweep`` from a spec's
+``[base]`` and ``[parameters]`` tables. Bad values raise ``UsageError`` (or ``ScenarioError`` for a scenario
+field), one line naming the option.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+
+from controller.sorter import MODES
+from sim import plants
+from sim.scenario import CONVECTIONS, MEMBRANE_METHODS, SAW_MODELS, ScenarioError
+
+from . import arguments as limits
+from . import units
+from .arguments import Integer, Number, Quantity
+from .config import load_scenario
+
+
+class UsageError(ValueError):
+    """Bad command-line input that is not a scenario field."""
+
+
+def scenario_options(parser: argparse.ArgumentParser):
+    group = parser.add_argument_group("scenario (SI units; values may carry units such as 3.33um or 25us)")
+    group.add_argument("--scenario", metavar="FILE", help="TOML scenario file (default: the paper's device)")
+    group.add_argument("--set", dest="overrides", action="append", default=[], metavar="FIELD=VALUE",
+                       help="override one field, e.g. --set fluid.viscosity=1e-3 (repeatable)")
+    group.add_argument("--mesh-h", metavar="LENGTH", help="mesh size (default 3.33um, the paper's 54,243 DOFs)")
+    group.add_argument("--dt", metavar="TIME",
+                       help="time step (default 2.5us; vcyto paper: the paper's step for the scenario)")
+    group.add_argument("--convection", choices=CONVECTIONS, help="convection treatment (default imex)")
+    group.add_argument("--saw-model", choices=SAW_MODELS, help="SAW model (default paper)")
+    group.add_argument("--solver", choices=("auto", "pardiso", "superlu"), help="linear solver (default auto)")
+    group.add_argument("--membrane", choices=tuple(MEMBRANE_METHODS),
+                       help="membrane method: conserving (area constraint + point redistribution; the default) or "
+                            "paper (the paper's literal method, which leaks area; the default of vcyto paper)")
+
+
+def scenario_from(args, membrane: str | None = None):
+    """The scenario of the options; ``membrane`` is the command's default membrane method (--membrane wins,
+    and --set of single fields refines either)."""
+    method = getattr(args, "membrane", None) or membrane
+    overrides = [f"numerics.{field}={str(value).lower()}" for field, value in MEMBRANE_METHODS[method].items()] \
+        if method else []
+    overrides += list(args.overrides) + tolerance_override(args)
+    for option, field in (("mesh_h", "numerics.mesh_h"), ("dt", "numerics.dt"), ("convection", "numerics.convection"),
+                          ("saw_model", "saw.model"), ("solver", "numerics.linear_solver")):
+        value = getattr(args, option, None)
+        if value is not None:
+            overrides.append(f"{field}={value}")
+    scenario = load_scenario(args.scenario, overrides)
+    limits.check_mesh(scenario.channel.length, scenario.channel.height, scenario.numerics.mesh_h)
+    return scenario
+
+
+LENGTH_UNITS = ("", "m", "mm", "um", "nm")
+
+
+def tolerance_options(parser: argparse.ArgumentParser):
+    group = parser.add_argument_group("time steps chosen by a tolerance (README: 'Fast at the limit')")
+    group.add_argument("--tolerance", metavar="LENGTH",
+                       help="pick each FE-IB step from dt, 2dt, 4dt, 8dt (dt = --dt, default 2.5us) by an error "
+                            "estimate on the membranes, for at most this centroid path error per transit against "
+                            "fixed steps of dt, e.g. 1um; never above the cells' stability limit (default: fixed dt)")
+
+
+def length_value(text: str) -> float:
+    """A positive length (m, mm, um or nm); ValueError otherwise."""
+    from .config import _QUANTITY, parse_quantity
+    match = _QUANTITY.fullmatch(text)
+    value = parse_quantity(text)
+    if (" ".join(match.group(2).split()) if match else "") not in LENGTH_UNITS:
+        raise ValueError(f"{text!r} is not a length")
+    return value
+
+
+def tolerance_override(args) -> list[str]:
+    """``--tolerance LENGTH`` as the override numerics.tolerance=VALUE (a length: m, mm, um or nm)."""
+    text = getattr(args, "tolerance", None)
+    if text is None:
+        return []
+    from .config import _QUANTITY, parse_quantity
+    match = _QUANTITY.fullmatch(text)
+    unit = " ".join(match.group(2).split()) if match else ""
+    try:
+        value = parse_quantity(text)
+    except ValueError as error:
+        raise UsageError(f"--tolerance: {error}") from None
+    if unit not in LENGTH_UNITS or not (math.isfinite(value) and value > 0):
+        raise UsageError(f"--tolerance: must be a positive length such as 1um or 0.5um (got {text!r})")
+    if getattr(args, "model", None) not in (None, "feib"):
+        raise UsageError(f"--tolerance: picks the steps of the feib model only; drop it or use --model feib "
+                         f"(got --model {args.model})")
+    return [f"numerics.tolerance={value!r}"]
+
+
+def cell_list(text: str) -> tuple[str, ...]:
+    names = tuple(name.strip() for name in text.split(",") if name.strip())
+    if not names:
+        raise UsageError("--cells needs at least one cell type, e.g. --cells RBC,melanoma")
+    return names
+
+
+def parse_mix(text: str) -> tuple[tuple[str, float], ...]:
+    """TYPE:WEIGHT pairs; every weight finite and >= 0, their sum positive."""
+    pairs = []
+    for part in text.split(","):
+        name, _, weight = part.partition(":")
+        try:
+            pairs.append((name.strip(), units.parse_quantity(weight, "dimensionless", field="--mix")))
+        except units.QuantityError:
+            raise UsageError(f"--mix: wants TYPE:WEIGHT pairs with finite weights, such as RBC:0.9,melanoma:0.1 "
+                             f"(got {text!r})") from None
+    if any(weight < 0 for _, weight in pairs) or not sum(weight for _, weight in pairs) > 0:
+        raise UsageError(f"--mix: weights must be >= 0 with a positive sum (got {text!r})")
+    return tuple(pairs)
+
+
+def detection_window(text: str, scenario) -> tuple[float, float]:
+    """The detection window (x0, x1) in m from "30,60" (um) or "30um,60um"; inside the channel, x0 < x1."""
+    values = units.parse_list(text, "length", "um", field="--detection-window")
+    if len(values) != 2 or not 0 <= values[0] < values[1]:
+        raise UsageError(f"--detection-window: wants two lengths X0,X1 with 0 <= X0 < X1, e.g. 30,60 (um) "
+                         f"(got {text!r})")
+    if values[1] > scenario.channel.length:
+        raise UsageError(f"--detection-window: {text} lies outside the channel "
+                         f"(0, {scenario.channel.length * 1e6:g}) um")
+    return values[0], values[1]
+
+
+def check_cells_fit(scenario, names) -> None:
+    """Every cell type of the stream is known and fits through the injection inlet."""
+    inlet = scenario.channel.inlet(scenario.channel.injection_inlet)
+    width = inlet.span[1] - inlet.span[0]
+    for name in sorted(set(names)):
+        cell = scenario.cell_type(name)
+        if cell.diameter >= width:
+            raise ScenarioError("cell_types", f"a {name} {cell.diameter * 1e6:.4g} um across does not fit through "
+                                              f"the injection inlet {inlet.name!r} ({width * 1e6:.4g} um wide)")
+
+
+def stream_settings(args, scenario):
+    """The ``StreamSettings`` of the stream options in ``args`` (vcyto stream, and each point of vcyto sweep);
+    the quantities in ``args`` are SI (the option types convert them)."""
+    from sim.arrivals import Arrivals
+
+    from . import stream
+    try:
+        if args.count is not None:
+            limits.check_cells(args.count)
+        cells = args.cells if args.cells is not None else ("" if args.count else "RBC,melanoma")
+        arrivals = Arrivals(cells=cell_list(cells) if cells else (), count=args.count or 0,
+                            mix=parse_mix(args.mix) if args.mix else (), rate=args.rate, process=args.arrivals,
+                            min_spacing=args.min_spacing)
+        check_cells_fit(scenario, set(arrivals.cells) | {name for name, _ in arrivals.mix})
+        detector = detector_settings(args, scenario)
+        controller = controller_settings(args)
+        window = getattr(args, "window_h", None)
+        if window is not None:
+            if args.model != "auto":
+                raise UsageError(f"--window-h sets the feib windows of --model auto (the model is {args.model}): "
+                                 "drop it or add --model auto")
+            limits.check_mesh(scenario.channel.length, scenario.channel.height, window, "--window-h")
+            try:
+                scenario.with_numerics(mesh_h=window)           # resolves every inlet and outlet
+            except ScenarioError as error:
+                raise UsageError(f"--window-h: {str(error).split(': ', 1)[1]}") from None
+        if args.model == "feib":
+            check_run_time(args, scenario, _device_time(arrivals, args.max_time), "--dt/--count/--rate")
+        return stream.StreamSettings(arrivals, detector, controller, args.model, args.seed,
+                                     max_time=args.max_time, window_mesh_h=window)
+    except ValueError as error:
+        if isinstance(error, (UsageError, ScenarioError, units.QuantityError)):
+            raise
+        raise UsageError(str(error)) from None
+
+
+def detector_settings(args, scenario):
+    from controller.detector import DetectorSettings
+    try:
+        return DetectorSettings(window=detection_window(args.detection_window, scenario), gate=args.gate,
+                                noise_cv=args.noise)
+    except ValueError as error:
+        raise UsageError(f"--detection-window/--gate/--noise: {error}") from None
+
+
+def _device_time(arrivals, cap) -> float:
+    """The device time a stream will simulate, roughly: its arrivals plus 5 ms for the last cell to leave."""
+    cells = len(arrivals.cells) or arrivals.count
+    span = (cells - 1) / arrivals.rate + 5e-3
+    return min(span, cap) if cap is not None else span
+
+
+def check_run_time(args, scenario, simulated: float, field: str):
+    limits.check_run_time(simulated, scenario.numerics.dt, limits.mesh_dofs(
+        scenario.channel.length, scenario.channel.height, scenario.numerics.mesh_h), field,
+        allowed=getattr(args, "allow_long", False))
+
+
+def controller_settings(args):
+    """The controller file (or the shipped defaults), then the controller options given on the command line."""
+    from dataclasses import replace
+
+    from controller.sorter import ControllerSettings
+    base = ControllerSettings()
+    if getattr(args, "controller", None):
+        from .controllerfile import load_controller
+        base = load_controller(args.controller)
+    changes = {name: getattr(args, name) for name in ("delay", "lead", "pulse", "timing_error")
+               if getattr(args, name, None) is not None}          # SI: the option types convert them
+    if getattr(args, "mode", None):
+        changes["mode"] = args.mode
+    if getattr(args, "envelope", None):
+        values = units.parse_list(args.envelope, "time", "ms", field="--envelope")
+        if len(values) != 2 or values[0] > values[1]:
+            raise UsageError(f"--envelope wants two offsets LO,HI with LO <= HI, such as -0.236,0.27 (ms) "
+                             f"(got {args.envelope!r})")
+        changes["envelope"] = tuple(values)
+    if args.no_controller:
+        changes["enabled"] = False
+    return replace(base, **changes)
+
+
+def stream_run_options() -> argparse.ArgumentParser:
+    """A parser of the scenario and stream options alone: their names, types and defaults are vcyto sweep's."""
+    parser = argparse.ArgumentParser(prog="vcyto stream", add_help=False)
+    scenario_options(parser)
+    stream_options(parser)
+    return parser
+
+
+def stream_run(args):
+    """The scenario and the ``StreamSettings`` that the scenario and stream options in ``args`` describe."""
+    scenario = scenario_from(args)
+    return scenario, stream_settings(args, scenario)
+
+
+def stream_options(parser: argparse.ArgumentParser):
+    """The options of one closed-loop run: arrivals, detector, controller, plant model, seed, duration.
+    Quantities take a unit (``--lead 500us``); a bare number is in the unit the help names."""
+    _arrival_options(parser)
+    _sorting_options(parser)
+    _plant_options(parser)
+
+
+def _arrival_options(parser: argparse.ArgumentParser):
+    arrivals = parser.add_argument_group("cell arrivals (through the injection inlet)")
+    arrivals.add_argument("--cells", help="explicit ordered list, e.g. RBC,melanoma,RBC (default RBC,melanoma "
+                                          "unless --count is given)")
+    arrivals.add_argument("--count", type=Integer(low=1), help="number of cells drawn from --mix (at least 1)")
+    arrivals.add_argument("--mix", help="type mix for --count, e.g. RBC:0.9,melanoma:0.1")
+    arrivals.add_argument("--rate", type=Quantity("frequency", "Hz", low=0, low_open=True), default="500",
+                          metavar="RATE", help="arrival rate, cells/s (default 500; e.g. 1kHz)")
+    arrivals.add_argument("--arrivals", choices=("regular", "poisson"), default="regular",
+                          help="arrival process (default regular)")
+    arrivals.add_argument("--min-spacing", type=Quantity("time", "ms", low=0), default="0.5", metavar="TIME",
+                          help="minimum time between arrivals (ms; default 0.5)")
+
+
+def _sorting_options(parser: argparse.ArgumentParser):
+    optics = parser.add_argument_group("detector and controller")
+    optics.add_argument("--detection-window", default="30,60", metavar="X0,X1",
+                        help="detection window along the channel (um; default 30,60; e.g. 30um,60um)")
+    optics.add_argument("--gate", type=Number(low=0), default="0.5", help="fluorescence gate for type II (default 0.5)")
+    optics.add_argument("--noise", type=Number(low=0, high=10), default="0.2",
+                        help="fluorescence noise CV, 0-10 (default 0.2)")
+    optics.add_argument("--controller", metavar="FILE",
+                        help="controller settings file written by vcyto calibrate (default: the shipped calibration, "
+                             "README 'Sorting like a sorter'); the options below override it")
+    optics.add_argument("--delay", type=Quantity("time", "ms", low=0, low_open=True, high=10.0), metavar="TIME",
+                        help="sort delay: detection to the SAW window at the reference velocity (ms; default 0.548)")
+    optics.add_argument("--lead", type=Quantity("time", "ms", low=0, high=10.0), metavar="TIME",
+                        help="IDT on this long before the predicted arrival (ms; default 0.3)")
+    optics.add_argument("--pulse", type=Quantity("time", "ms", low=0, low_open=True, high=10.0), metavar="TIME",
+                        help="IDT pulse length (ms; default 0.4)")
+    optics.add_argument("--mode", choices=MODES,
+                        help="sort mode: purity (abort when a type-I cell is predicted in the widened envelope; "
+                             "the default), enrichment (abort only inside the envelope itself), yield (never abort), "
+                             "single (purity, and abort two type-II cells in each other's envelope)")
+    optics.add_argument("--envelope", metavar="LO,HI",
+                        help="offsets from a sorted cell's arrival at which another cell is deflected too (ms; default "
+                             "-0.236,0.27: vcyto calibrate on rom and feib, README 'Sorting like a sorter')")
+    optics.add_argument("--timing-error", type=Quantity("time", "ms", low=0, high=10.0), metavar="TIME",
+                        help="uncertainty of one predicted arrival; the purity window is the envelope widened by twice "
+                             "this (ms; default 0.027)")
+    optics.add_argument("--no-controller", action="store_true", help="never switch the IDT on")
+
+
+def _plant_options(parser: argparse.ArgumentParser):
+    parser.add_argument("--model", choices=plants.MODELS, default="feib",
+                        help="plant: full FE-IB (default); auto (rom, switching to feib while a melanoma "
+                             "shares the channel or cells are close together); oneway (membranes deforming in "
+                             "the blended steady flows, no feedback); "
+                             "rom (cells as finite-size bodies in the blended steady flows, >10x faster than real "
+                             "time without recording); or the streamline stand-in")
+    parser.add_argument("--window-h", type=Quantity("length", "", low=0, low_open=True), metavar="LENGTH",
+                        help="--model auto: mesh size of its feib windows (default 6.67um, or --mesh-h if coarser: "
+                             "the coarsest mesh within tolerance on the tradeoff scenes; --window-h equal to "
+                             "--mesh-h runs the windows at full resolution)")
+    parser.add_argument("--seed", type=Integer(low=0, high=2**63 - 1), default="0",
+                        help="random seed, >= 0 (default 0)")
+    parser.add_argument("--max-time", type=Quantity("time", "ms", low=0, low_open=True, high=3.6e6), metavar="TIME",
+                        help="cap the run at this simulated time (ms); by default it runs until every cell has left "
+                             "(a capped run says so, its statistics are marked partial and cells never injected are "
+                             "counted as such); exit status 1 unless --allow-partial")
+    parser.add_argument("--allow-partial", action="store_true",
+                        help="a run cut short by --max-time (or by cells stuck in the channel) exits 0")
+    parser.add_argument("--allow-long", action="store_true",
+                        help="run an FE-IB stream estimated to take more than 24 h (refused otherwise)")
+

@@ -1,0 +1,141 @@
+"""Where a sweep's points run: a local process pool (one thread per process), a Dask ``LocalCluster`` or a Dask
+scheduler at an address; Ctrl-C is left to the parent, which stops the workers."""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import multiprocessing
+import os
+import signal
+from concurrent.futures import ProcessPoolExecutor
+
+from .model import SweepError, one_line
+
+SCHEDULER_SCHEMES = ("tcp", "tls", "ucx", "ws", "wss")
+CONNECT_TIMEOUT_S = 10
+THREAD_VARIABLES = ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS", "NUMBA_NUM_THREADS")
+
+
+@contextlib.contextmanager
+def executor(scheduler: str | None, workers: int):
+    """A concurrent.futures executor and its number of worker slots: a local process pool (``scheduler`` None),
+    a Dask ``LocalCluster`` (``"local"``) or the Dask scheduler at an address. Local worker processes run one
+    thread each (OMP/MKL/OpenBLAS/numba), as Dask's nannies do: parallelism is across points."""
+    with _one_thread_per_process():
+        if scheduler is None:
+            with _process_pool(workers) as pool:
+                yield pool, workers, f"{workers} local process{'es' if workers > 1 else ''}"
+        else:
+            with _dask_executor(scheduler, workers) as found:
+                yield found
+
+
+@contextlib.contextmanager
+def _one_thread_per_process():
+    saved = {name: os.environ.get(name) for name in THREAD_VARIABLES}
+    for name in THREAD_VARIABLES:
+        os.environ.setdefault(name, "1")
+    try:
+        yield
+    finally:
+        for name, value in saved.items():
+            if value is None:
+                os.environ.pop(name, None)
+            else:
+                os.environ[name] = value
+
+
+def _ignore_interrupts():
+    """Workers leave Ctrl-C to the parent, which stops them."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+
+@contextlib.contextmanager
+def _interrupts_ignored():
+    """Processes started within ignore Ctrl-C (an ignored signal stays ignored across exec): the parent stops them."""
+    try:
+        previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    except ValueError:                   # not the main thread: leave signals alone
+        yield
+        return
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous)
+
+
+@contextlib.contextmanager
+def _process_pool(workers: int):
+    before = set(multiprocessing.active_children())
+    pool = ProcessPoolExecutor(max_workers=workers, mp_context=multiprocessing.get_context("spawn"),
+                               initializer=_ignore_interrupts)
+    try:
+        yield pool
+    except BaseException:
+        pool.shutdown(wait=False)        # pending points fail with BrokenProcessPool once their workers are gone
+        for process in set(multiprocessing.active_children()) - before:
+            process.terminate()
+        raise
+    else:
+        pool.shutdown(wait=True)
+
+
+def check_scheduler(address: str) -> str:
+    """``address`` if it is ``local`` or a Dask address (tcp://, tls://, ucx://, ws://, wss:// HOST:PORT)."""
+    from urllib.parse import urlsplit
+    if address == "local":
+        return address
+    parts = urlsplit(address)
+    try:
+        port = parts.port
+    except ValueError:
+        port = None
+    if parts.scheme not in SCHEDULER_SCHEMES or not parts.hostname or port is None or parts.path not in ("", "/"):
+        raise SweepError(f"--scheduler: {address!r} is not a Dask scheduler address; write tcp://HOST:PORT (tls:// for "
+                         "an encrypted cluster) or 'local'")
+    return address
+
+
+def _connect(Client, scheduler: str):
+    """A client of the scheduler at ``scheduler``, or an error within ``CONNECT_TIMEOUT_S``. A server that is not a
+    Dask scheduler can answer with bytes that Dask reads as an absurd message length: that is a MemoryError here,
+    reported as "cannot reach", not a crash."""
+    import dask
+    with dask.config.set({"distributed.comm.timeouts.connect": f"{CONNECT_TIMEOUT_S}s"}):
+        return Client(scheduler, timeout=f"{CONNECT_TIMEOUT_S}s")
+
+
+@contextlib.contextmanager
+def _dask_executor(scheduler: str, workers: int):
+    try:
+        from distributed import Client, LocalCluster
+    except ImportError:
+        raise SweepError("--scheduler needs Dask: pip install 'vcyto[cluster]' (or pip install distributed)") from None
+    cluster = None
+    try:
+        if scheduler == "local":
+            with _interrupts_ignored():
+                cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, dashboard_address=None,
+                                       silence_logs=logging.ERROR)
+            client = Client(cluster)
+        else:
+            client = _connect(Client, scheduler)
+    except (OSError, ValueError, MemoryError, TimeoutError) as error:
+        if cluster is not None:
+            cluster.close()
+        raise SweepError(f"--scheduler: cannot reach a Dask scheduler at {scheduler} within {CONNECT_TIMEOUT_S} s "
+                         f"({type(error).__name__}: {one_line(error)[:200]})") from None
+    try:
+        slots = max(1, sum(client.nthreads().values()))
+        where = "a local Dask cluster" if cluster is not None else f"the Dask scheduler at {scheduler}"
+        pool = client.get_executor(pure=False)
+        yield pool, slots, f"{where} ({slots} worker threads)"
+    except BaseException:
+        if cluster is None:
+            pool.shutdown(wait=False)    # cancels our points on a shared cluster; a LocalCluster just closes
+        raise
+    finally:
+        client.close()
+        if cluster is not None:
+            cluster.close()

@@ -18,7 +18,7 @@ level is used.
 
 Never above the stability limit of the cells in the channel: STABLE_FRACTION times the paper's bound (33)
 with C_cell = 1 (``sim.stability.paper_bound``). The measured limits are 4.2x (melanoma, 3.33 um mesh) and
->= 5.6x (6.67 um) that bound, >= 100 us for the RBC (README, "Stability"); 3.4x stays below all of them.
+>= 5.6x (6.67 um) that bound, >= 100 us for the RBC (docs/results.md, "Stability"); 3.4x stays below all of them.
 Each level's fluid matrix is factored once, when first needed, on the same mesh.
 """
 

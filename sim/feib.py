@@ -4,7 +4,7 @@ One step from (v^m, X^m):
   1. f_r = -dE_h/dX_r at X^m for every cell (``Membrane.forces``) and spread: <F_h, w> = sum_r f_r . w(X_r);
   2. backward-Euler Navier-Stokes for v^{m+1} with that load (``NavierStokes.step``);
   3. X_r^{m+1} = X_r^m + dt v^{m+1}(X_r^m), the velocity interpolated at the points located in step 1.
-With an area constraint (``numerics.area_constraint``, README "Cells that keep their size") step 1 adds
+With an area constraint (``numerics.area_constraint``, docs/numerics.md "Cells that keep their size") step 1 adds
 the interior pressure that balances the force's area-changing part (``pressure``) and step 3 moves the
 membrane along its normal to restore the cell's area (``projection``); with ``numerics.redistribute`` the
 points are re-spaced along the spline whenever a spacing leaves ``numerics.spacing_band``.

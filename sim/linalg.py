@@ -5,7 +5,7 @@ of a factorisation computed at start-up. Two back-ends:
 
 - ``pardiso``: Intel MKL PARDISO through ctypes (the ``mkl`` wheel ships ``libmkl_rt``), real
   symmetric indefinite (``mtype=-2``, upper triangle only) or unsymmetric (``mtype=11``), zero-based
-  CSR, iterative refinement off. The fastest back-solve measured here (README, "Linear solvers").
+  CSR, iterative refinement off. The fastest back-solve measured here (docs/numerics.md, "Linear solvers").
 - ``superlu``: scipy's SuperLU with a symmetric minimum-degree ordering; always available.
 
 ``factorize(matrix, solver="auto", symmetric=...)`` picks PARDISO when MKL loads and SuperLU otherwise.

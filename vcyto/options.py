@@ -64,7 +64,7 @@ LENGTH_UNITS = ("", "m", "mm", "um", "nm")
 
 
 def tolerance_options(parser: argparse.ArgumentParser):
-    group = parser.add_argument_group("time steps chosen by a tolerance (README: 'Fast at the limit')")
+    group = parser.add_argument_group("time steps chosen by a tolerance (docs/numerics.md)")
     group.add_argument("--tolerance", metavar="LENGTH",
                        help="pick each FE-IB step from dt, 2dt, 4dt, 8dt (dt = --dt, default 2.5us) by an error "
                             "estimate on the membranes, for at most this centroid path error per transit against "
@@ -273,7 +273,7 @@ def _sorting_options(parser: argparse.ArgumentParser):
                         help="fluorescence noise CV, 0-10 (default 0.2)")
     optics.add_argument("--controller", metavar="FILE",
                         help="controller settings file written by vcyto calibrate (default: the shipped calibration, "
-                             "README 'Sorting like a sorter'); the options below override it")
+                             "docs/usage.md 'Sorting like a sorter'); the options below override it")
     optics.add_argument("--delay", type=Quantity("time", "ms", low=0, low_open=True, high=10.0), metavar="TIME",
                         help="sort delay: detection to the SAW window at the reference velocity (ms; default 0.548)")
     optics.add_argument("--lead", type=Quantity("time", "ms", low=0, high=10.0), metavar="TIME",
@@ -286,7 +286,7 @@ def _sorting_options(parser: argparse.ArgumentParser):
                              "single (purity, and abort two type-II cells in each other's envelope)")
     optics.add_argument("--envelope", metavar="LO,HI",
                         help="offsets from a sorted cell's arrival at which another cell is deflected too (ms; default "
-                             "-0.236,0.27: vcyto calibrate on rom and feib, README 'Sorting like a sorter')")
+                             "-0.236,0.27: vcyto calibrate on rom and feib, docs/usage.md 'Sorting like a sorter')")
     optics.add_argument("--timing-error", type=Quantity("time", "ms", low=0, high=10.0), metavar="TIME",
                         help="uncertainty of one predicted arrival; the purity window is the envelope widened by twice "
                              "this (ms; default 0.027)")

@@ -21,9 +21,9 @@ def bench_recording(scenario: Scenario, cells=("RBC", "melanoma"), repeats: int 
     from sim.plant import FeibPlant
 
     from ..recording import McapRecorder
+    from ..rerunlog import RerunSink
     from ..sinks import BackgroundSinks
     from ..stream import StreamSettings, run_stream
-    from ..rerunlog import RerunSink
 
     settings = StreamSettings(Arrivals(cells=tuple(cells)))
     plant = FeibPlant(scenario)

@@ -185,7 +185,7 @@ def _report_stream(args, result, stopped, view, files, settings, scenario):
 
 
 def _partial_status(args, result) -> int:
-    """Exit status of a finished run: 0, or 1 for a run cut short that the user did not cap (README "Exit status")."""
+    """Exit status of a finished run: 0, or 1 for a run cut short that the user did not cap (docs/usage.md)."""
     if result.get("status", "complete") == "complete":
         return 0
     asked = getattr(args, "allow_partial", False)

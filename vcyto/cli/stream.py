@@ -101,7 +101,7 @@ def _run_with_sinks(args, scenario, settings, view, files):
         sinks += _rerun_sink(args, scenario, settings, view, files)
     progress = Progress(quiet=args.quiet or args.json)
     background = BackgroundSinks(sinks) if sinks else None      # their work overlaps the plant's solve
-    stopped = None
+    stopped, failed = None, True
     try:
         with runfiles.signals_as_interrupt(signals_seen):
             try:
@@ -112,17 +112,25 @@ def _run_with_sinks(args, scenario, settings, view, files):
                 stopped = stream.StreamStopped("interrupted", "interrupted while setting up, before the first step",
                                                runfiles.stopped_summary(settings, "interrupted while setting up"))
                 result = stopped.result
-        progress.close()
-        view.notes += runfiles.close_quietly(background, files and files.path("mcap"))   # a full disk surfaces here too
-    except BaseException:
-        progress.close()
-        try:
-            runfiles.close_quietly(background)
-        finally:
-            if files is not None:
-                files.discard_unwritten()
-        raise
+        failed = False
+    finally:                                               # the sinks are closed once, whatever happened
+        view.notes += _close_run(progress, background, files, failed)
     return result, stopped
+
+
+def _close_run(progress, background, files, failed: bool) -> list[str]:
+    """Close the progress line and the sinks (a full disk surfaces here too); notes on a viewer that went away.
+    Files reserved but never written are removed if the run or the closing failed."""
+    from .. import runfiles
+    progress.close()
+    try:
+        return runfiles.close_quietly(background, files and files.path("mcap"))
+    except BaseException:
+        failed = True
+        raise
+    finally:
+        if failed and files is not None:
+            files.discard_unwritten()
 
 
 def _rerun_sink(args, scenario, settings, view, files) -> list:

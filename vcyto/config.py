@@ -53,6 +53,10 @@ FIELD_DIMENSIONS = {
     "Numerics.spacing_band": "dimensionless", "Numerics.max_stretch": "dimensionless",
     "CellType.kappa_e": "tension", "CellType.kappa_b": "bending modulus", "CellType.semi_axes": "length",
     "CellType.fluorescence": "dimensionless",
+    # controller files (vcyto.controllerfile): times carry their unit
+    "ControllerSettings.delay": "time", "ControllerSettings.reference_velocity": "speed",
+    "ControllerSettings.lead": "time", "ControllerSettings.pulse": "time", "ControllerSettings.envelope": "time",
+    "ControllerSettings.timing_error": "time",
 }
 MAX_FILE_BYTES = 1_000_000          # a scenario or sweep spec larger than this is refused before it is parsed
 

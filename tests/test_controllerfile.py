@@ -1,0 +1,46 @@
+"""Controller files: what `vcyto calibrate` writes, `vcyto stream --controller` reads back (units included)."""
+
+import dataclasses
+import json
+import math
+import subprocess
+import sys
+
+import pytest
+
+from controller.sorter import ControllerSettings
+from sim.scenario import ScenarioError
+from vcyto.controllerfile import controller_toml, load_controller
+
+
+def test_a_written_controller_file_reads_back_as_the_same_settings(tmp_path):
+    settings = ControllerSettings(delay=0.61e-3, reference_velocity=0.105, lead=0.25e-3, pulse=0.35e-3,
+                                  mode="yield", envelope=(-0.2e-3, 0.19e-3), timing_error=0.02e-3)
+    path = tmp_path / "controller.toml"
+    path.write_text(controller_toml(settings, {"model": "rom", "cells": 12}))
+    loaded = load_controller(path)
+    for field in dataclasses.fields(ControllerSettings):
+        expected, got = getattr(settings, field.name), getattr(loaded, field.name)
+        if isinstance(expected, float):
+            assert math.isclose(got, expected, rel_tol=1e-6), field.name
+        elif isinstance(expected, tuple):
+            assert all(math.isclose(g, e, rel_tol=1e-6) for g, e in zip(got, expected)), field.name
+        else:
+            assert got == expected, field.name
+
+
+def test_a_controller_time_with_a_length_unit_is_refused_naming_the_field(tmp_path):
+    path = tmp_path / "controller.toml"
+    path.write_text(controller_toml(ControllerSettings(), {}).replace('lead = "0.3 ms"', 'lead = "0.3 um"'))
+    with pytest.raises(ScenarioError, match="lead"):
+        load_controller(path)
+
+
+def test_stream_runs_with_the_file_calibrate_wrote(tmp_path):
+    path = tmp_path / "controller.toml"
+    path.write_text(controller_toml(ControllerSettings(lead=0.28e-3), {"model": "rom"}))
+    done = subprocess.run([sys.executable, "-m", "vcyto", "stream", "--model", "rom", "--count", "20", "--mix",
+                           "RBC:0.8,melanoma:0.2", "--controller", str(path), "--no-viewer", "--output", "",
+                           "--json", "--quiet"], capture_output=True, text=True, timeout=600)
+    assert done.returncode == 0, done.stderr
+    assert math.isclose(json.loads(done.stdout)["controller"]["lead_ms"], 0.28, rel_tol=1e-9)

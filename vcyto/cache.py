@@ -126,7 +126,7 @@ def clear(directory: Path | None = None) -> int:
     directory = directory or cache_directory()
     removed = 0
     if directory.exists():
-        for pattern in ("*.npz", ".*.tmp"):
+        for pattern in ("*.npz", ".*.tmp", "units/*.json"):      # units/: vcyto.units' memo of pint's answers
             for path in directory.rglob(pattern):
                 path.unlink(missing_ok=True)
                 removed += 1

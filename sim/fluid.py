@@ -38,7 +38,7 @@ from .boundary import inflow_velocity, saw_jet_factor, saw_window_profile
 from .linalg import factorize, mkl_version, resolved_solver_name
 from .mesh import ChannelMesh, channel_mesh
 from .scenario import Scenario
-from .store import digest, reuse
+from .store import code_digest, digest, reuse
 
 log = logging.getLogger(__name__)
 
@@ -109,8 +109,7 @@ def _constant_matrices(velocity_basis, pressure_basis) -> dict:
     mesh = velocity_basis.mesh
     key = {"mesh": digest(mesh.p, mesh.t), "velocity": "P2", "pressure": "P1", "intorder": 5,
            "quadrature": digest(*velocity_basis.quadrature), "skfem": skfem.__version__,
-           "forms": {name: repr((form.form.__code__.co_code, form.form.__code__.co_names))
-                     for name, (form, _) in _FORMS.items()}}
+           "forms": code_digest(*(form.form for form, _ in _FORMS.values()))}
     stored = reuse("matrices", key, assemble)
     return {name: sp.csr_matrix((stored[f"{name}_data"], stored[f"{name}_indices"], stored[f"{name}_indptr"]),
                                 shape=tuple(stored[f"{name}_shape"])) for name in _FORMS}

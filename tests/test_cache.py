@@ -140,3 +140,24 @@ def test_constant_matrices_come_from_the_cache_bit_for_bit(cache):
     assert all((w != c).nnz == 0 and w.shape == c.shape for w, c in zip(warm.divergence, cold.divergence))
     TaylorHood(channel_mesh(base.channel, 12 * UM))                            # another mesh: a miss
     assert len(list((cache.directory / "matrices").glob("*.npz"))) == 2 and cache.hits == 1
+
+
+def test_code_digest_names_the_code():
+    def form(u, v):
+        return 2.0 * u * v
+
+    def same(u, v):
+        return 2.0 * u * v
+
+    def other_constant(u, v):
+        return 3.0 * u * v
+
+    def nested(u, v):
+        return sum(x * 2.0 for x in (u, v))
+
+    def nested_other(u, v):
+        return sum(x * 3.0 for x in (u, v))
+
+    assert store.code_digest(form) == store.code_digest(same)
+    assert store.code_digest(form) != store.code_digest(other_constant)
+    assert store.code_digest(nested) != store.code_digest(nested_other)      # inside a nested code object

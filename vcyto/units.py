@@ -159,7 +159,7 @@ def _si_factor(unit: str, dimension: str) -> float:
 
 class _UnitMemo:
     """What pint said about each (unit, dimension) read before: one JSON file in vcyto's cache directory,
-    named by pint's version, holding a SHA-256 of its entries (a corrupted or edited file is ignored and
+    named by pint's version and a digest of the rule (``_rule_digest``), holding a SHA-256 of its entries (a corrupted or edited file is ignored and
     rewritten). Written to a temporary file and moved in place (``os.replace``); ``VCYTO_CACHE=off``: memory only.
     """
 
@@ -175,7 +175,8 @@ class _UnitMemo:
         if cls._instance is None:
             from importlib.metadata import version
             from .cache import cache_directory, cache_enabled
-            path = cache_directory() / "units" / f"pint-{version('pint')}.json" if cache_enabled() else None
+            path = cache_directory() / "units" / f"pint-{version('pint')}-{_rule_digest()}.json" \
+                if cache_enabled() else None
             cls._instance = cls(path)
         return cls._instance
 
@@ -210,6 +211,13 @@ class _UnitMemo:
             os.replace(temporary, self.path)
         except OSError:      # a read-only cache costs the next run pint's start-up, nothing else
             pass
+
+
+def _rule_digest() -> str:
+    """A short digest of what the remembered answers depend on besides pint: the dimensions and this module's
+    reading of pint's answer (a changed rule starts a new memo)."""
+    from sim.store import code_digest
+    return hashlib.sha256(repr((DIMENSIONS, code_digest(_pint_si_factor, _describe))).encode()).hexdigest()[:16]
 
 
 def _entries_digest(entries: dict) -> str:

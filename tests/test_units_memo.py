@@ -72,3 +72,12 @@ def test_cache_off_writes_no_memo(memo_in, monkeypatch):
     monkeypatch.setenv("VCYTO_CACHE", "off")
     assert units._si_factor("ms", "time") == pytest.approx(1e-3, rel=1e-15)
     assert not (memo_in / "units").exists()
+
+
+def test_the_memo_file_stops_growing_at_its_cap(memo_in, monkeypatch):
+    monkeypatch.setattr(units, "MEMO_ENTRIES", 2)
+    for unit in ("us", "ms", "s", "ns"):
+        units._si_factor(unit, "time")
+    stored = json.loads(memo_file(memo_in).read_text())["entries"]
+    assert sorted(stored) == ["time|ms", "time|us"]
+    assert units._si_factor("ns", "time") == pytest.approx(1e-9, rel=1e-15)        # still answered

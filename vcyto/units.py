@@ -157,6 +157,9 @@ def _si_factor(unit: str, dimension: str) -> float:
     return float(known[1])
 
 
+MEMO_ENTRIES = 2000
+
+
 class _UnitMemo:
     """What pint said about each (unit, dimension) read before: one JSON file in vcyto's cache directory,
     named by pint's version and a digest of the rule (``_rule_digest``), holding a SHA-256 of its entries (a corrupted or edited file is ignored and
@@ -201,7 +204,7 @@ class _UnitMemo:
 
     def put(self, unit: str, dimension: str, known: list):
         self.entries[f"{dimension}|{unit}"] = known
-        if self.path is None:
+        if self.path is None or len(self.entries) > MEMO_ENTRIES:     # a fuzzer's thousand units stay in memory
             return
         try:
             self.path.parent.mkdir(parents=True, exist_ok=True)

@@ -114,9 +114,9 @@ def install_default() -> DiskCache | None:
 
 
 def usage(directory: Path | None = None) -> dict:
-    """Where the cache is, whether it is on, and how many entries and bytes it holds."""
+    """Where the cache is, whether it is on, and how many entries (the unit memo counted as one) and bytes it holds."""
     directory = directory or cache_directory()
-    files = [p for p in directory.rglob("*.npz")] if directory.exists() else []
+    files = [*directory.rglob("*.npz"), *directory.glob("units/*.json")] if directory.exists() else []
     return {"directory": str(directory), "enabled": cache_enabled(), "entries": len(files),
             "bytes": sum(p.stat().st_size for p in files)}
 

@@ -38,7 +38,7 @@ from .drive import lagged
 from .linalg import factorize, mkl_version, resolved_solver_name
 from .mesh import ChannelMesh, channel_mesh
 from .scenario import Scenario
-from .store import digest, reuse
+from .store import code_digest, digest, reuse
 
 log = logging.getLogger(__name__)
 
@@ -88,6 +88,33 @@ def _weighted_mass(u, v, w):
     return w.weight * u * v
 
 
+_FORMS = {"mass": (_mass, False), "laplace": (_laplace, False), "d_dx": (_d_dx, True), "d_dy": (_d_dy, True)}
+
+
+def _constant_matrices(velocity_basis, pressure_basis) -> dict:
+    """The P2 mass and Laplace matrices and the P2/P1 divergence blocks (CSR), through the set-up store
+    (``sim.store``: assembling them is ~0.2-0.5 s at the paper's mesh), keyed by the mesh's nodes and
+    elements, the quadrature, the forms' bytecode and scikit-fem's version."""
+    import skfem
+
+    def assemble() -> dict:
+        arrays = {}
+        for name, (form, mixed) in _FORMS.items():
+            matrix = (asm(form, velocity_basis, pressure_basis) if mixed else asm(form, velocity_basis)).tocsr()
+            matrix.sort_indices()
+            arrays.update({f"{name}_data": matrix.data, f"{name}_indices": matrix.indices,
+                           f"{name}_indptr": matrix.indptr, f"{name}_shape": np.array(matrix.shape)})
+        return arrays
+
+    mesh = velocity_basis.mesh
+    key = {"mesh": digest(mesh.p, mesh.t), "velocity": "P2", "pressure": "P1", "intorder": 5,
+           "quadrature": digest(*velocity_basis.quadrature), "skfem": skfem.__version__,
+           "forms": code_digest(*(form.form for form, _ in _FORMS.values()))}
+    stored = reuse("matrices", key, assemble)
+    return {name: sp.csr_matrix((stored[f"{name}_data"], stored[f"{name}_indices"], stored[f"{name}_indptr"]),
+                                shape=tuple(stored[f"{name}_shape"])) for name in _FORMS}
+
+
 class TaylorHood:
     """The P2/P1 spaces on a channel mesh, their constant matrices and the quadrature for the kernels."""
 
@@ -99,10 +126,9 @@ class TaylorHood:
         self.N = self.velocity_basis.N
         self.P = self.pressure_basis.N
         self.nodes = self.velocity_basis.doflocs
-        self.mass = asm(_mass, self.velocity_basis).tocsr()
-        self.laplace = asm(_laplace, self.velocity_basis).tocsr()
-        self.divergence = (asm(_d_dx, self.velocity_basis, self.pressure_basis).tocsr(),
-                           asm(_d_dy, self.velocity_basis, self.pressure_basis).tocsr())
+        matrices = _constant_matrices(self.velocity_basis, self.pressure_basis)
+        self.mass, self.laplace = matrices["mass"], matrices["laplace"]
+        self.divergence = (matrices["d_dx"], matrices["d_dy"])
         self._kernel_tables()
 
     @property

@@ -46,3 +46,12 @@ def digest(*arrays: np.ndarray) -> str:
         hasher.update(f"{array.dtype.str}{array.shape}".encode())
         hasher.update(array.tobytes())
     return hasher.hexdigest()
+
+
+def code_digest(*functions) -> str:
+    """A SHA-256 of functions' bytecode, constants and names (nested code objects by their own bytecode): a key
+    part naming the code that computes a stored result, so an edited function misses instead of reusing."""
+    def shape(code):
+        consts = tuple(shape(c) if hasattr(c, "co_code") else c for c in code.co_consts)
+        return (code.co_code, consts, code.co_names)
+    return hashlib.sha256(repr([shape(f.__code__) for f in functions]).encode()).hexdigest()

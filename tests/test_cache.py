@@ -48,10 +48,10 @@ def test_a_changed_scenario_field_misses(cache):
     first = NavierStokes(scenario()).steady(0.0)
     misses = cache.misses
     other = NavierStokes(scenario(viscosity=5e-3)).steady(0.0)
-    assert cache.misses == misses + 1 and cache.hits == 0
+    assert cache.misses == misses + 1 and cache.hits == 1          # the steady flow misses; the mesh's matrices hit
     assert not np.allclose(first.velocity, other.velocity)
     NavierStokes(scenario()).steady(0.0)
-    assert cache.hits == 1
+    assert cache.hits == 3
 
 
 def builder(calls):
@@ -123,3 +123,41 @@ def test_cache_command_reports_and_clears_the_configured_directory(tmp_path):
     run = subprocess.run([sys.executable, "-m", "vcyto.cli", "cache"], capture_output=True, text=True,
                          env={**environment, "VCYTO_CACHE": "off"})
     assert "off" in run.stdout
+
+
+def test_constant_matrices_come_from_the_cache_bit_for_bit(cache):
+    from sim.fluid import TaylorHood
+    from sim.mesh import channel_mesh
+    base = scenario()
+    store.install(None)
+    cold = TaylorHood(channel_mesh(base.channel, base.numerics.mesh_h))
+    store.install(cache)
+    TaylorHood(channel_mesh(base.channel, base.numerics.mesh_h))                # fills the cache
+    warm = TaylorHood(channel_mesh(base.channel, base.numerics.mesh_h))
+    assert len(list((cache.directory / "matrices").glob("*.npz"))) == 1 and cache.hits == 1
+    for name in ("mass", "laplace"):
+        assert (getattr(warm, name) != getattr(cold, name)).nnz == 0
+    assert all((w != c).nnz == 0 and w.shape == c.shape for w, c in zip(warm.divergence, cold.divergence))
+    TaylorHood(channel_mesh(base.channel, 12 * UM))                            # another mesh: a miss
+    assert len(list((cache.directory / "matrices").glob("*.npz"))) == 2 and cache.hits == 1
+
+
+def test_code_digest_names_the_code():
+    def form(u, v):
+        return 2.0 * u * v
+
+    def same(u, v):
+        return 2.0 * u * v
+
+    def other_constant(u, v):
+        return 3.0 * u * v
+
+    def nested(u, v):
+        return sum(x * 2.0 for x in (u, v))
+
+    def nested_other(u, v):
+        return sum(x * 3.0 for x in (u, v))
+
+    assert store.code_digest(form) == store.code_digest(same)
+    assert store.code_digest(form) != store.code_digest(other_constant)
+    assert store.code_digest(nested) != store.code_digest(nested_other)      # inside a nested code object

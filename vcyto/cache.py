@@ -114,9 +114,9 @@ def install_default() -> DiskCache | None:
 
 
 def usage(directory: Path | None = None) -> dict:
-    """Where the cache is, whether it is on, and how many entries and bytes it holds."""
+    """Where the cache is, whether it is on, and how many entries (the unit memo counted as one) and bytes it holds."""
     directory = directory or cache_directory()
-    files = [p for p in directory.rglob("*.npz")] if directory.exists() else []
+    files = [*directory.rglob("*.npz"), *directory.glob("units/*.json")] if directory.exists() else []
     return {"directory": str(directory), "enabled": cache_enabled(), "entries": len(files),
             "bytes": sum(p.stat().st_size for p in files)}
 
@@ -126,7 +126,7 @@ def clear(directory: Path | None = None) -> int:
     directory = directory or cache_directory()
     removed = 0
     if directory.exists():
-        for pattern in ("*.npz", ".*.tmp"):
+        for pattern in ("*.npz", ".*.tmp", "units/*.json"):      # units/: vcyto.units' memo of pint's answers
             for path in directory.rglob(pattern):
                 path.unlink(missing_ok=True)
                 removed += 1

@@ -13,8 +13,12 @@ from __future__ import annotations
 
 import decimal
 import functools
+import hashlib
+import json
 import math
+import os
 import re
+import tempfile
 
 # dimension name -> (an SI unit of it, as pint writes it, the example shown in messages)
 DIMENSIONS = {
@@ -133,6 +137,97 @@ def _registry():
 
 @functools.lru_cache(maxsize=512)
 def _si_factor(unit: str, dimension: str) -> float:
+    """The SI factor of ``unit`` as pint reads it, remembered between runs (``_UnitMemo``): a warm process
+    never imports pint (0.8-1.5 s of a run's start: its import pulls in dask, its registry parses ~1,000
+    definitions)."""
+    memo = _UnitMemo.shared()
+    known = memo.get(unit, dimension)
+    if known is None:
+        try:
+            known = ["factor", _pint_si_factor(unit, dimension)]
+        except _WrongDimension as error:
+            known = ["wrong", error.found]
+        except _UnknownUnit:
+            known = ["unknown"]
+        memo.put(unit, dimension, known)
+    if known[0] == "wrong":
+        raise _WrongDimension(known[1])
+    if known[0] == "unknown":
+        raise _UnknownUnit()
+    return float(known[1])
+
+
+MEMO_ENTRIES = 2000
+
+
+class _UnitMemo:
+    """What pint said about each (unit, dimension) read before: one JSON file in vcyto's cache directory,
+    named by pint's version and a digest of the rule (``_rule_digest``), holding a SHA-256 of its entries (a corrupted or edited file is ignored and
+    rewritten). Written to a temporary file and moved in place (``os.replace``); ``VCYTO_CACHE=off``: memory only.
+    """
+
+    _instance = None
+
+    def __init__(self, path):
+        self.path, self.entries = path, {}
+        if path is not None:
+            self.entries = self._read(path)
+
+    @classmethod
+    def shared(cls) -> "_UnitMemo":
+        if cls._instance is None:
+            from importlib.metadata import version
+            from .cache import cache_directory, cache_enabled
+            path = cache_directory() / "units" / f"pint-{version('pint')}-{_rule_digest()}.json" \
+                if cache_enabled() else None
+            cls._instance = cls(path)
+        return cls._instance
+
+    @staticmethod
+    def _read(path) -> dict:
+        try:
+            stored = json.loads(path.read_text())
+            entries = stored["entries"]
+            if stored["sha256"] == _entries_digest(entries) and isinstance(entries, dict):
+                return entries
+        except (OSError, ValueError, KeyError, TypeError):
+            pass
+        return {}
+
+    def get(self, unit: str, dimension: str):
+        known = self.entries.get(f"{dimension}|{unit}")
+        valid = isinstance(known, list) and known and (
+            (known[0] == "factor" and len(known) == 2 and isinstance(known[1], float) and math.isfinite(known[1]))
+            or (known[0] == "wrong" and len(known) == 2 and isinstance(known[1], str))
+            or known == ["unknown"])
+        return known if valid else None
+
+    def put(self, unit: str, dimension: str, known: list):
+        self.entries[f"{dimension}|{unit}"] = known
+        if self.path is None or len(self.entries) > MEMO_ENTRIES:     # a fuzzer's thousand units stay in memory
+            return
+        try:
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+            handle, temporary = tempfile.mkstemp(dir=self.path.parent, prefix=".units.", suffix=".tmp")
+            with os.fdopen(handle, "w") as file:
+                json.dump({"entries": self.entries, "sha256": _entries_digest(self.entries)}, file)
+            os.replace(temporary, self.path)
+        except OSError:      # a read-only cache costs the next run pint's start-up, nothing else
+            pass
+
+
+def _rule_digest() -> str:
+    """A short digest of what the remembered answers depend on besides pint: the dimensions and this module's
+    reading of pint's answer (a changed rule starts a new memo)."""
+    from sim.store import code_digest
+    return hashlib.sha256(repr((DIMENSIONS, code_digest(_pint_si_factor, _describe))).encode()).hexdigest()[:16]
+
+
+def _entries_digest(entries: dict) -> str:
+    return hashlib.sha256(json.dumps(entries, sort_keys=True).encode()).hexdigest()
+
+
+def _pint_si_factor(unit: str, dimension: str) -> float:
     import pint
     registry = _registry()
     try:

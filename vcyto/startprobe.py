@@ -3,8 +3,8 @@
 Runs ``vcyto ARGS`` in this process with ``sim.feib.ImmersedBoundary.step`` replaced by a stop, so what is
 timed is the start: Python's imports, the set-up (mesh, matrices, factorisation, from the cache or not), the
 steady start flow and the first cell. Prints one JSON line: the wall time since this module started and the
-process's CPU time (user + system, all threads) and whether pint was imported. For comparing starts in pairs on a busy machine, where the
-CPU time is steadier than the wall time.
+process's CPU time (user + system, all threads) and whether pint was imported. For comparing starts in pairs
+on a busy machine, where the CPU time is steadier than the wall time.
 """
 
 from __future__ import annotations

@@ -162,8 +162,9 @@ MEMO_ENTRIES = 2000
 
 class _UnitMemo:
     """What pint said about each (unit, dimension) read before: one JSON file in vcyto's cache directory,
-    named by pint's version and a digest of the rule (``_rule_digest``), holding a SHA-256 of its entries (a corrupted or edited file is ignored and
-    rewritten). Written to a temporary file and moved in place (``os.replace``); ``VCYTO_CACHE=off``: memory only.
+    named by pint's version and a digest of the rule (``_rule_digest``), holding a SHA-256 of its entries (a
+    corrupted or edited file is ignored and rewritten). Written to a temporary file and moved in place
+    (``os.replace``); ``VCYTO_CACHE=off``: memory only.
     """
 
     _instance = None
@@ -177,6 +178,7 @@ class _UnitMemo:
     def shared(cls) -> "_UnitMemo":
         if cls._instance is None:
             from importlib.metadata import version
+
             from .cache import cache_directory, cache_enabled
             path = cache_directory() / "units" / f"pint-{version('pint')}-{_rule_digest()}.json" \
                 if cache_enabled() else None

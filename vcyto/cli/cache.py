@@ -1,4 +1,5 @@
-"""`vcyto cache [clear]`: the disk cache of set-up results (steady flows, solver couplings)."""
+"""`vcyto cache [clear]`: the disk cache of set-up results (steady flows, solver couplings, constant matrices,
+unit memo)."""
 
 from __future__ import annotations
 
@@ -6,8 +7,8 @@ from .common import emit
 
 
 def add_command(commands):
-    cache = commands.add_parser("cache", help="the disk cache of set-up results (steady flows, solver couplings): "
-                                "where it is, its size; 'clear' empties it")
+    cache = commands.add_parser("cache", help="the disk cache of set-up results (steady flows, solver couplings, "
+                                "constant matrices, unit memo): where it is, its size; 'clear' empties it")
     cache.add_argument("action", nargs="?", choices=("info", "clear"), default="info",
                        help="info (default): directory and size; clear: delete every entry")
     cache.add_argument("--json", action="store_true", help="print the result as JSON")

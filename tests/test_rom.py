@@ -149,21 +149,36 @@ def test_a_cell_pushed_into_a_wall_slides_along_it_and_sticks_in_a_corner():
     assert slide_end < truth.exit_time < slide_end + 0.2e-3 + 2 * plant.control_period
 
 
-def test_a_cell_at_an_outlet_edge_is_steered_round_the_corner_into_the_outlet():
+def _corner_run(catch_on_divider):
     # the injection inlet moved to (84, 110) um: a melanoma (radius 8 um) starts at y = 97 um, 3 um below the
     # end (300, 100) um of the wall between the outlets, and the flow runs straight to the right
     paper = Scenario()
     inlets = (paper.channel.inlets[0], replace(paper.channel.inlets[1], span=(84 * UM, 110 * UM)),
               paper.channel.inlets[2])
     scenario = replace(paper, channel=replace(paper.channel, inlets=inlets))
-    plant = RomPlant(scenario, flows=RomFlows.uniform(scenario, off=(0.1, 0.0), on=(0.1, 0.0)), response_time=0.0)
+    plant = RomPlant(scenario, flows=RomFlows.uniform(scenario, off=(0.1, 0.0), on=(0.1, 0.0)), response_time=0.0,
+                     catch_on_divider=catch_on_divider)
     plant.reset([(0.0, "melanoma")])
     while not plant.done:
         plant.step(0.0)
     (truth,) = plant.truth().cells
+    return plant, truth
+
+
+def test_a_cell_at_an_outlet_edge_is_steered_round_the_corner_into_the_outlet():
+    plant, truth = _corner_run(catch_on_divider=False)
     assert truth.fate == "lower"
     assert truth.exit_y == pytest.approx(92 * UM, abs=0.2 * UM)    # its outline just clears the corner
     assert plant.diagnostics()["wall_contacts"] > 0
+
+
+def test_a_cell_that_reaches_the_divider_settles_on_it():
+    # the same cell with the divider rule (the default): its outline meets the divider's end, where an FE-IB
+    # membrane straddles it or folds against it, so it settles there (fate wall) instead of sliding off
+    plant, truth = _corner_run(catch_on_divider=True)
+    assert truth.fate == "wall"
+    assert 300 * UM - 8 * UM - 1e-9 <= truth.x < 300 * UM - 7 * UM   # at the outlet plane, its radius off it
+    assert 92 * UM <= truth.exit_y <= 97 * UM + 1e-9 and truth.exit_time < 3e-3
 
 
 def test_same_seed_same_stream_other_seed_other_stream(paper_scenario, plant):

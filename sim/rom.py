@@ -118,6 +118,7 @@ class RomFlows:
     timings: dict
     lags: tuple[float, ...] | None = None
     fit_residual: float | None = None      # the transient fit's largest residual, relative to |v_on - v_off|
+    grid: float | None = None              # the spacing asked of ``sample`` (the grid's nodes follow from it)
 
     @classmethod
     def of(cls, scenario: Scenario, spacing: float = 1e-6, fluid: NavierStokes | None = None,
@@ -130,14 +131,21 @@ class RomFlows:
         solved = clock.perf_counter()
         values = np.concatenate([off, on - off])                       # (4, N)
         flows = cls.sample(scenario, fluid, values, spacing, {"steady_flows_s": solved - started})
-        if not transient or scenario.saw.model == "streaming":
-            return flows
-        return flows.with_transient(sampled_modes(scenario, spacing), TRANSIENT_LAGS)
+        return flows.measured_transient(scenario) if transient else flows
+
+    def measured_transient(self, scenario: Scenario) -> "RomFlows":
+        """These flows with the modes of the FE flow's measured response to the IDT (``sim.rom_transient``;
+        cached through ``sim.store``); unchanged for the ``streaming`` SAW model (its own spin-up lag)."""
+        if scenario.saw.model == "streaming" or self.lags is not None or self.grid is None:
+            return self
+        return self.with_transient(sampled_modes(scenario, self.grid), TRANSIENT_LAGS)
 
     def with_transient(self, modes: dict, lags) -> "RomFlows":
         """These flows with the single change split into the modes of ``sim.rom_transient.sampled_modes``
         (all but the last; the last is the steady change minus them)."""
         def split(fields, fast):
+            if fast.shape[:-1] != fields.shape[:-1]:
+                raise ValueError("the transient modes were sampled on another grid than these flows")
             rest = fields[..., 2:4] - fast.reshape(*fast.shape[:-1], -1, 2).sum(axis=-2)
             return np.concatenate([fields[..., :2], fast, rest], axis=-1)
         timings = dict(self.timings, transient_s=float(modes["seconds"]))
@@ -174,7 +182,7 @@ class RomFlows:
                 cells[k] += weight * at(nodes + offset).reshape(len(x), len(y), 4)
         timings = dict(timings, sampling_s=clock.perf_counter() - started)
         return cls((x[1] - x[0], y[1] - y[0]), (channel.length, channel.height), point, cells,
-                   tuple(c.name for c in scenario.cell_types), timings)
+                   tuple(c.name for c in scenario.cell_types), timings, grid=float(spacing))
 
     @classmethod
     def uniform(cls, scenario: Scenario, off, on, spacing: float = 2e-6) -> "RomFlows":

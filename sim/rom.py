@@ -104,9 +104,10 @@ class RomFlows:
     """The IDT-off flow and the modes of the response to the IDT on a uniform grid: point values and
     per-cell-type area means.
 
-    Arrays are (nx, ny, 2 + 2M) (``point``) and (types, nx, ny, 2 + 2M) (``cells``) with channels
-    [u_off, v_off, du_1, dv_1, ...] at the nodes (i dx, j dy): mode k has time constant ``lags[k]``; the modes
-    sum to v_on - v_off. ``lags`` None: one mode, v_on - v_off, lagged by the plant's ``response_time``.
+    Arrays are (nx, ny, C) (``point``) and (types, nx, ny, C) (``cells``) with channels
+    [u_off, v_off, u_on - u_off, v_on - v_off, du_1, dv_1, ..., du_M, dv_M] at the nodes (i dx, j dy): mode k
+    has time constant ``lags[k]``; the modes sum to v_on - v_off. ``lags`` None: C = 4, one mode, v_on - v_off,
+    lagged by the plant's ``response_time``.
     ``cell_types`` names the types.
     """
 
@@ -147,7 +148,7 @@ class RomFlows:
             if fast.shape[:-1] != fields.shape[:-1]:
                 raise ValueError("the transient modes were sampled on another grid than these flows")
             rest = fields[..., 2:4] - fast.reshape(*fast.shape[:-1], -1, 2).sum(axis=-2)
-            return np.concatenate([fields[..., :2], fast, rest], axis=-1)
+            return np.concatenate([fields[..., :4], fast, rest], axis=-1)
         timings = dict(self.timings, transient_s=float(modes["seconds"]))
         return replace(self, point=split(self.point, modes["point"]), cells=split(self.cells, modes["cells"]),
                        lags=tuple(float(tau) for tau in lags), timings=timings,
@@ -157,10 +158,8 @@ class RomFlows:
         """These flows with their modes summed into one (the blended steady flows)."""
         if self.lags is None:
             return self
-
-        def merge(fields):
-            return np.concatenate([fields[..., :2], fields[..., 2:].reshape(*fields.shape[:-1], -1, 2).sum(-2)], -1)
-        return replace(self, point=merge(self.point), cells=merge(self.cells), lags=None, fit_residual=None)
+        return replace(self, point=self.point[..., :4].copy(), cells=self.cells[..., :4].copy(), lags=None,
+                       fit_residual=None)
 
     @classmethod
     def sample(cls, scenario, fluid, values, spacing, timings) -> "RomFlows":
@@ -201,7 +200,7 @@ class RomFlows:
         fields = self.point[None] if cell_type is None else self.cells[self.cell_types.index(cell_type)][None]
         params = np.zeros(8)
         params[[kernels.LENGTH, kernels.HEIGHT, kernels.SPACING_X, kernels.SPACING_Y]] = [*self.size, *self.spacing]
-        levels = np.broadcast_to(np.asarray(level, dtype=float), ((fields.shape[-1] - 2) // 2,)).copy()
+        levels = np.broadcast_to(np.asarray(level, dtype=float), (len(self.lags or (0,)),)).copy()
         return np.array([kernels.bilinear(fields, 0, x, y, levels, params) for x, y in np.asarray(points, float)])
 
 
@@ -253,7 +252,7 @@ class RomPlant:
         self.substeps = max(1, math.ceil(control_period / max_substep - 1e-9))
         step = control_period / self.substeps
         self._lags = np.array([[math.exp(-fraction * step / tau) if tau > 0 else 0.0 for fraction in (1.0, 0.5)]
-                               for tau in self.lags])
+                               + [0.0, 0.0] for tau in self.lags])        # columns 2-3: the kernel's scratch
         channel = scenario.channel
         self._params = np.array([control_period, self.substeps, channel.length, channel.height,
                                  *self.flows.spacing, stall_speed, stall_time])

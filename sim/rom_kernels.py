@@ -1,11 +1,13 @@
 """Numba kernels of the reduced plant (``sim.rom``): cells carried through gridded flows, many periods per call.
 
-Fields are sampled on a uniform grid, shape (types, nx, ny, 2 + 2 M) with channels
-[u_off, v_off, du_1, dv_1, ..., du_M, dv_M]: the IDT-off flow and M modes of the flow's response to the
-drive, which sum to the IDT-on flow minus the IDT-off flow. Mode k has its own level q_k, following the
-actuation through an exact first-order lag of time constant tau_k (tau_k = 0: at once), and the flow is the
-IDT-off flow plus sum_k q_k times mode k (``bilinear``: bilinear interpolation of every channel). One mode
-is the single lag of the blended steady flows. A cell is an axis-aligned ellipse
+Fields are sampled on a uniform grid, shape (types, nx, ny, 4) or (types, nx, ny, 4 + 2 M) with channels
+[u_off, v_off, du, dv, du_1, dv_1, ..., du_M, dv_M]: the IDT-off flow, the change to the IDT-on flow, and
+M > 1 modes of the flow's response to the drive, which sum to that change. Mode k has its own level q_k,
+following the actuation through an exact first-order lag of time constant tau_k (tau_k = 0: at once), and
+the flow is the IDT-off flow plus sum_k q_k times mode k (``bilinear``); while every level is the same
+(the drive has been steady long enough, most of a stream) that is the IDT-off flow plus q times the change,
+four channels instead of 2 + 2 M. With one mode (no mode channels) it is the single lag of the blended
+steady flows. A cell is an axis-aligned ellipse
 (semi-axes a along x, b along y) whose centroid moves with the field of its type; walls are axis-aligned
 segments the ellipse may touch but not cross (``hold_off``), except a divider between two outlets: a cell
 whose body reaches one settles there (fate WALL), as the FE-IB membranes do (docs/physics.md, "rom").
@@ -34,7 +36,7 @@ OUTLET = 3                     # fate OUTLET + k: left through outlet k
 STEP, NEXT, FIRST, ACTIVE, PHYSICS_STEPS, CONTACTS, LOGGED = range(7)
 # params: float64 array of the plant's constants
 PERIOD, SUBSTEPS, LENGTH, HEIGHT, SPACING_X, SPACING_Y, STALL_SPEED, STALL_TIME = range(8)
-# lags: float64 array (M, 2) of each mode's decay over a substep and over half a substep
+# lags: float64 array (M, 4): each mode's decay over a substep and over half a substep, then two scratch columns
 # why ``advance`` returned
 LIMIT, CROSSING, UNTIL, DONE = range(4)
 
@@ -42,6 +44,11 @@ LIMIT, CROSSING, UNTIL, DONE = range(4)
 @njit(cache=True, error_model="numpy", inline="always")
 def bilinear(fields, kind, x, y, levels, params):
     """The velocity (u, v) of field ``kind`` at mode levels ``levels`` (M,) at (x, y), clamped to the channel."""
+    level = levels[0]
+    modes = levels.shape[0]
+    for m in range(1, modes):
+        if levels[m] != level:
+            return _bilinear_modes(fields, kind, x, y, levels, params)
     nx = fields.shape[1]
     ny = fields.shape[2]
     gx = min(max(x, 0.0), params[LENGTH]) / params[SPACING_X]
@@ -57,11 +64,31 @@ def bilinear(fields, kind, x, y, levels, params):
     u = 0.0
     v = 0.0
     for di, dj, w in ((0, 0, w00), (1, 0, w10), (0, 1, w01), (1, 1, w11)):
+        u += w * (fields[kind, i + di, j + dj, 0] + level * fields[kind, i + di, j + dj, 2])
+        v += w * (fields[kind, i + di, j + dj, 1] + level * fields[kind, i + di, j + dj, 3])
+    return u, v
+
+
+@njit(cache=True, error_model="numpy")
+def _bilinear_modes(fields, kind, x, y, levels, params):
+    """``bilinear`` while the modes' levels differ: every mode's channels."""
+    nx = fields.shape[1]
+    ny = fields.shape[2]
+    gx = min(max(x, 0.0), params[LENGTH]) / params[SPACING_X]
+    gy = min(max(y, 0.0), params[HEIGHT]) / params[SPACING_Y]
+    i = min(int(gx), nx - 2)
+    j = min(int(gy), ny - 2)
+    fx = gx - i
+    fy = gy - j
+    u = 0.0
+    v = 0.0
+    for di, dj, w in ((0, 0, (1.0 - fx) * (1.0 - fy)), (1, 0, fx * (1.0 - fy)), (0, 1, (1.0 - fx) * fy),
+                      (1, 1, fx * fy)):
         cu = fields[kind, i + di, j + dj, 0]
         cv = fields[kind, i + di, j + dj, 1]
         for m in range(levels.shape[0]):
-            cu += levels[m] * fields[kind, i + di, j + dj, 2 + 2 * m]
-            cv += levels[m] * fields[kind, i + di, j + dj, 3 + 2 * m]
+            cu += levels[m] * fields[kind, i + di, j + dj, 4 + 2 * m]
+            cv += levels[m] * fields[kind, i + di, j + dj, 5 + 2 * m]
         u += w * cu
         v += w * cv
     return u, v
@@ -174,8 +201,8 @@ def _period(fields, params, segments, dividers, outlets, semi_axes, start, kind,
     substeps = int(params[SUBSTEPS])
     step = period / substeps
     modes = level.shape[0]
-    level_half = np.empty(modes)
-    level_new = np.empty(modes)
+    level_half = lags[:, 2]
+    level_new = lags[:, 3]
     first = counters[FIRST]
     last = counters[NEXT]
     for i in range(first, last):

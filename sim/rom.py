@@ -40,7 +40,7 @@ import numpy as np
 from . import rom_kernels as kernels
 from .fluid import NavierStokes
 from .plant import CellTruth, CellView, Observation, Truth
-from .rom_transient import TRANSIENT_LAGS, sampled_modes
+from .rom_transient import RESPONSE_POINT, TRANSIENT_LAGS, measure_response_time, sampled_modes  # noqa: F401
 from .scenario import Channel, Scenario
 from .transfer import PointLocator
 
@@ -50,7 +50,6 @@ from .transfer import PointLocator
 JET_RESPONSE_TIME = 41e-6
 # The same for the ``streaming`` body force, on top of its own lag (spin_up_time): 282 us in all at 0.2 ms.
 STREAMING_VISCOUS_DELAY = 82e-6
-RESPONSE_POINT = (150e-6, 115e-6)
 # The default control period: sorting outcomes of 5 x 1,000-cell streams differ from those at 2.5 us in
 # 9 cells at 10 us, 8 at 20 us, 25 at 50 us and 40 at 100 us; each period is one midpoint substep.
 CONTROL_PERIOD = 20e-6
@@ -63,27 +62,6 @@ def default_response_time(scenario: Scenario) -> float:
     if scenario.saw.model == "streaming":
         return scenario.saw.spin_up_time + STREAMING_VISCOUS_DELAY
     return JET_RESPONSE_TIME
-
-
-def measure_response_time(fluid: NavierStokes, point=RESPONSE_POINT, duration: float = 1.2e-3) -> float:
-    """Mean delay of the FE flow at ``point`` after the IDT switches on in the steady IDT-off flow.
-
-    s(t) = (v(t) - v_off) . (v_on - v_off) / |v_on - v_off|^2 at the point (s = 1: the IDT-on flow); the
-    delay is the integral of 1 - s over ``duration``, which is the time constant of the first-order lag with
-    the same integral (the same mean lag of a cell's displacement).
-    """
-    space = fluid.space
-    locator = PointLocator(space.cmesh, space.velocity_basis.element_dofs)
-    off, on = fluid.steady(0.0), fluid.steady(1.0)
-    where = np.array([point], dtype=float)
-    v_off, v_on = locator.interpolate(off.velocity, where)[0], locator.interpolate(on.velocity, where)[0]
-    change = v_on - v_off
-    state, delay = off, 0.0
-    for _ in range(round(duration / fluid.scenario.numerics.dt)):
-        state = fluid.step(state, 1.0)
-        level = (locator.interpolate(state.velocity, where)[0] - v_off) @ change / (change @ change)
-        delay += (1.0 - level) * fluid.scenario.numerics.dt
-    return float(delay)
 
 
 def area_mean_rule(semi_axes, rings: int = 3, spokes: int = 8):

@@ -29,11 +29,13 @@ import numpy as np
 from .fluid import NavierStokes
 from .scenario import Scenario, ScenarioError
 from .store import reuse
+from .transfer import PointLocator
 
 TRANSIENT_LAGS = (0.0, 30e-6, 150e-6)     # s: the jump, a fast and a slow viscous mode
 TRANSIENT_DT = 10e-6                       # s: the FE step of the measurement
 TRANSIENT_DURATION = 1.2e-3                # s: 8 x the slowest lag
 TRANSIENT_MESH_H = 20e-6 / 3               # m: the coarsest mesh the measurement uses
+RESPONSE_POINT = (150e-6, 115e-6)          # m: where cells are deflected (``measure_response_time``)
 
 
 def step_response(fluid: NavierStokes, duration: float):
@@ -82,7 +84,7 @@ def measure_modes(scenario: Scenario, lags=TRANSIENT_LAGS, duration: float = TRA
 def sampled_modes(scenario: Scenario, spacing: float, lags=TRANSIENT_LAGS, duration: float = TRANSIENT_DURATION):
     """All modes but the last, sampled on the rom grid as ``sim.rom.RomFlows.sample`` samples flows: a dict of
     ``point`` (nx, ny, 2K - 2), ``cells`` (types, nx, ny, 2K - 2), ``residual`` (n,), ``seconds``."""
-    from .rom import RomFlows                      # rom imports this module
+    from .rom import RomFlows  # rom imports this module
 
     def build():
         started = clock.perf_counter()
@@ -98,3 +100,24 @@ def sampled_modes(scenario: Scenario, spacing: float, lags=TRANSIENT_LAGS, durat
            "mesh_h": float(numerics.mesh_h), "dt": float(numerics.dt), "numerics": repr(numerics),
            "lags": [float(tau) for tau in lags], "duration": float(duration)}
     return reuse("rom-transient", key, build)
+
+
+def measure_response_time(fluid: NavierStokes, point=RESPONSE_POINT, duration: float = 1.2e-3) -> float:
+    """Mean delay of the FE flow at ``point`` after the IDT switches on in the steady IDT-off flow.
+
+    s(t) = (v(t) - v_off) . (v_on - v_off) / |v_on - v_off|^2 at the point (s = 1: the IDT-on flow); the
+    delay is the integral of 1 - s over ``duration``, which is the time constant of the first-order lag with
+    the same integral (the same mean lag of a cell's displacement).
+    """
+    space = fluid.space
+    locator = PointLocator(space.cmesh, space.velocity_basis.element_dofs)
+    off, on = fluid.steady(0.0), fluid.steady(1.0)
+    where = np.array([point], dtype=float)
+    v_off, v_on = locator.interpolate(off.velocity, where)[0], locator.interpolate(on.velocity, where)[0]
+    change = v_on - v_off
+    state, delay = off, 0.0
+    for _ in range(round(duration / fluid.scenario.numerics.dt)):
+        state = fluid.step(state, 1.0)
+        level = (locator.interpolate(state.velocity, where)[0] - v_off) @ change / (change @ change)
+        delay += (1.0 - level) * fluid.scenario.numerics.dt
+    return float(delay)

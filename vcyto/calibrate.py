@@ -385,11 +385,13 @@ def report_lines(result: dict) -> list[str]:
                  f"{c['envelope_ms'][1] - c['envelope_ms'][0]:.4f} ms; resolution: edges "
                  f"{result['resolution_ms']['envelope_edge'] * 1e3:.1f} us, "
                  f"leads {result['resolution_ms']['lead'] * 1e3:.0f} us")
-    ahead = result["look_ahead"]
-    lines.append(f"look-ahead (delay - lead) {ahead['look_ahead_ms']:.4f} ms "
-                 + ("covers" if ahead["covers_envelope"] else "does NOT cover (purity mode cannot abort for a type-I cell "
-                    "detected after the pulse starts: shorten the pulse or move the detection window upstream)")
-                 + f" the widened trailing edge {ahead['widened_trailing_edge_ms']:+.4f} ms")
+    ahead = result.get("look_ahead")
+    if ahead:
+        verdict = "covers" if ahead["covers_envelope"] else (
+            "does NOT cover (purity mode cannot abort for a type-I cell detected after the pulse starts: "
+            "shorten the pulse or move the detection window upstream)")
+        lines.append(f"look-ahead (delay - lead) {ahead['look_ahead_ms']:.4f} ms {verdict} the widened trailing "
+                     f"edge {ahead['widened_trailing_edge_ms']:+.4f} ms")
     lines.append(f"model {result['model']}, SAW model {result['saw_model']}, control period "
                  f"{result['control_period_ms'] * 1e3:.1f} us, {result['runs']} calibration cells in "
                  f"{result['wall_time_s']:.1f} s")

@@ -44,51 +44,32 @@ LIMIT, CROSSING, UNTIL, DONE = range(4)
 @njit(cache=True, error_model="numpy", inline="always")
 def bilinear(fields, kind, x, y, levels, params):
     """The velocity (u, v) of field ``kind`` at mode levels ``levels`` (M,) at (x, y), clamped to the channel."""
+    nx = fields.shape[1]
+    ny = fields.shape[2]
+    gx = min(max(x, 0.0), params[LENGTH]) / params[SPACING_X]
+    gy = min(max(y, 0.0), params[HEIGHT]) / params[SPACING_Y]
+    i = min(int(gx), nx - 2)
+    j = min(int(gy), ny - 2)
+    fx = gx - i
+    fy = gy - j
     level = levels[0]
-    modes = levels.shape[0]
-    for m in range(1, modes):
+    modes = 0                      # 0: every level is the same, the four-channel blend
+    for m in range(1, levels.shape[0]):
         if levels[m] != level:
-            return _bilinear_modes(fields, kind, x, y, levels, params)
-    nx = fields.shape[1]
-    ny = fields.shape[2]
-    gx = min(max(x, 0.0), params[LENGTH]) / params[SPACING_X]
-    gy = min(max(y, 0.0), params[HEIGHT]) / params[SPACING_Y]
-    i = min(int(gx), nx - 2)
-    j = min(int(gy), ny - 2)
-    fx = gx - i
-    fy = gy - j
-    w00 = (1.0 - fx) * (1.0 - fy)
-    w10 = fx * (1.0 - fy)
-    w01 = (1.0 - fx) * fy
-    w11 = fx * fy
-    u = 0.0
-    v = 0.0
-    for di, dj, w in ((0, 0, w00), (1, 0, w10), (0, 1, w01), (1, 1, w11)):
-        u += w * (fields[kind, i + di, j + dj, 0] + level * fields[kind, i + di, j + dj, 2])
-        v += w * (fields[kind, i + di, j + dj, 1] + level * fields[kind, i + di, j + dj, 3])
-    return u, v
-
-
-@njit(cache=True, error_model="numpy")
-def _bilinear_modes(fields, kind, x, y, levels, params):
-    """``bilinear`` while the modes' levels differ: every mode's channels."""
-    nx = fields.shape[1]
-    ny = fields.shape[2]
-    gx = min(max(x, 0.0), params[LENGTH]) / params[SPACING_X]
-    gy = min(max(y, 0.0), params[HEIGHT]) / params[SPACING_Y]
-    i = min(int(gx), nx - 2)
-    j = min(int(gy), ny - 2)
-    fx = gx - i
-    fy = gy - j
+            modes = levels.shape[0]
     u = 0.0
     v = 0.0
     for di, dj, w in ((0, 0, (1.0 - fx) * (1.0 - fy)), (1, 0, fx * (1.0 - fy)), (0, 1, (1.0 - fx) * fy),
                       (1, 1, fx * fy)):
-        cu = fields[kind, i + di, j + dj, 0]
-        cv = fields[kind, i + di, j + dj, 1]
-        for m in range(levels.shape[0]):
-            cu += levels[m] * fields[kind, i + di, j + dj, 4 + 2 * m]
-            cv += levels[m] * fields[kind, i + di, j + dj, 5 + 2 * m]
+        if modes == 0:
+            cu = fields[kind, i + di, j + dj, 0] + level * fields[kind, i + di, j + dj, 2]
+            cv = fields[kind, i + di, j + dj, 1] + level * fields[kind, i + di, j + dj, 3]
+        else:
+            cu = fields[kind, i + di, j + dj, 0]
+            cv = fields[kind, i + di, j + dj, 1]
+            for m in range(modes):
+                cu += levels[m] * fields[kind, i + di, j + dj, 4 + 2 * m]
+                cv += levels[m] * fields[kind, i + di, j + dj, 5 + 2 * m]
         u += w * cu
         v += w * cv
     return u, v

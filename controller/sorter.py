@@ -40,7 +40,7 @@ class ControllerSettings:
     """Calibrated on the paper's device with the ``paper`` SAW model (``vcyto calibrate``; README "Sort
     envelope"): a melanoma reaches the SAW window's centre 0.553 ms after leaving the detection window at
     0.0997 m/s (rom, with the flow's measured transient modes). A 0.40 ms pulse started 0.30 ms before the
-    arrival sorts it on ``rom`` (good leads 0.21-0.38 ms; its shortest reliable pulse is 0.38 ms) and on
+    arrival sorts it on ``rom`` (its shortest reliable pulse there is 0.32 ms) and on
     ``feib`` at 6.67 and 3.33 um (leads from 0.15 and 0.2 ms up). That pulse deflects an RBC arriving from
     0.196 ms before to 0.2025 ms after the target on ``rom``, and from 0.21 ms before on ``feib`` at 6.67 um,
     whose runs agree with rom's up to +0.16 ms and end lower from +0.28 ms (between them the stretched

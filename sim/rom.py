@@ -14,10 +14,10 @@ Physics kept:
   its own extent off the end of a wall segment beside an inlet or outlet), so a cell pushed against a wall
   slides along it. A cell held against a wall that moves less than ``stall_speed`` for ``stall_time`` is
   stuck: its fate is ``wall``. A centroid crossing x = length leaves by the outlet at that ordinate. A cell
-  whose body reaches a divider (the wall between two outlets, its face or its ends) settles there, fate
-  ``wall`` (``catch_on_divider``): in the FE-IB plant such a membrane straddles the divider's end (its
-  centroid leaves through the divider: ``wall``) or folds against its face, it does not slide off it into
-  an outlet as a rigid ellipse would (docs/physics.md, "rom").
+  pressed on a divider's face (the wall between two outlets) with its centroid in the divider's span
+  settles there, fate ``wall`` (``catch_on_divider``): that is where the FE-IB plant's centroid leaves
+  through the divider (``wall``), or its membrane folds against the face; it does not slide off the face
+  into an outlet as a rigid ellipse would (docs/physics.md, "rom").
 Physics ignored: deformation, the cells' effect on the fluid and on each other (cells may overlap), rotation,
 inertia of the cell.
 

@@ -9,8 +9,9 @@ the flow is the IDT-off flow plus sum_k q_k times mode k (``bilinear``); while e
 four channels instead of 2 + 2 M. With one mode (no mode channels) it is the single lag of the blended
 steady flows. A cell is an axis-aligned ellipse
 (semi-axes a along x, b along y) whose centroid moves with the field of its type; walls are axis-aligned
-segments the ellipse may touch but not cross (``hold_off``), except a divider between two outlets: a cell
-whose body reaches one settles there (fate WALL), as the FE-IB membranes do (docs/physics.md, "rom").
+segments the ellipse may touch but not cross (``hold_off``), except the face of a divider between two outlets:
+a cell pressed on it with its centroid in the divider's span settles there (fate WALL), where the FE-IB
+plant's centroid would leave through the wall (docs/physics.md, "rom").
 
 Cell state lives in flat arrays indexed by key: position (n, 2), fate (n,) coded as below, exit time and
 ordinate, time spent stalled against a wall. ``advance`` steps whole control periods, each ``substeps``
@@ -76,18 +77,14 @@ def bilinear(fields, kind, x, y, levels, params):
 
 
 @njit(cache=True, error_model="numpy", inline="always")
-def on_divider(x, y, a, b, length, dividers):
-    """Whether an a x b ellipse centred at (x, y) touches a divider: a wall segment x = length, y in
-    (dividers[k, 0], dividers[k, 1]), between two outlets (its face or its ends, to round-off)."""
+def on_divider(x, y, a, length, dividers):
+    """Whether an ellipse of semi-axis a along x centred at (x, y) is pressed on a divider's face: a wall
+    segment x = length, y in (dividers[k, 0], dividers[k, 1]) between two outlets, with its centroid's
+    ordinate in that span (where the FE-IB plant's centroid would leave through the wall: fate ``wall``)."""
     if x + a < length * (1.0 - 1e-9):
         return False
     for k in range(dividers.shape[0]):
-        low = dividers[k, 0]
-        high = dividers[k, 1]
-        if low <= y <= high:
-            return True
-        end = low if y < low else high
-        if ((x - length) / a) ** 2 + ((y - end) / b) ** 2 <= 1.0 + 1e-6:
+        if dividers[k, 0] <= y <= dividers[k, 1]:
             return True
     return False
 
@@ -143,7 +140,7 @@ def outlet_code(y, outlets):
 @njit(cache=True, error_model="numpy", inline="always")
 def _move(i, fields, params, segments, dividers, outlets, semi_axes, kind, position, fate, exit_time, exit_y,
           counters, start_time, step, level, level_half, touched):
-    """One midpoint step of cell i; settles its fate when it leaves the channel or reaches a divider."""
+    """One midpoint step of cell i; settles its fate when it leaves the channel or is pressed on a divider."""
     k = kind[i]
     a = semi_axes[k, 0]
     b = semi_axes[k, 1]
@@ -159,7 +156,7 @@ def _move(i, fields, params, segments, dividers, outlets, semi_axes, kind, posit
         fate[i] = LOST
         exit_time[i] = start_time + step
         counters[ACTIVE] -= 1
-    elif contact and on_divider(new_x, new_y, a, b, params[LENGTH], dividers):
+    elif contact and on_divider(new_x, new_y, a, params[LENGTH], dividers):
         fate[i] = WALL
         exit_time[i] = start_time + step
         exit_y[i] = new_y

@@ -37,21 +37,24 @@ REORDER_SLACK = 1e-3           # s: predicted arrivals may come out of detection
 
 @dataclass(frozen=True)
 class ControllerSettings:
-    """Calibrated on the paper's device with the ``paper`` SAW model (``vcyto calibrate``; docs/results.md "The sort
-    envelope"): a melanoma reaches the SAW window's centre 0.548 ms after leaving the detection window at
-    0.0997 m/s (rom). The shortest pulse that sorts it on ``rom`` is 0.30 ms, but ``feib`` needs the jet
-    earlier and longer (a stiff 16 um cell turns more slowly); 0.40 ms started 0.30 ms before the arrival sorts
-    it on ``rom`` (good leads 0.05-0.44 ms) and on ``feib`` at 6.67 and 3.33 um (0.15-0.2 ms and up). That pulse
-    deflects an RBC arriving from 0.236 ms before to 0.123 ms after the target on ``rom``, and from 0.21 ms before
-    to 0.27 ms after on ``feib`` at 6.67 um: the envelope is their union, so that purity holds on every level."""
+    """Calibrated on the paper's device with the ``paper`` SAW model (``vcyto calibrate``; docs/results.md "The
+    sort envelope"): a melanoma reaches the SAW window's centre 0.553 ms after leaving the detection window at
+    0.0997 m/s (rom, with the flow's measured transient modes). A 0.40 ms pulse started 0.30 ms before the
+    arrival sorts it on ``rom`` (its shortest reliable pulse there is 0.32 ms) and on
+    ``feib`` at 6.67 and 3.33 um (leads from 0.15 and 0.2 ms up). That pulse deflects an RBC arriving from
+    0.196 ms before to 0.2025 ms after the target on ``rom``, and from 0.21 ms before on ``feib`` at 6.67 um,
+    whose runs agree with rom's up to +0.16 ms and end lower from +0.28 ms (between them the stretched
+    membrane folds against the divider: no outcome). The envelope is their union. The look-ahead, delay - lead
+    = 0.253 ms, covers its widened trailing edge (0.2025 + 2 x 0.0216 = 0.246 ms): every type-I cell that
+    could be co-deflected is detected before the pulse starts, so purity mode can abort for it."""
 
-    delay: float = 0.5478e-3
+    delay: float = 0.5530e-3
     reference_velocity: float = 0.0997
     lead: float = 0.30e-3
     pulse: float = 0.40e-3
     mode: str = "purity"
-    envelope: tuple[float, float] = (-0.2362e-3, 0.27e-3)
-    timing_error: float = 0.0271e-3
+    envelope: tuple[float, float] = (-0.21e-3, 0.2025e-3)
+    timing_error: float = 0.0216e-3
     enabled: bool = True
 
     def __post_init__(self):

@@ -79,6 +79,7 @@ class AutoPlant:
         rom_steady = self._steady if same else (fine.steady(0.0), fine.steady(1.0))
         off, on = (flow.velocity for flow in rom_steady)
         flows = RomFlows.sample(scenario, fine, np.concatenate([off, on - off]), grid_spacing, {})
+        flows = flows.measured_transient(scenario)          # rom's measured transient modes, as rom's own
         self.rom = RomPlant(scenario, control_period=self.control_period, flows=flows)
         self._radius = {c.name: max(c.semi_axes) for c in scenario.cell_types}
         if not (stiff_capillary >= 0):

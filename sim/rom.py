@@ -1,18 +1,25 @@
 """The reduced plant ``rom``: cells as finite-size passive bodies carried by two precomputed steady flows.
 
 Physics kept:
-- the flow is linear in the drive: v = (1 - s) v_off + s v_on, with v_off and v_on the steady Navier-Stokes
-  flows of the scenario with the IDT off and on (the FE-IB plant's initial flow, from ``NavierStokes.steady``),
-  and s the drive level following the actuation through a first-order lag (``response_time``);
+- the flow is linear in the drive: v = v_off + sum_k q_k Phi_k, with v_off the steady Navier-Stokes flow of
+  the scenario with the IDT off (the FE-IB plant's initial flow, from ``NavierStokes.steady``) and Phi_k the
+  modes of the FE flow's measured response to the IDT (``sim.rom_transient``: a jump, a fast and a slow
+  viscous mode, summing to v_on - v_off), each mode's level q_k following the actuation through a
+  first-order lag of its own time constant. With ``response_time`` given (or the ``streaming`` SAW model,
+  or flows sampled without the transient) there is one mode, v_on - v_off, lagged by ``response_time``;
 - a cell is an ellipse of its type's semi-axes whose centroid moves with the flow averaged over its area.
   For a cell whose interior is fluid that is exact (d/dt of the area centroid = area mean of v, by Reynolds'
   transport theorem and div v = 0), and it is what the FE-IB plant's centroid does in the undisturbed flow;
 - walls: the ellipse may touch a wall but not cross it (its centroid is held its semi-axis off the wall, or
   its own extent off the end of a wall segment beside an inlet or outlet), so a cell pushed against a wall
   slides along it. A cell held against a wall that moves less than ``stall_speed`` for ``stall_time`` is
-  stuck: its fate is ``wall``. A centroid crossing x = length leaves by the outlet at that ordinate.
+  stuck: its fate is ``wall``. A centroid crossing x = length leaves by the outlet at that ordinate. A cell
+  pressed on a divider's face (the wall between two outlets) with its centroid in the divider's span
+  settles there, fate ``wall`` (``catch_on_divider``): that is where the FE-IB plant's centroid leaves
+  through the divider (``wall``), or its membrane folds against the face; it does not slide off the face
+  into an outlet as a rigid ellipse would (docs/physics.md, "rom").
 Physics ignored: deformation, the cells' effect on the fluid and on each other (cells may overlap), rotation,
-inertia of the cell, and the shape of the flow's transient (one lag, not the FE's fast jump plus viscous tail).
+inertia of the cell.
 
 The fields are sampled once on a uniform grid (``RomFlows``, 1 um by default) from the exact P2 solution and
 interpolated bilinearly; the area means are precomputed per cell type on the same grid, so moving a cell costs
@@ -26,7 +33,7 @@ from __future__ import annotations
 
 import math
 import time as clock
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -35,6 +42,7 @@ from .drive import lag_decay
 from .fluid import NavierStokes
 from .geometry import clip_to_channel, injection_point
 from .plant import CellTruth, CellView, Observation, Truth
+from .rom_transient import RESPONSE_POINT, TRANSIENT_LAGS, measure_response_time, sampled_modes  # noqa: F401
 from .scenario import Channel, Scenario
 from .transfer import PointLocator
 
@@ -44,7 +52,6 @@ from .transfer import PointLocator
 JET_RESPONSE_TIME = 41e-6
 # The same for the ``streaming`` body force, on top of its own lag (spin_up_time): 282 us in all at 0.2 ms.
 STREAMING_VISCOUS_DELAY = 82e-6
-RESPONSE_POINT = (150e-6, 115e-6)
 # The default control period: sorting outcomes of 5 x 1,000-cell streams differ from those at 2.5 us in
 # 9 cells at 10 us, 8 at 20 us, 25 at 50 us and 40 at 100 us; each period is one midpoint substep.
 CONTROL_PERIOD = 20e-6
@@ -57,27 +64,6 @@ def default_response_time(scenario: Scenario) -> float:
     if scenario.saw.model == "streaming":
         return scenario.saw.spin_up_time + STREAMING_VISCOUS_DELAY
     return JET_RESPONSE_TIME
-
-
-def measure_response_time(fluid: NavierStokes, point=RESPONSE_POINT, duration: float = 1.2e-3) -> float:
-    """Mean delay of the FE flow at ``point`` after the IDT switches on in the steady IDT-off flow.
-
-    s(t) = (v(t) - v_off) . (v_on - v_off) / |v_on - v_off|^2 at the point (s = 1: the IDT-on flow); the
-    delay is the integral of 1 - s over ``duration``, which is the time constant of the first-order lag with
-    the same integral (the same mean lag of a cell's displacement).
-    """
-    space = fluid.space
-    locator = PointLocator(space.cmesh, space.velocity_basis.element_dofs)
-    off, on = fluid.steady(0.0), fluid.steady(1.0)
-    where = np.array([point], dtype=float)
-    v_off, v_on = locator.interpolate(off.velocity, where)[0], locator.interpolate(on.velocity, where)[0]
-    change = v_on - v_off
-    state, delay = off, 0.0
-    for _ in range(round(duration / fluid.scenario.numerics.dt)):
-        state = fluid.step(state, 1.0)
-        level = (locator.interpolate(state.velocity, where)[0] - v_off) @ change / (change @ change)
-        delay += (1.0 - level) * fluid.scenario.numerics.dt
-    return float(delay)
 
 
 def area_mean_rule(semi_axes, rings: int = 3, spokes: int = 8):
@@ -95,10 +81,14 @@ def area_mean_rule(semi_axes, rings: int = 3, spokes: int = 8):
 
 @dataclass(frozen=True)
 class RomFlows:
-    """The IDT-off and IDT-on steady flows on a uniform grid: point values and per-cell-type area means.
+    """The IDT-off flow and the modes of the response to the IDT on a uniform grid: point values and
+    per-cell-type area means.
 
-    Arrays are (nx, ny, 4) (``point``) and (types, nx, ny, 4) (``cells``) with channels
-    [u_off, v_off, u_on - u_off, v_on - v_off] at the nodes (i dx, j dy); ``cell_types`` names the types.
+    Arrays are (nx, ny, C) (``point``) and (types, nx, ny, C) (``cells``) with channels
+    [u_off, v_off, u_on - u_off, v_on - v_off, du_1, dv_1, ..., du_M, dv_M] at the nodes (i dx, j dy): mode k
+    has time constant ``lags[k]``; the modes sum to v_on - v_off. ``lags`` None: C = 4, one mode, v_on - v_off,
+    lagged by the plant's ``response_time``.
+    ``cell_types`` names the types.
     """
 
     spacing: tuple[float, float]
@@ -107,16 +97,49 @@ class RomFlows:
     cells: np.ndarray
     cell_types: tuple[str, ...]
     timings: dict
+    lags: tuple[float, ...] | None = None
+    fit_residual: float | None = None      # the transient fit's largest residual, relative to |v_on - v_off|
+    grid: float | None = None              # the spacing asked of ``sample`` (the grid's nodes follow from it)
 
     @classmethod
-    def of(cls, scenario: Scenario, spacing: float = 1e-6, fluid: NavierStokes | None = None) -> "RomFlows":
-        """Solve the two steady flows (``fluid``, default: the scenario's own) and sample them every ``spacing``."""
+    def of(cls, scenario: Scenario, spacing: float = 1e-6, fluid: NavierStokes | None = None,
+           transient: bool = True) -> "RomFlows":
+        """Solve the two steady flows (``fluid``, default: the scenario's own) and sample them every ``spacing``;
+        with ``transient`` (and a Dirichlet SAW model) also the modes of the FE flow's response to the IDT."""
         started = clock.perf_counter()
         fluid = fluid or NavierStokes(scenario)
         off, on = fluid.steady(0.0).velocity, fluid.steady(1.0).velocity
         solved = clock.perf_counter()
         values = np.concatenate([off, on - off])                       # (4, N)
-        return cls.sample(scenario, fluid, values, spacing, {"steady_flows_s": solved - started})
+        flows = cls.sample(scenario, fluid, values, spacing, {"steady_flows_s": solved - started})
+        return flows.measured_transient(scenario) if transient else flows
+
+    def measured_transient(self, scenario: Scenario) -> "RomFlows":
+        """These flows with the modes of the FE flow's measured response to the IDT (``sim.rom_transient``;
+        cached through ``sim.store``); unchanged for the ``streaming`` SAW model (its own spin-up lag)."""
+        if scenario.saw.model == "streaming" or self.lags is not None or self.grid is None:
+            return self
+        return self.with_transient(sampled_modes(scenario, self.grid), TRANSIENT_LAGS)
+
+    def with_transient(self, modes: dict, lags) -> "RomFlows":
+        """These flows with the single change split into the modes of ``sim.rom_transient.sampled_modes``
+        (all but the last; the last is the steady change minus them)."""
+        def split(fields, fast):
+            if fast.shape[:-1] != fields.shape[:-1]:
+                raise ValueError("the transient modes were sampled on another grid than these flows")
+            rest = fields[..., 2:4] - fast.reshape(*fast.shape[:-1], -1, 2).sum(axis=-2)
+            return np.concatenate([fields[..., :4], fast, rest], axis=-1)
+        timings = dict(self.timings, transient_s=float(modes["seconds"]))
+        return replace(self, point=split(self.point, modes["point"]), cells=split(self.cells, modes["cells"]),
+                       lags=tuple(float(tau) for tau in lags), timings=timings,
+                       fit_residual=float(np.max(modes["residual"])))
+
+    def single_lag(self) -> "RomFlows":
+        """These flows with their modes summed into one (the blended steady flows)."""
+        if self.lags is None:
+            return self
+        return replace(self, point=self.point[..., :4].copy(), cells=self.cells[..., :4].copy(), lags=None,
+                       fit_residual=None)
 
     @classmethod
     def sample(cls, scenario, fluid, values, spacing, timings) -> "RomFlows":
@@ -137,7 +160,7 @@ class RomFlows:
                 cells[k] += weight * at(nodes + offset).reshape(len(x), len(y), 4)
         timings = dict(timings, sampling_s=clock.perf_counter() - started)
         return cls((x[1] - x[0], y[1] - y[0]), (channel.length, channel.height), point, cells,
-                   tuple(c.name for c in scenario.cell_types), timings)
+                   tuple(c.name for c in scenario.cell_types), timings, grid=float(spacing))
 
     @classmethod
     def uniform(cls, scenario: Scenario, off, on, spacing: float = 2e-6) -> "RomFlows":
@@ -150,12 +173,14 @@ class RomFlows:
         return cls((channel.length / (nx - 1), channel.height / (ny - 1)), (channel.length, channel.height), point,
                    cells, tuple(c.name for c in scenario.cell_types), {})
 
-    def velocity(self, points, level: float = 0.0, cell_type: str | None = None) -> np.ndarray:
-        """The gridded flow (n, 2) at ``points`` (n, 2): point values, or a cell type's area means."""
+    def velocity(self, points, level=0.0, cell_type: str | None = None) -> np.ndarray:
+        """The gridded flow (n, 2) at ``points`` (n, 2): point values, or a cell type's area means; ``level`` is
+        every mode's level (a number: the steady blend at that level) or one per mode."""
         fields = self.point[None] if cell_type is None else self.cells[self.cell_types.index(cell_type)][None]
-        params = np.zeros(10)
+        params = np.zeros(8)
         params[[kernels.LENGTH, kernels.HEIGHT, kernels.SPACING_X, kernels.SPACING_Y]] = [*self.size, *self.spacing]
-        return np.array([kernels.bilinear(fields, 0, x, y, level, params) for x, y in np.asarray(points, float)])
+        levels = np.broadcast_to(np.asarray(level, dtype=float), (len(self.lags or (0,)),)).copy()
+        return np.array([kernels.bilinear(fields, 0, x, y, levels, params) for x, y in np.asarray(points, float)])
 
 
 def wall_segments(channel: Channel) -> np.ndarray:
@@ -173,8 +198,14 @@ def wall_segments(channel: Channel) -> np.ndarray:
     return np.array(rows)
 
 
+def divider_spans(channel: Channel) -> np.ndarray:
+    """The dividers (m, 2): the spans (low, high) of wall on x = length between two outlets."""
+    spans = sorted(outlet.span for outlet in channel.outlets)
+    return np.array([(a[1], b[0]) for a, b in zip(spans, spans[1:]) if b[0] > a[1]], dtype=float).reshape(-1, 2)
+
+
 class RomPlant:
-    """Cells carried through the blended steady flows (module docstring) behind the plant contract.
+    """Cells carried through the flow's modes (module docstring) behind the plant contract.
 
     ``control_period`` is the period of ``step``; each period is ``ceil(control_period / max_substep)``
     midpoint substeps. ``step_until`` groups periods (the closed loop's fast path). Set-up (the two steady
@@ -183,7 +214,7 @@ class RomPlant:
 
     def __init__(self, scenario: Scenario, control_period: float | None = None, response_time: float | None = None,
                  flows: RomFlows | None = None, grid_spacing: float = 1e-6, max_substep: float = 20e-6,
-                 stall_speed: float = 1e-4, stall_time: float = 1e-3):
+                 stall_speed: float = 1e-4, stall_time: float = 1e-3, catch_on_divider: bool = True):
         control_period = CONTROL_PERIOD if control_period is None else control_period
         if not control_period > 0 or not max_substep > 0:
             raise ValueError("control_period and max_substep must be positive")
@@ -192,16 +223,20 @@ class RomPlant:
         self.response_time = default_response_time(scenario) if response_time is None else response_time
         if not self.response_time >= 0:
             raise ValueError(f"response_time must be >= 0 s (got {self.response_time!r})")
-        self.flows = flows or RomFlows.of(scenario, grid_spacing)
+        flows = flows or RomFlows.of(scenario, grid_spacing)
+        self.flows = flows.single_lag() if response_time is not None else flows     # a given lag: one mode
         if self.flows.cell_types != tuple(c.name for c in scenario.cell_types):
             raise ValueError("the flows were sampled for other cell types than the scenario's")
+        self.lags = self.flows.lags or (self.response_time,)
         self.substeps = max(1, math.ceil(control_period / max_substep - 1e-9))
         step = control_period / self.substeps
-        decay = [lag_decay(fraction * step, self.response_time) for fraction in (1.0, 0.5)]
+        self._lags = np.array([[lag_decay(fraction * step, tau) for fraction in (1.0, 0.5)]
+                               + [0.0, 0.0] for tau in self.lags])        # columns 2-3: the kernel's scratch
         channel = scenario.channel
-        self._params = np.array([control_period, self.substeps, *decay, channel.length, channel.height,
+        self._params = np.array([control_period, self.substeps, channel.length, channel.height,
                                  *self.flows.spacing, stall_speed, stall_time])
         self._segments = wall_segments(channel)
+        self._dividers = divider_spans(channel) if catch_on_divider else np.zeros((0, 2))
         self._outlets = np.array([outlet.span for outlet in channel.outlets])
         self._outlet_names = {kernels.OUTLET + k: outlet.name for k, outlet in enumerate(channel.outlets)}
         types = scenario.cell_types
@@ -239,12 +274,13 @@ class RomPlant:
         self._log_key = np.zeros(2 * n + 64, dtype=np.int64)
         self._log_positions = np.zeros((2 * n + 64, 4))
         self._counters = np.zeros(7, dtype=np.int64)
-        self._level = np.zeros(1)
+        self._level = np.zeros(len(self.lags))
         self._unreported, self._reported = 0, set()        # truth_update's position: keys below are all reported
-        self._arrays = (self.flows.cells, self._params, self._segments, self._outlets, self._semi_axes, self._start,
-                        self._kind, self._arrival, self._born, self._position, self._fate, self._exit_time,
-                        self._exit_y, self._stalled, self._counters, self._level, self._before, self._touched,
-                        self._log_step, self._log_key, self._log_positions)   # the kernel's arguments, in order
+        self._arrays = (self.flows.cells, self._params, self._segments, self._dividers, self._outlets,
+                        self._semi_axes, self._start, self._kind, self._arrival, self._born, self._position,
+                        self._fate, self._exit_time, self._exit_y, self._stalled, self._counters, self._level,
+                        self._lags, self._before, self._touched, self._log_step, self._log_key,
+                        self._log_positions)   # the kernel's arguments, in order
         kernels.inject(self._start, self._kind, self._arrival, self._born, self._position, self._fate,
                        self._counters, 0.0, 0.5 * self.control_period, self._before)
         return self.observe()
@@ -358,10 +394,10 @@ class RomPlant:
             self._born[key] = born
             self._stalled[key] = 0.0
         self._unreported, self._reported = 0, set()
-        self._level[0] = level
+        self._level[:] = level              # every mode at the hand-over's level (the blended steady flow)
 
     def diagnostics(self) -> dict:
         """Figures for logging: substep, physics steps so far, drive level, wall contacts (cell-substeps)."""
         return {"dt": self.control_period / self.substeps, "physics_steps": int(self._counters[kernels.PHYSICS_STEPS]),
-                "level": float(self._level[0]), "response_time": self.response_time,
+                "level": float(self._level.mean()), "levels": self._level.tolist(), "response_time": self.response_time,
                 "wall_contacts": int(self._counters[kernels.CONTACTS]), "health": "ok"}

@@ -1,14 +1,21 @@
 """Numba kernels of the reduced plant (``sim.rom``): cells carried through gridded flows, many periods per call.
 
-Fields are sampled on a uniform grid, shape (types, nx, ny, 4) with channels
-[u_off, v_off, u_on - u_off, v_on - v_off], so the flow at drive level s is channels 0-1 plus s times
-channels 2-3, each looked up by bilinear interpolation (``bilinear``). A cell is an axis-aligned ellipse
+Fields are sampled on a uniform grid, shape (types, nx, ny, 4) or (types, nx, ny, 4 + 2 M) with channels
+[u_off, v_off, du, dv, du_1, dv_1, ..., du_M, dv_M]: the IDT-off flow, the change to the IDT-on flow, and
+M > 1 modes of the flow's response to the drive, which sum to that change. Mode k has its own level q_k,
+following the actuation through an exact first-order lag of time constant tau_k (tau_k = 0: at once), and
+the flow is the IDT-off flow plus sum_k q_k times mode k (``bilinear``); while every level is the same
+(the drive has been steady long enough, most of a stream) that is the IDT-off flow plus q times the change,
+four channels instead of 2 + 2 M. With one mode (no mode channels) it is the single lag of the blended
+steady flows. A cell is an axis-aligned ellipse
 (semi-axes a along x, b along y) whose centroid moves with the field of its type; walls are axis-aligned
-segments the ellipse may touch but not cross (``hold_off``).
+segments the ellipse may touch but not cross (``hold_off``), except the face of a divider between two outlets:
+a cell pressed on it with its centroid in the divider's span settles there (fate WALL), where the FE-IB
+plant's centroid would leave through the wall (docs/physics.md, "rom").
 
 Cell state lives in flat arrays indexed by key: position (n, 2), fate (n,) coded as below, exit time and
 ordinate, time spent stalled against a wall. ``advance`` steps whole control periods, each ``substeps``
-midpoint (RK2) steps with the drive level following the actuation through an exact first-order lag,
+midpoint (RK2) steps with each mode's level following the actuation through its exact first-order lag,
 injects the cells due, and returns early when the caller must look (see its docstring). Helpers are
 inlined: a numba call that passes arrays costs a reference count per array, more than a substep.
 """
@@ -29,14 +36,15 @@ OUTLET = 3                     # fate OUTLET + k: left through outlet k
 # counters: int64 array of the plant's integer state
 STEP, NEXT, FIRST, ACTIVE, PHYSICS_STEPS, CONTACTS, LOGGED = range(7)
 # params: float64 array of the plant's constants
-PERIOD, SUBSTEPS, DECAY, DECAY_HALF, LENGTH, HEIGHT, SPACING_X, SPACING_Y, STALL_SPEED, STALL_TIME = range(10)
+PERIOD, SUBSTEPS, LENGTH, HEIGHT, SPACING_X, SPACING_Y, STALL_SPEED, STALL_TIME = range(8)
+# lags: float64 array (M, 4): each mode's decay over a substep and over half a substep, then two scratch columns
 # why ``advance`` returned
 LIMIT, CROSSING, UNTIL, DONE = range(4)
 
 
 @njit(cache=True, error_model="numpy", inline="always")
-def bilinear(fields, kind, x, y, level, params):
-    """The velocity (u, v) of field ``kind`` at drive level ``level`` at (x, y), clamped to the channel."""
+def bilinear(fields, kind, x, y, levels, params):
+    """The velocity (u, v) of field ``kind`` at mode levels ``levels`` (M,) at (x, y), clamped to the channel."""
     nx = fields.shape[1]
     ny = fields.shape[2]
     gx = min(max(x, 0.0), params[LENGTH]) / params[SPACING_X]
@@ -45,16 +53,40 @@ def bilinear(fields, kind, x, y, level, params):
     j = min(int(gy), ny - 2)
     fx = gx - i
     fy = gy - j
-    w00 = (1.0 - fx) * (1.0 - fy)
-    w10 = fx * (1.0 - fy)
-    w01 = (1.0 - fx) * fy
-    w11 = fx * fy
+    level = levels[0]
+    modes = 0                      # 0: every level is the same, the four-channel blend
+    for m in range(1, levels.shape[0]):
+        if levels[m] != level:
+            modes = levels.shape[0]
     u = 0.0
     v = 0.0
-    for di, dj, w in ((0, 0, w00), (1, 0, w10), (0, 1, w01), (1, 1, w11)):
-        u += w * (fields[kind, i + di, j + dj, 0] + level * fields[kind, i + di, j + dj, 2])
-        v += w * (fields[kind, i + di, j + dj, 1] + level * fields[kind, i + di, j + dj, 3])
+    for di, dj, w in ((0, 0, (1.0 - fx) * (1.0 - fy)), (1, 0, fx * (1.0 - fy)), (0, 1, (1.0 - fx) * fy),
+                      (1, 1, fx * fy)):
+        if modes == 0:
+            cu = fields[kind, i + di, j + dj, 0] + level * fields[kind, i + di, j + dj, 2]
+            cv = fields[kind, i + di, j + dj, 1] + level * fields[kind, i + di, j + dj, 3]
+        else:
+            cu = fields[kind, i + di, j + dj, 0]
+            cv = fields[kind, i + di, j + dj, 1]
+            for m in range(modes):
+                cu += levels[m] * fields[kind, i + di, j + dj, 4 + 2 * m]
+                cv += levels[m] * fields[kind, i + di, j + dj, 5 + 2 * m]
+        u += w * cu
+        v += w * cv
     return u, v
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def on_divider(x, y, a, length, dividers):
+    """Whether an ellipse of semi-axis a along x centred at (x, y) is pressed on a divider's face: a wall
+    segment x = length, y in (dividers[k, 0], dividers[k, 1]) between two outlets, with its centroid's
+    ordinate in that span (where the FE-IB plant's centroid would leave through the wall: fate ``wall``)."""
+    if x + a < length * (1.0 - 1e-9):
+        return False
+    for k in range(dividers.shape[0]):
+        if dividers[k, 0] <= y <= dividers[k, 1]:
+            return True
+    return False
 
 
 @njit(cache=True, error_model="numpy", inline="always")
@@ -106,9 +138,9 @@ def outlet_code(y, outlets):
 
 
 @njit(cache=True, error_model="numpy", inline="always")
-def _move(i, fields, params, segments, outlets, semi_axes, kind, position, fate, exit_time, exit_y, counters,
-          start_time, step, level, level_half, touched):
-    """One midpoint step of cell i; settles its fate when it leaves the channel."""
+def _move(i, fields, params, segments, dividers, outlets, semi_axes, kind, position, fate, exit_time, exit_y,
+          counters, start_time, step, level, level_half, touched):
+    """One midpoint step of cell i; settles its fate when it leaves the channel or is pressed on a divider."""
     k = kind[i]
     a = semi_axes[k, 0]
     b = semi_axes[k, 1]
@@ -124,6 +156,11 @@ def _move(i, fields, params, segments, outlets, semi_axes, kind, position, fate,
         fate[i] = LOST
         exit_time[i] = start_time + step
         counters[ACTIVE] -= 1
+    elif contact and on_divider(new_x, new_y, a, params[LENGTH], dividers):
+        fate[i] = WALL
+        exit_time[i] = start_time + step
+        exit_y[i] = new_y
+        counters[ACTIVE] -= 1
     elif new_x >= params[LENGTH]:
         weight = (params[LENGTH] - x) / (new_x - x)
         exit_y[i] = y + weight * (new_y - y)
@@ -135,14 +172,15 @@ def _move(i, fields, params, segments, outlets, semi_axes, kind, position, fate,
 
 
 @njit(cache=True, error_model="numpy", inline="always")
-def _period(fields, params, segments, outlets, semi_axes, start, kind, arrival, born, position, fate, exit_time,
-            exit_y, stalled, counters, level, actuation, before, touched):
-    """Advance one control period and inject the cells then due; the level after it."""
+def _period(fields, params, segments, dividers, outlets, semi_axes, start, kind, arrival, born, position, fate,
+            exit_time, exit_y, stalled, counters, level, lags, actuation, before, touched):
+    """Advance one control period and inject the cells then due; ``level`` (M,) is updated in place."""
     period = params[PERIOD]
     substeps = int(params[SUBSTEPS])
     step = period / substeps
-    decay = params[DECAY]
-    decay_half = params[DECAY_HALF]
+    modes = level.shape[0]
+    level_half = lags[:, 2]
+    level_new = lags[:, 3]
     first = counters[FIRST]
     last = counters[NEXT]
     for i in range(first, last):
@@ -152,15 +190,17 @@ def _period(fields, params, segments, outlets, semi_axes, start, kind, arrival, 
         touched[i] = False
     t0 = counters[STEP] * period
     for sub in range(substeps):
-        level_half = actuation + (level - actuation) * decay_half
-        level_new = actuation + (level - actuation) * decay
+        for m in range(modes):
+            level_half[m] = actuation + (level[m] - actuation) * lags[m, 1]
+            level_new[m] = actuation + (level[m] - actuation) * lags[m, 0]
         for i in range(first, last):
             if fate[i] == IN_CHANNEL:
-                _move(i, fields, params, segments, outlets, semi_axes, kind, position, fate, exit_time, exit_y,
-                      counters, t0 + sub * step, step, level, level_half, touched)
-        # settle the lag once it is within 1e-12 of the drive: the tail would decay into subnormal numbers,
+                _move(i, fields, params, segments, dividers, outlets, semi_axes, kind, position, fate, exit_time,
+                      exit_y, counters, t0 + sub * step, step, level, level_half, touched)
+        # settle a lag once it is within 1e-12 of the drive: the tail would decay into subnormal numbers,
         # which make every later look-up ~100x slower
-        level = level_new if abs(level_new - actuation) > 1e-12 else actuation
+        for m in range(modes):
+            level[m] = level_new[m] if abs(level_new[m] - actuation) > 1e-12 else actuation
         counters[PHYSICS_STEPS] += 1
     counters[STEP] += 1
     now = counters[STEP] * period
@@ -178,7 +218,6 @@ def _period(fields, params, segments, outlets, semi_axes, start, kind, arrival, 
         else:
             stalled[i] = 0.0
     inject(start, kind, arrival, born, position, fate, counters, now, 0.5 * period, before)
-    return level
 
 
 @njit(cache=True, error_model="numpy", inline="always")
@@ -208,9 +247,9 @@ def _crosses(x_before, x_after, lines):
 
 
 @njit(cache=True, error_model="numpy")
-def advance(fields, params, segments, outlets, semi_axes, start, kind, arrival, born, position, fate, exit_time,
-            exit_y, stalled, counters, level_state, before, touched, log_step, log_key, log_positions, actuation,
-            until, max_periods, stop_lines, record_lines):
+def advance(fields, params, segments, dividers, outlets, semi_axes, start, kind, arrival, born, position, fate,
+            exit_time, exit_y, stalled, counters, level_state, lags, before, touched, log_step, log_key, log_positions,
+            actuation, until, max_periods, stop_lines, record_lines):
     """Step up to ``max_periods`` control periods at a constant ``actuation``; (periods done, reason).
 
     Stops after the period that reaches time ``until`` (UNTIL), after which every cell has settled (DONE),
@@ -228,8 +267,8 @@ def advance(fields, params, segments, outlets, semi_axes, start, kind, arrival, 
         first = counters[FIRST]
         if watching and capacity - counters[LOGGED] < arrival.shape[0] - first:
             return periods, LIMIT           # no room to log a crossing of every cell that may be in the channel
-        level_state[0] = _period(fields, params, segments, outlets, semi_axes, start, kind, arrival, born, position,
-                                 fate, exit_time, exit_y, stalled, counters, level_state[0], actuation, before, touched)
+        _period(fields, params, segments, dividers, outlets, semi_axes, start, kind, arrival, born, position, fate,
+                exit_time, exit_y, stalled, counters, level_state, lags, actuation, before, touched)
         periods += 1
         stop = False
         if watching:

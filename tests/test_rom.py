@@ -150,21 +150,41 @@ def test_a_cell_pushed_into_a_wall_slides_along_it_and_sticks_in_a_corner():
     assert slide_end < truth.exit_time < slide_end + 0.2e-3 + 2 * plant.control_period
 
 
-def test_a_cell_at_an_outlet_edge_is_steered_round_the_corner_into_the_outlet():
-    # the injection inlet moved to (84, 110) um: a melanoma (radius 8 um) starts at y = 97 um, 3 um below the
-    # end (300, 100) um of the wall between the outlets, and the flow runs straight to the right
+def _divider_run(catch_on_divider, inlet_span):
+    # the injection inlet moved to ``inlet_span`` (um) and a flow straight to the right: a melanoma (radius
+    # 8 um) runs towards the outlet plane at the inlet's middle; the wall between the outlets spans 100-120 um
     paper = Scenario()
-    inlets = (paper.channel.inlets[0], replace(paper.channel.inlets[1], span=(84 * UM, 110 * UM)),
+    inlets = (paper.channel.inlets[0], replace(paper.channel.inlets[1], span=tuple(v * UM for v in inlet_span)),
               paper.channel.inlets[2])
     scenario = replace(paper, channel=replace(paper.channel, inlets=inlets))
-    plant = RomPlant(scenario, flows=RomFlows.uniform(scenario, off=(0.1, 0.0), on=(0.1, 0.0)), response_time=0.0)
+    plant = RomPlant(scenario, flows=RomFlows.uniform(scenario, off=(0.1, 0.0), on=(0.1, 0.0)), response_time=0.0,
+                     catch_on_divider=catch_on_divider)
     plant.reset([(0.0, "melanoma")])
     while not plant.done:
         plant.step(0.0)
     (truth,) = plant.truth().cells
+    return plant, truth
+
+
+@pytest.mark.parametrize("catch_on_divider", [False, True])
+def test_a_cell_at_an_outlet_edge_is_steered_round_the_corner_into_the_outlet(catch_on_divider):
+    # it starts at y = 97 um, 3 um below the divider's end (300, 100) um: its outline meets the end, its
+    # centroid passes outside the divider's span, as an FE-IB cell's would (the divider rule leaves it alone)
+    plant, truth = _divider_run(catch_on_divider, (84, 110))
     assert truth.fate == "lower"
     assert truth.exit_y == pytest.approx(92 * UM, abs=0.2 * UM)    # its outline just clears the corner
     assert plant.diagnostics()["wall_contacts"] > 0
+
+
+def test_a_cell_pressed_on_the_divider_settles_on_it():
+    # it starts at y = 105 um, in the divider's span: with the divider rule (the default) it settles on the
+    # face when it reaches it, where an FE-IB cell's centroid would leave through the wall (fate wall);
+    # without, it is held on the face (this flow has no component along it) until the stall rule's 1 ms
+    plant, truth = _divider_run(True, (92, 118))
+    assert truth.fate == "wall" and truth.exit_y == pytest.approx(105 * UM, abs=1e-9)
+    assert truth.x == pytest.approx(300 * UM - 8 * UM, abs=1e-9) and truth.exit_time < 3e-3
+    _, held = _divider_run(False, (92, 118))
+    assert held.fate == "wall" and held.exit_time >= truth.exit_time + 1e-3 - plant.control_period
 
 
 def test_same_seed_same_stream_other_seed_other_stream(paper_scenario, plant):

@@ -252,7 +252,17 @@ class Calibration:
             "resolution_ms": {"lead": self.grid.lead_step * ms, "offset_scan": self.grid.offset_step * ms,
                               "envelope_edge": self.grid.resolution * ms},
             "control_period_ms": self.control_period * ms, "runs": self.runs,
+            "look_ahead": look_ahead(settings),
         }
+
+
+def look_ahead(settings: ControllerSettings) -> dict:
+    """The controller's look-ahead, delay - lead: a type-I cell predicted later than that after a target is
+    detected only once the target's pulse has started, too late to abort it. Purity mode needs it to cover the
+    widened envelope's trailing edge (ms, and whether it does)."""
+    reach = settings.delay - settings.lead
+    edge = settings.window()[1]
+    return {"look_ahead_ms": reach * 1e3, "widened_trailing_edge_ms": edge * 1e3, "covers_envelope": reach >= edge}
 
 
 def _finite(value: float):
@@ -375,6 +385,13 @@ def report_lines(result: dict) -> list[str]:
                  f"{c['envelope_ms'][1] - c['envelope_ms'][0]:.4f} ms; resolution: edges "
                  f"{result['resolution_ms']['envelope_edge'] * 1e3:.1f} us, "
                  f"leads {result['resolution_ms']['lead'] * 1e3:.0f} us")
+    ahead = result.get("look_ahead")
+    if ahead:
+        verdict = "covers" if ahead["covers_envelope"] else (
+            "does NOT cover (purity mode cannot abort for a type-I cell detected after the pulse starts: "
+            "shorten the pulse or move the detection window upstream)")
+        lines.append(f"look-ahead (delay - lead) {ahead['look_ahead_ms']:.4f} ms {verdict} the widened trailing "
+                     f"edge {ahead['widened_trailing_edge_ms']:+.4f} ms")
     lines.append(f"model {result['model']}, SAW model {result['saw_model']}, control period "
                  f"{result['control_period_ms'] * 1e3:.1f} us, {result['runs']} calibration cells in "
                  f"{result['wall_time_s']:.1f} s")

@@ -119,7 +119,7 @@ class RomFlows:
         cached through ``sim.store``); unchanged for the ``streaming`` SAW model (its own spin-up lag)."""
         if scenario.saw.model == "streaming" or self.lags is not None or self.grid is None:
             return self
-        return self.with_transient(sampled_modes(scenario, self.grid), TRANSIENT_LAGS)
+        return self.with_transient(sampled_modes(scenario, self.grid, RomFlows.sample), TRANSIENT_LAGS)
 
     def with_transient(self, modes: dict, lags) -> "RomFlows":
         """These flows with the single change split into the modes of ``sim.rom_transient.sampled_modes``

@@ -81,16 +81,17 @@ def measure_modes(scenario: Scenario, lags=TRANSIENT_LAGS, duration: float = TRA
     return fluid, modes.reshape(len(lags), 2, -1), residual
 
 
-def sampled_modes(scenario: Scenario, spacing: float, lags=TRANSIENT_LAGS, duration: float = TRANSIENT_DURATION):
-    """All modes but the last, sampled on the rom grid as ``sim.rom.RomFlows.sample`` samples flows: a dict of
-    ``point`` (nx, ny, 2K - 2), ``cells`` (types, nx, ny, 2K - 2), ``residual`` (n,), ``seconds``."""
-    from .rom import RomFlows  # rom imports this module
+def sampled_modes(scenario: Scenario, spacing: float, sample, lags=TRANSIENT_LAGS,
+                  duration: float = TRANSIENT_DURATION):
+    """All modes but the last, sampled on the rom grid by ``sample`` (``sim.rom.RomFlows.sample``, passed in so
+    that this module does not import the rom plant, which imports it): a dict of ``point`` (nx, ny, 2K - 2),
+    ``cells`` (types, nx, ny, 2K - 2), ``residual`` (n,), ``seconds``."""
 
     def build():
         started = clock.perf_counter()
         fluid, modes, residual = measure_modes(scenario, lags, duration)
         values = modes[:-1].reshape(-1, modes.shape[-1])           # (2K - 2, N)
-        sampled = RomFlows.sample(scenario, fluid, values, spacing, {})
+        sampled = sample(scenario, fluid, values, spacing, {})
         return {"point": sampled.point, "cells": sampled.cells, "residual": residual,
                 "seconds": np.array(clock.perf_counter() - started)}
 

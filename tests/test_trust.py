@@ -99,6 +99,14 @@ def test_each_bad_input_class_is_one_line_with_exit_1_or_2(name, inline, files):
     assert_one_line_refusal(status, stderr)
 
 
+def test_debug_mode_adds_the_traceback_and_keeps_the_exit_status(inline, monkeypatch):
+    monkeypatch.setenv("VCYTO_DEBUG", "1")
+    status, _, stderr = inline(["stream", "--model", "rom", "--dt", "3um", "--cells", "RBC"])
+    assert status == 2, stderr                         # bad input stays bad input
+    assert "Traceback (most recent call last)" in stderr
+    assert stderr.strip().splitlines()[-1].startswith("vcyto: error: numerics.dt: ")
+
+
 @pytest.mark.parametrize("argv, words", [
     (["stream", "--dt", "3um"], "is a length, but numerics.dt is a time"),
     (["stream", "--set", "fluid.viscosity=6MHz"], "fluid.viscosity is a viscosity"),

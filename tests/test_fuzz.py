@@ -192,3 +192,20 @@ def test_crafted_recordings(sandbox, messages, metadata, cut):
         path.write_bytes(path.read_bytes()[:cut])
     saved = sandbox / f"view-{len(list(sandbox.glob('view-*')))}.rrd"
     check(["replay", str(path), "--save", str(saved)])
+
+
+# --- NaN for every quantity option: the same refusal, naming the option ---------------------------------------
+
+STREAM_QUANTITIES = ["--rate", "--min-spacing", "--max-time", "--delay", "--lead", "--pulse", "--timing-error",
+                     "--window-h", "--tolerance", "--gate", "--noise"]
+NAN_OPTIONS = [("stream", option) for option in STREAM_QUANTITIES] + [
+    ("paper", "2", "--tolerance"), ("paper", "2", "--max-time"), ("bench", "realtime", "--duration"),
+    ("bench", "realtime", "--control-period"), ("calibrate", "--pulse-step"), ("calibrate", "--resolution")]
+
+
+@pytest.mark.parametrize("words", NAN_OPTIONS, ids=" ".join)
+def test_nan_is_not_a_finite_value_of_the_option_it_was_given_to(sandbox, words):
+    *command, option = words
+    status, _, stderr = vcyto_inline([*command, option, "nan"])
+    assert status == 2 and len(stderr.strip().splitlines()) == 1, stderr
+    assert stderr.startswith(f"vcyto: error: {option}: 'nan' is not a finite "), stderr

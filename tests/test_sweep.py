@@ -116,6 +116,7 @@ def test_points_sharing_a_plant_are_chunked_at_most_an_even_share_per_worker():
     ("[parameters]\nlead = {uniform = [0, 1]}", ['needs sampling = "random"']),
     ("[base]\nmodel = 'nonsense'\n[parameters]\nlead = [1]", ["base.model: must be one of", "streamline"]),
     ("[parameters]\nlead = [", ["is not valid TOML"]),
+    ("[base]\nlead = '3um'\n[parameters]\nseed = [1]", ["base.lead: '3um' is a length, but base.lead is a time"]),
 ])
 def test_bad_specs_are_one_line_exit_2_no_traceback(tmp_path, text, words):
     result = vcyto("sweep", write_spec(tmp_path / "spec.toml", text), "--output", str(tmp_path / "out"))

@@ -77,21 +77,23 @@ def emit(args, result: dict, lines: list[str]):
         print("\n".join(lines))
 
 
-def output_directory(path: str | None) -> Path | None:
-    """Create (if needed) and check the output directory before any work."""
+def output_directory(path: str | None, option: str = "--output") -> Path | None:
+    """Create (if needed) and check the output directory before any work; a directory that cannot be created or
+    written is bad input (``UsageError`` naming ``option``), refused before the run."""
     if path is None or path == "":
         return None
     directory = Path(path)
     try:
         directory.mkdir(parents=True, exist_ok=True)
     except OSError as error:
-        raise UsageError(f"cannot create output directory {path}: {error.strerror}") from None
+        raise UsageError(f"{option}: cannot create the directory {path} ({error.strerror}); choose a directory "
+                         "you can write to") from None
     if not os.access(directory, os.W_OK):
-        raise UsageError(f"output directory {path} is not writable")
+        raise UsageError(f"{option}: the directory {path} is not writable; choose a directory you can write to")
     free = shutil.disk_usage(directory).free
     if free < MIN_FREE_BYTES:
-        raise UsageError(f"only {free / 1e6:.0f} MB free in {path}: recordings need at least "
-                         f"{MIN_FREE_BYTES / 1e6:.0f} MB; free some space or choose another --output")
+        raise UsageError(f"{option}: only {free / 1e6:.0f} MB free in {path}: recordings need at least "
+                         f"{MIN_FREE_BYTES / 1e6:.0f} MB; free some space or choose another {option}")
     return directory
 
 

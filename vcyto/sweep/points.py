@@ -93,7 +93,7 @@ def _option_value(action: argparse.Action, value, where: str):
 def _typed(action: argparse.Action, value, where: str):
     """``value`` read by the option's type (``vcyto.arguments``): SI for quantities, range-checked."""
     try:
-        return action.type(value)
+        return action.type(value, where) if isinstance(action.type, Quantity) else action.type(value)
     except argparse.ArgumentTypeError as error:
         raise SweepError(f"{where}: {error}") from None
 

@@ -134,6 +134,8 @@ def test_wrong_units_name_the_field_and_the_dimension(argv, words, inline):
      "--cells/--count/--mix/--rate/--min-spacing: regular arrivals"),
     (["stream", "--output", "A_FILE/sub"], "--output: cannot create the directory"),
     (["sweep", "SPEC", "--output", "A_FILE/sub"], "--output: cannot create the directory"),
+    (["flow", "--png", "A_FILE/flow.png"], "--png: cannot write"),
+    (["flow", "--png", "A_FILE"], "--png: "),                         # exists: never overwritten
     (["replay", "NO_FILE"], "FILE: "),
     (["bench", "sort", "--counts", "x"], "--counts: "),
     (["bench", "sweep", "--workers", "x"], "--workers: "),

@@ -40,7 +40,9 @@ def build_parser() -> argparse.ArgumentParser:
     parser = Parser(prog="vcyto", description="A virtual cytometer: a simulated SAW cell sorter. Quantities take a "
                                                "unit (25us, 0.5ms, 1kHz, 30um); a bare number is in the unit each "
                                                "option names. Exit status: 0 done, 1 numerical failure or a "
-                                               "file that cannot be written, 2 bad input, 130/143 interrupted "
+                                               "file that fails to write during the run, 2 bad input (an "
+                                               "output that cannot be created is refused before the run), "
+                                               "130/143 interrupted "
                                                "(SIGINT/SIGTERM).")
     from .. import __version__
     parser.add_argument("--version", action="version", version=f"vcyto {__version__}")

@@ -103,3 +103,16 @@ def test_tradeoff_rejects_bad_levels_and_scenes(args, words, tmp_path):
     result = vcyto("tradeoff", "--output", str(tmp_path), *args)
     assert result.returncode == 2 and words in result.stderr and "Traceback" not in result.stderr
     assert not list(tmp_path.iterdir())          # nothing run, nothing written
+
+
+def test_scenario_json_is_the_effective_scenario_and_the_toml_read_back(tmp_path):
+    from vcyto.config import load_scenario
+    toml = vcyto("scenario", "--dt", "5us", "--set", "fluid.viscosity=6 mPa s")
+    result = vcyto("scenario", "--dt", "5us", "--set", "fluid.viscosity=6 mPa s", "--json")
+    assert toml.returncode == 0 and result.returncode == 0, toml.stderr + result.stderr
+    tree = json.loads(result.stdout)
+    assert tree["numerics"]["dt"] == pytest.approx(5e-6) and tree["fluid"]["viscosity"] == pytest.approx(6e-3)
+    (tmp_path / "effective.toml").write_text(toml.stdout)
+    assert load_scenario(tmp_path / "effective.toml").numerics.dt == tree["numerics"]["dt"]
+    assert [inlet["v_hat"] for inlet in tree["channel"]["inlets"]] == \
+        [inlet.v_hat for inlet in load_scenario(tmp_path / "effective.toml").channel.inlets]

@@ -10,7 +10,7 @@ import json
 import os
 
 import pytest
-from guard import patch_heavy, vcyto_inline
+from guard import names_what_is_wrong, patch_heavy, vcyto_inline
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
@@ -75,6 +75,7 @@ def check(argv):
     lines = stderr.strip().splitlines()
     assert status in (1, 2), (argv, status, stderr)
     assert len(lines) == 1 and lines[0].startswith("vcyto: error: "), (argv, stderr)
+    assert names_what_is_wrong(lines[0]), (argv, stderr)
     assert "Traceback" not in stderr and "internal error" not in stderr, (argv, stderr)
 
 

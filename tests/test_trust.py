@@ -142,6 +142,8 @@ def test_wrong_units_name_the_field_and_the_dimension(argv, words, inline):
     (["calibrate", "--pulse", "0.4", "--output", ""], "--pulse/--lead: "),
     (["tradeoff", "--pair-gap", "3", "--output", ""], "--pair-gap: "),
     (["stream", "--tolerance", "nan"], "--tolerance: 'nan' is not a finite length"),
+    (["stream", "--bogus"], "--bogus: unknown option"),
+    (["sweep"], "SPEC: missing"),
 ])
 def test_bad_input_names_its_option_first(argv, option, inline, tmp_path):
     (tmp_path / "a-file").write_text("")

@@ -37,6 +37,12 @@ class Parser(argparse.ArgumentParser):
             option = match.group(1).split("/")[-1]
             detail = match.group(2)
             message = detail if detail.startswith(option + ":") else f"{option}: {detail}"
+        elif message.startswith("unrecognized arguments: "):      # "--bogus: unknown option ..."
+            words = message.split(": ", 1)[1]
+            message = f"{words.split()[0]}: unknown option or extra argument (unrecognized: {words})"
+        elif message.startswith("the following arguments are required: "):
+            names = message.split(": ", 1)[1]
+            message = f"{names}: missing; the command needs it"
         print(f"vcyto: error: {message} (see {self.prog} --help)", file=sys.stderr)
         sys.exit(2)
 

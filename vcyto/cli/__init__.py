@@ -73,11 +73,11 @@ def main(argv=None) -> int:
         print("vcyto: interrupted", file=sys.stderr)
         return EXIT_SIGTERM if signals_seen.get("last") == "SIGTERM" else EXIT_SIGINT
     except MemoryError as error:
-        return _fail(MemoryError("out of memory: the run needs more memory than this machine has; use a coarser "
+        return _fail(MemoryError("memory: the run needs more memory than this machine has; use a coarser "
                                  "mesh, fewer cells or fewer sweep points"), EXIT_NUMERICAL, error)
     except OSError as error:          # a disk that fills up, a file that vanished: the environment, not a bug
-        where = f" {error.filename}" if getattr(error, "filename", None) else ""
-        return _fail(OSError(f"cannot write or read{where}: {error.strerror or error}"), EXIT_NUMERICAL, error)
+        where = getattr(error, "filename", None) or "file"
+        return _fail(OSError(f"{where}: cannot write or read it: {error.strerror or error}"), EXIT_NUMERICAL, error)
     except Exception as error:  # a bug, not bad input: say so in one line, keep the traceback on request
         _traceback_on_request(error)
         print(f"vcyto: internal error: {type(error).__name__}: {' '.join(str(error).split())} (set VCYTO_DEBUG=1 for "

@@ -129,7 +129,7 @@ def _point(values: tuple, base: argparse.Namespace, options: dict) -> Point:
     try:
         scenario, settings = stream_run(arguments)
     except ValueError as error:
-        raise SweepError(f"point {label}: {one_line(error)}") from None
+        raise SweepError(f"parameters: the point {label or '(the base run)'}: {one_line(error)}") from None
     identity = json.dumps({"scenario": scenario_to_toml(scenario), "settings": repr(settings)})
     inputs = hashlib.sha256(identity.encode()).hexdigest()[:16]
     return Point(values, scenario, settings, _point_id(inputs), inputs)

@@ -3,6 +3,7 @@ passes validation stops there instead of building a plant: tests of bad input st
 
 import contextlib
 import io
+import re
 
 from vcyto import cli
 
@@ -62,9 +63,17 @@ def vcyto_inline(argv) -> tuple[int | None, str, str]:
     return status, out.getvalue(), err.getvalue()
 
 
+def names_what_is_wrong(line: str) -> bool:
+    """The documented form ``vcyto: error: <option or field>: <what is wrong>``: the words before the first ": "
+    name an option, a field or a file (one word once parenthesised remarks are dropped), not a sentence."""
+    head, colon, _ = line.removeprefix("vcyto: error: ").partition(": ")
+    return bool(colon) and re.fullmatch(r"\S+", re.sub(r"\s*\([^)]*\)", "", head)) is not None
+
+
 def assert_one_line_refusal(status, stderr, allowed=(1, 2)):
     lines = stderr.strip().splitlines()
     assert status in allowed, (status, stderr)
     assert len(lines) == 1, stderr
     assert lines[0].startswith("vcyto: error: "), stderr
+    assert names_what_is_wrong(lines[0]), stderr
     assert "Traceback" not in stderr and "internal error" not in stderr

@@ -120,9 +120,9 @@ def test_default_stream_within_tolerance():
 
 
 @pytest.mark.parametrize("arguments, message", [
-    (["paper", "2", "--tolerance", "1us"], "--tolerance: must be a positive length"),
+    (["paper", "2", "--tolerance", "1us"], "--tolerance: '1us' is a time, but --tolerance is a length"),
     (["paper", "2", "--tolerance=-1um"], "--tolerance: must be a positive length"),
-    (["paper", "1", "--tolerance", "nan"], "--tolerance: cannot read 'nan'"),
+    (["paper", "1", "--tolerance", "nan"], "--tolerance: 'nan' is not a finite length"),
     (["stream", "--model", "rom", "--tolerance", "1um"], "--tolerance: picks the steps of the feib model only"),
     (["bench", "tolerance", "--tolerances", "1us"], "--tolerances: needs positive numbers"),
 ])

@@ -41,7 +41,8 @@ def test_malformed_toml_names_the_file_and_line(tmp_path):
 def test_unwritable_png_is_refused_before_any_work(tmp_path):
     result = vcyto("flow", "--png", str(tmp_path / "missing-dir" / "flow.png"))
     assert result.returncode == 2
-    assert "does not exist" in result.stderr and "Traceback" not in result.stderr
+    assert "--png: cannot write" in result.stderr and "is not an existing directory" in result.stderr
+    assert "Traceback" not in result.stderr
 
 
 def test_flow_json_on_a_coarse_mesh(tmp_path):
@@ -102,3 +103,37 @@ def test_tradeoff_rejects_bad_levels_and_scenes(args, words, tmp_path):
     result = vcyto("tradeoff", "--output", str(tmp_path), *args)
     assert result.returncode == 2 and words in result.stderr and "Traceback" not in result.stderr
     assert not list(tmp_path.iterdir())          # nothing run, nothing written
+
+
+def test_scenario_json_is_the_effective_scenario_and_the_toml_read_back(tmp_path):
+    from vcyto.config import load_scenario
+    toml = vcyto("scenario", "--dt", "5us", "--set", "fluid.viscosity=6 mPa s")
+    result = vcyto("scenario", "--dt", "5us", "--set", "fluid.viscosity=6 mPa s", "--json")
+    assert toml.returncode == 0 and result.returncode == 0, toml.stderr + result.stderr
+    tree = json.loads(result.stdout)
+    assert tree["numerics"]["dt"] == pytest.approx(5e-6) and tree["fluid"]["viscosity"] == pytest.approx(6e-3)
+    (tmp_path / "effective.toml").write_text(toml.stdout)
+    assert load_scenario(tmp_path / "effective.toml").numerics.dt == tree["numerics"]["dt"]
+    assert [inlet["v_hat"] for inlet in tree["channel"]["inlets"]] == \
+        [inlet.v_hat for inlet in load_scenario(tmp_path / "effective.toml").channel.inlets]
+
+
+def test_the_stream_summary_gives_the_loop_wall_time_beside_the_set_up(tmp_path):
+    import re
+    result = vcyto("stream", "--model", "streamline", "--mesh-h", "10um", "--cells", "RBC", "--output", "",
+                   "--no-viewer", "--quiet")
+    assert result.returncode == 0, result.stderr
+    found = re.search(r"in ([\d.]+) s wall \(streamline model: set-up ([\d.]+) s, loop ([\d.e+-]+) s\)", result.stdout)
+    assert found, result.stdout
+    wall, setup, loop = (float(value) for value in found.groups())
+    assert loop > 0 and abs(setup + loop - wall) <= 0.1          # rounded to 0.1 s
+
+
+def test_bench_realtime_prints_the_outlets_as_text():
+    from vcyto.bench.realtime import realtime_lines
+    result = {"setup_parts_s": {"flows_s": 1.0}, "runs": [{"real_time_factor": 20.0}], "cells": 100,
+              "rate_per_s": 1000.0, "mix": [["RBC", 0.9], ["melanoma", 0.1]], "control_period_us": 10.0,
+              "setup_s": 1.0, "device_time_s": 0.1, "loop_wall_s": 0.005, "real_time_factor": 20.0, "purity": 1.0,
+              "yield": 0.9, "abort_rate": 0.1, "outlets": {"lower": 94, "upper": 6}}
+    last = realtime_lines(result)[-1]
+    assert last.endswith("outlets: lower 94, upper 6") and "{" not in last, last

@@ -10,7 +10,7 @@ import json
 import os
 
 import pytest
-from guard import patch_heavy, vcyto_inline
+from guard import names_what_is_wrong, patch_heavy, vcyto_inline
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
@@ -75,6 +75,7 @@ def check(argv):
     lines = stderr.strip().splitlines()
     assert status in (1, 2), (argv, status, stderr)
     assert len(lines) == 1 and lines[0].startswith("vcyto: error: "), (argv, stderr)
+    assert names_what_is_wrong(lines[0]), (argv, stderr)
     assert "Traceback" not in stderr and "internal error" not in stderr, (argv, stderr)
 
 
@@ -192,3 +193,20 @@ def test_crafted_recordings(sandbox, messages, metadata, cut):
         path.write_bytes(path.read_bytes()[:cut])
     saved = sandbox / f"view-{len(list(sandbox.glob('view-*')))}.rrd"
     check(["replay", str(path), "--save", str(saved)])
+
+
+# --- NaN for every quantity option: the same refusal, naming the option ---------------------------------------
+
+STREAM_QUANTITIES = ["--rate", "--min-spacing", "--max-time", "--delay", "--lead", "--pulse", "--timing-error",
+                     "--window-h", "--tolerance", "--gate", "--noise"]
+NAN_OPTIONS = [("stream", option) for option in STREAM_QUANTITIES] + [
+    ("paper", "2", "--tolerance"), ("paper", "2", "--max-time"), ("bench", "realtime", "--duration"),
+    ("bench", "realtime", "--control-period"), ("calibrate", "--pulse-step"), ("calibrate", "--resolution")]
+
+
+@pytest.mark.parametrize("words", NAN_OPTIONS, ids=" ".join)
+def test_nan_is_not_a_finite_value_of_the_option_it_was_given_to(sandbox, words):
+    *command, option = words
+    status, _, stderr = vcyto_inline([*command, option, "nan"])
+    assert status == 2 and len(stderr.strip().splitlines()) == 1, stderr
+    assert stderr.startswith(f"vcyto: error: {option}: 'nan' is not a finite "), stderr

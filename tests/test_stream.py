@@ -136,9 +136,9 @@ def test_arrivals_keep_the_minimum_spacing():
 
 @pytest.mark.parametrize("args, words", [
     (["--cells", "RBC,platelet"], "unknown cell type 'platelet'"),
-    (["--cells", ","], "--cells needs at least one"),
+    (["--cells", ","], "--cells: needs at least one"),
     (["--count", "5", "--mix", "RBC:1", "--rate", "-3"], "--rate: must be positive"),
-    (["--envelope", "0.1"], "--envelope wants two offsets"),
+    (["--envelope", "0.1"], "--envelope: wants two offsets"),
     (["--controller", "/nonexistent.toml"], "is not a file"),
     (["--mode", "greedy"], "--mode"),
     (["--detection-window", "30,400"], "outside the channel"),

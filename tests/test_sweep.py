@@ -12,6 +12,7 @@ import pytest
 
 from vcyto import sweep
 from vcyto.cli import main
+from vcyto.outputs import strict_json
 from vcyto.sweep.run import _chunks
 
 # the cheap plant on a coarse mesh (1.5 s to build); a few cells per point so the metrics vary
@@ -115,6 +116,7 @@ def test_points_sharing_a_plant_are_chunked_at_most_an_even_share_per_worker():
     ("[parameters]\nlead = {uniform = [0, 1]}", ['needs sampling = "random"']),
     ("[base]\nmodel = 'nonsense'\n[parameters]\nlead = [1]", ["base.model: must be one of", "streamline"]),
     ("[parameters]\nlead = [", ["is not valid TOML"]),
+    ("[base]\nlead = '3um'\n[parameters]\nseed = [1]", ["base.lead: '3um' is a length, but base.lead is a time"]),
 ])
 def test_bad_specs_are_one_line_exit_2_no_traceback(tmp_path, text, words):
     result = vcyto("sweep", write_spec(tmp_path / "spec.toml", text), "--output", str(tmp_path / "out"))
@@ -245,3 +247,24 @@ def test_a_point_that_raises_is_recorded_as_failed_and_the_others_finish(tmp_pat
         retried = sweep.run_sweep(built, tmp_path, pool, slots, simulator=fail_at_lead_0_75, retry_failed=True)
     assert kept["ran"] == 0 and kept["failed"] == 1
     assert retried["ran"] == 1 and retried["failed"] == 1 and len(read_rows(tmp_path / "results.csv")) == 4
+
+
+def fixed_result(scenario, settings):
+    """A closed loop stand-in: numbers that depend on the rate, an undefined purity (NaN), an outlet count."""
+    rate = settings.arrivals.rate
+    return {"statistics": {"yield": rate / 1000, "purity": float("nan"), "aborts": 3,
+                           "outlets": {"lower": 4, "upper": 2}},
+            "cells": [], "simulated_time_ms": 2.5}
+
+
+def test_a_rerun_reading_the_table_reports_the_same_types_as_the_run_that_wrote_it(tmp_path):
+    built = sweep.parse_sweep({"base": BASE, "parameters": {"rate": [500, 1000], "lead": [0.25]},
+                               "sweep": {"metrics": ["yield", "purity", "aborts", "outlets", "simulated_time_ms"]}})
+    with sweep.executor(None, 1) as (pool, slots, _):
+        first = sweep.run_sweep(built, tmp_path, pool, slots, simulator=fixed_result)
+        second = sweep.run_sweep(built, tmp_path, pool, slots, simulator=fixed_result)
+    assert first["ran"] == 2 and second["ran"] == 0
+    assert second["highest"]["rate"] == 1000 and isinstance(second["highest"]["yield"], float)
+    for key in ("highest", "rows"):             # numbers as numbers, NaN as null, text as text, in both runs
+        assert strict_json(second[key]) == strict_json(first[key])
+    assert json.loads(strict_json(second["rows"]))[0]["purity"] is None

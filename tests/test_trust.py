@@ -99,16 +99,62 @@ def test_each_bad_input_class_is_one_line_with_exit_1_or_2(name, inline, files):
     assert_one_line_refusal(status, stderr)
 
 
+def test_debug_mode_adds_the_traceback_and_keeps_the_exit_status(inline, monkeypatch):
+    monkeypatch.setenv("VCYTO_DEBUG", "1")
+    status, _, stderr = inline(["stream", "--model", "rom", "--dt", "3um", "--cells", "RBC"])
+    assert status == 2, stderr                         # bad input stays bad input
+    assert "Traceback (most recent call last)" in stderr
+    assert stderr.strip().splitlines()[-1].startswith("vcyto: error: numerics.dt: ")
+
+
 @pytest.mark.parametrize("argv, words", [
     (["stream", "--dt", "3um"], "is a length, but numerics.dt is a time"),
     (["stream", "--set", "fluid.viscosity=6MHz"], "fluid.viscosity is a viscosity"),
-    (["stream", "--lead", "3um"], "--lead: '3um' is a length, but"),
-    (["stream", "--rate", "5ms"], "is a time, but value is a frequency"),
+    (["stream", "--lead", "3um"], "--lead: '3um' is a length, but --lead is a time"),
+    (["stream", "--delay", "3um"], "--delay: '3um' is a length, but --delay is a time"),
+    (["stream", "--rate", "5ms"], "--rate: '5ms' is a time, but --rate is a frequency"),
+    (["stream", "--window-h", "3us"], "--window-h: '3us' is a time, but --window-h is a length"),
+    (["stream", "--tolerance", "3us"], "--tolerance: '3us' is a time, but --tolerance is a length"),
+    (["stream", "--detection-window", "3us,4us"], "error: --detection-window: '3us' is a time, but"),
+    (["bench", "realtime", "--duration", "3um"], "--duration: '3um' is a length, but --duration is a time"),
+    (["calibrate", "--pulse-step", "3um"], "--pulse-step: '3um' is a length, but --pulse-step is a time"),
 ])
 def test_wrong_units_name_the_field_and_the_dimension(argv, words, inline):
     status, _, stderr = inline(argv)
     assert_one_line_refusal(status, stderr, allowed=(2,))
-    assert words in stderr or words.replace("value", "--rate") in stderr
+    assert words in stderr
+
+
+@pytest.mark.parametrize("argv, option", [
+    (["stream", "--count", "5"], "--count: needs --mix"),
+    (["stream", "--cells", ""], "--cells: "),
+    (["stability", "--cells", ","], "--cells: "),
+    (["stream", "--envelope", "1"], "--envelope: "),
+    (["stream", "--count", "5", "--mix", "RBC:1", "--rate", "5000", "--min-spacing", "1"],
+     "--cells/--count/--mix/--rate/--min-spacing: regular arrivals"),
+    (["stream", "--output", "A_FILE/sub"], "--output: cannot create the directory"),
+    (["sweep", "SPEC", "--output", "A_FILE/sub"], "--output: cannot create the directory"),
+    (["flow", "--png", "A_FILE/flow.png"], "--png: cannot write"),
+    (["flow", "--png", "A_FILE"], "--png: "),                         # exists: never overwritten
+    (["replay", "NO_FILE"], "FILE: "),
+    (["bench", "sort", "--counts", "x"], "--counts: "),
+    (["bench", "sweep", "--workers", "x"], "--workers: "),
+    (["calibrate", "--pulse", "0.4", "--output", ""], "--pulse/--lead: "),
+    (["tradeoff", "--pair-gap", "3", "--output", ""], "--pair-gap: "),
+    (["stream", "--tolerance", "nan"], "--tolerance: 'nan' is not a finite length"),
+    (["stream", "--bogus"], "--bogus: unknown option"),
+    (["sweep"], "SPEC: missing"),
+])
+def test_bad_input_names_its_option_first(argv, option, inline, tmp_path):
+    (tmp_path / "a-file").write_text("")
+    (tmp_path / "spec.toml").write_text("[parameters]\nlead = [0.25]\n")
+    names = {"A_FILE": str(tmp_path / "a-file"), "NO_FILE": str(tmp_path / "none.mcap"),
+             "SPEC": str(tmp_path / "spec.toml")}
+    for placeholder, path in names.items():
+        argv = [arg.replace(placeholder, path) for arg in argv]
+    status, _, stderr = inline(argv)
+    assert_one_line_refusal(status, stderr, allowed=(2,))
+    assert stderr.startswith(f"vcyto: error: {option}"), stderr
 
 
 @pytest.mark.parametrize("argv", [

@@ -37,8 +37,24 @@ class Parser(argparse.ArgumentParser):
             option = match.group(1).split("/")[-1]
             detail = match.group(2)
             message = detail if detail.startswith(option + ":") else f"{option}: {detail}"
+        elif message.startswith("unrecognized arguments: "):      # "--bogus: unknown option ..."
+            words = message.split(": ", 1)[1]
+            message = f"{words.split()[0]}: unknown option or extra argument (unrecognized: {words})"
+        elif message.startswith("the following arguments are required: "):
+            names = message.split(": ", 1)[1]
+            message = f"{names}: missing; the command needs it"
         print(f"vcyto: error: {message} (see {self.prog} --help)", file=sys.stderr)
         sys.exit(2)
+
+    def _get_value(self, action, arg_string):
+        """argparse's conversion of one value, with a ``Quantity`` told its option's name so that a wrong unit
+        says "'3um' is a length, but --delay is a time"."""
+        if isinstance(action.type, Quantity) and action.option_strings:
+            try:
+                return action.type(arg_string, field=action.option_strings[-1])
+            except argparse.ArgumentTypeError as error:
+                raise argparse.ArgumentError(action, str(error)) from None
+        return super()._get_value(action, arg_string)
 
 
 class _Checked:
@@ -65,9 +81,10 @@ class Quantity(_Checked):
         self.dimension, self.unit = dimension, unit
         self.__name__ = dimension                  # argparse names the type in some messages
 
-    def __call__(self, text) -> float:
+    def __call__(self, text, field: str = "the value") -> float:
+        """The SI value of ``text``; ``field`` (the option, or where in a file) is named in a wrong unit's error."""
         try:
-            value = parse_quantity(text, self.dimension, self.unit, field="value")
+            value = parse_quantity(text, self.dimension, self.unit, field=field)
         except QuantityError as error:
             raise argparse.ArgumentTypeError(str(error).split(": ", 1)[1]) from None
         return self._check(value, text, self.shown)

@@ -11,7 +11,6 @@ field), one line naming the option.
 from __future__ import annotations
 
 import argparse
-import math
 
 from controller.sorter import MODES
 from sim import plants
@@ -60,9 +59,6 @@ def scenario_from(args, membrane: str | None = None):
     return scenario
 
 
-LENGTH_UNITS = ("", "m", "mm", "um", "nm")
-
-
 def tolerance_options(parser: argparse.ArgumentParser):
     group = parser.add_argument_group("time steps chosen by a tolerance (docs/numerics.md)")
     group.add_argument("--tolerance", metavar="LENGTH",
@@ -71,14 +67,9 @@ def tolerance_options(parser: argparse.ArgumentParser):
                             "fixed steps of dt, e.g. 1um; never above the cells' stability limit (default: fixed dt)")
 
 
-def length_value(text: str) -> float:
-    """A positive length (m, mm, um or nm); ValueError otherwise."""
-    from .config import _QUANTITY, parse_quantity
-    match = _QUANTITY.fullmatch(text)
-    value = parse_quantity(text)
-    if (" ".join(match.group(2).split()) if match else "") not in LENGTH_UNITS:
-        raise ValueError(f"{text!r} is not a length")
-    return value
+def length_value(text: str, field: str = "value") -> float:
+    """A finite length (a bare number in m, or with a unit such as um); ``units.QuantityError`` otherwise."""
+    return units.parse_quantity(text, "length", field=field)
 
 
 def tolerance_override(args) -> list[str]:
@@ -86,14 +77,8 @@ def tolerance_override(args) -> list[str]:
     text = getattr(args, "tolerance", None)
     if text is None:
         return []
-    from .config import _QUANTITY, parse_quantity
-    match = _QUANTITY.fullmatch(text)
-    unit = " ".join(match.group(2).split()) if match else ""
-    try:
-        value = parse_quantity(text)
-    except ValueError as error:
-        raise UsageError(f"--tolerance: {error}") from None
-    if unit not in LENGTH_UNITS or not (math.isfinite(value) and value > 0):
+    value = length_value(text, "--tolerance")        # a wrong unit, NaN or infinity: QuantityError naming it
+    if not value > 0:
         raise UsageError(f"--tolerance: must be a positive length such as 1um or 0.5um (got {text!r})")
     if getattr(args, "model", None) not in (None, "feib"):
         raise UsageError(f"--tolerance: picks the steps of the feib model only; drop it or use --model feib "
@@ -104,7 +89,7 @@ def tolerance_override(args) -> list[str]:
 def cell_list(text: str) -> tuple[str, ...]:
     names = tuple(name.strip() for name in text.split(",") if name.strip())
     if not names:
-        raise UsageError("--cells needs at least one cell type, e.g. --cells RBC,melanoma")
+        raise UsageError("--cells: needs at least one cell type, e.g. --cells RBC,melanoma")
     return names
 
 
@@ -149,23 +134,18 @@ def check_cells_fit(scenario, names) -> None:
 def stream_settings(args, scenario):
     """The ``StreamSettings`` of the stream options in ``args`` (vcyto stream, and each point of vcyto sweep);
     the quantities in ``args`` are SI (the option types convert them)."""
-    from sim.arrivals import Arrivals
-
     from . import stream
     try:
         if args.count is not None:
             limits.check_cells(args.count)
-        cells = args.cells if args.cells is not None else ("" if args.count else "RBC,melanoma")
-        arrivals = Arrivals(cells=cell_list(cells) if cells else (), count=args.count or 0,
-                            mix=parse_mix(args.mix) if args.mix else (), rate=args.rate, process=args.arrivals,
-                            min_spacing=args.min_spacing)
+        arrivals = arrivals_settings(args)
         check_cells_fit(scenario, set(arrivals.cells) | {name for name, _ in arrivals.mix})
         detector = detector_settings(args, scenario)
         controller = controller_settings(args)
         window = getattr(args, "window_h", None)
         if window is not None:
             if args.model != "auto":
-                raise UsageError(f"--window-h sets the feib windows of --model auto (the model is {args.model}): "
+                raise UsageError(f"--window-h: sets the feib windows of --model auto (the model is {args.model}): "
                                  "drop it or add --model auto")
             limits.check_mesh(scenario.channel.length, scenario.channel.height, window, "--window-h")
             try:
@@ -182,11 +162,28 @@ def stream_settings(args, scenario):
         raise UsageError(str(error)) from None
 
 
+def arrivals_settings(args):
+    """The ``Arrivals`` of the arrival options in ``args``; an error names the options it concerns."""
+    from sim.arrivals import Arrivals
+    cells = cell_list(args.cells) if args.cells is not None else (() if args.count else ("RBC", "melanoma"))
+    if args.count and not cells and not args.mix:
+        raise UsageError("--count: needs --mix, the types to draw the cells from, e.g. --count 100 "
+                         "--mix RBC:0.9,melanoma:0.1")
+    mix = parse_mix(args.mix) if args.mix else ()
+    try:
+        return Arrivals(cells=cells, count=args.count or 0, mix=mix, rate=args.rate, process=args.arrivals,
+                        min_spacing=args.min_spacing)
+    except ValueError as error:
+        raise UsageError(f"--cells/--count/--mix/--rate/--min-spacing: {error}") from None
+
+
 def detector_settings(args, scenario):
     from controller.detector import DetectorSettings
     try:
         return DetectorSettings(window=detection_window(args.detection_window, scenario), gate=args.gate,
                                 noise_cv=args.noise)
+    except (UsageError, units.QuantityError):          # they name their option already
+        raise
     except ValueError as error:
         raise UsageError(f"--detection-window/--gate/--noise: {error}") from None
 
@@ -220,7 +217,7 @@ def controller_settings(args):
     if getattr(args, "envelope", None):
         values = units.parse_list(args.envelope, "time", "ms", field="--envelope")
         if len(values) != 2 or values[0] > values[1]:
-            raise UsageError(f"--envelope wants two offsets LO,HI with LO <= HI, such as -0.236,0.27 (ms) "
+            raise UsageError(f"--envelope: wants two offsets LO,HI with LO <= HI, such as -0.236,0.27 (ms) "
                              f"(got {args.envelope!r})")
         changes["envelope"] = tuple(values)
     if args.no_controller:

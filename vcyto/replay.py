@@ -55,7 +55,7 @@ def read_recording(path: Path, protobuf_topics=(MEMBRANES,)):
         except (McapError, ValueError, EOFError, struct.error, ZstdError) as error:   # damaged: stop there
             problem = f"{type(error).__name__}: {error}".strip()
     if not channels and not metadata:
-        raise ReplayError(f"{path} is not a readable vcyto MCAP recording ({problem or 'no channels'})")
+        raise ReplayError(f"{path}: not a readable vcyto MCAP recording ({problem or 'no channels'})")
     return metadata, messages, problem
 
 

@@ -304,7 +304,8 @@ def sort_report_lines(result: dict) -> list[str]:
         f"{stats['undetected']}, never injected {stats['not_injected']}",
         f"throughput {throughput:.0f} cells/s of simulated time" if throughput else "throughput n/a",
         f"simulated {result['simulated_time_ms']:.3f} ms (IDT on {result['idt_on_time_ms']:.3f} ms) in "
-        f"{result['wall_time_s']:.1f} s wall ({result['model']} model, set-up {result['setup_time_s']:.1f} s); "
+        f"{result['wall_time_s']:.1f} s wall ({result['model']} model: set-up {result['setup_time_s']:.1f} s, loop "
+        f"{result['wall_time_s'] - result['setup_time_s']:.3g} s); "
         f"controller latency p99 {result['controller_latency_us'].get('p99', float('nan')):.1f} us",
     ]
     if (result.get("time_steps") or {}).get("levels_us"):

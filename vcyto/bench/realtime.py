@@ -69,5 +69,6 @@ def realtime_lines(result: dict) -> list[str]:
         f"(median of {len(result['runs'])})",
         f"  real-time factor {result['real_time_factor']:.1f} (runs: {factors}; target >= 10)",
         f"  purity {percent(result['purity'])}, yield {percent(result['yield'])}, abort rate "
-        f"{percent(result['abort_rate'])}, outlets {result['outlets']}",
+        f"{percent(result['abort_rate'])}; outlets: "
+        + (", ".join(f"{outlet} {count}" for outlet, count in result["outlets"].items()) or "none"),
     ]

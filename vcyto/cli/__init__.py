@@ -1,5 +1,5 @@
 """The `vcyto` command line. Bad input ends with one line on stderr and exit status 2; a numerical
-failure with one line and status 1; never a traceback (set VCYTO_DEBUG=1 to see one).
+failure with one line and status 1; never a traceback (VCYTO_DEBUG=1 adds one; the exit status stays the same).
 
 One module per command, each with its parser (``add_command``) and its handler (``command_NAME``): flow, paper,
 stream, calibrate, replay, stability, extremes, sweep, tradeoff, scenario, cache, bench; ``common`` holds what
@@ -11,6 +11,7 @@ from __future__ import annotations
 import argparse
 import os
 import sys
+import traceback
 
 from sim.fluid import NumericalBlowUp
 from sim.linalg import SolverError
@@ -39,7 +40,9 @@ def build_parser() -> argparse.ArgumentParser:
     parser = Parser(prog="vcyto", description="A virtual cytometer: a simulated SAW cell sorter. Quantities take a "
                                                "unit (25us, 0.5ms, 1kHz, 30um); a bare number is in the unit each "
                                                "option names. Exit status: 0 done, 1 numerical failure or a "
-                                               "file that cannot be written, 2 bad input, 130/143 interrupted "
+                                               "file that fails to write during the run, 2 bad input (an "
+                                               "output that cannot be created is refused before the run), "
+                                               "130/143 interrupted "
                                                "(SIGINT/SIGTERM).")
     from .. import __version__
     parser.add_argument("--version", action="version", version=f"vcyto {__version__}")
@@ -69,25 +72,29 @@ def main(argv=None) -> int:
     except KeyboardInterrupt:
         print("vcyto: interrupted", file=sys.stderr)
         return EXIT_SIGTERM if signals_seen.get("last") == "SIGTERM" else EXIT_SIGINT
-    except MemoryError:
-        return _fail(MemoryError("out of memory: the run needs more memory than this machine has; use a coarser "
-                                 "mesh, fewer cells or fewer sweep points"), EXIT_NUMERICAL)
+    except MemoryError as error:
+        return _fail(MemoryError("memory: the run needs more memory than this machine has; use a coarser "
+                                 "mesh, fewer cells or fewer sweep points"), EXIT_NUMERICAL, error)
     except OSError as error:          # a disk that fills up, a file that vanished: the environment, not a bug
-        where = f" {error.filename}" if getattr(error, "filename", None) else ""
-        return _fail(OSError(f"cannot write or read{where}: {error.strerror or error}"), EXIT_NUMERICAL)
+        where = getattr(error, "filename", None) or "file"
+        return _fail(OSError(f"{where}: cannot write or read it: {error.strerror or error}"), EXIT_NUMERICAL, error)
     except Exception as error:  # a bug, not bad input: say so in one line, keep the traceback on request
-        if os.environ.get("VCYTO_DEBUG"):
-            raise
+        _traceback_on_request(error)
         print(f"vcyto: internal error: {type(error).__name__}: {' '.join(str(error).split())} (set VCYTO_DEBUG=1 for "
               "the traceback; please report it)", file=sys.stderr)
         return EXIT_INTERNAL
     return status or 0
 
 
-def _fail(error: Exception, status: int) -> int:
-    if os.environ.get("VCYTO_DEBUG"):
-        raise error
+def _fail(error: Exception, status: int, cause: Exception | None = None) -> int:
+    """The one-line error for ``error`` (reworded from ``cause``, whose traceback VCYTO_DEBUG shows) and ``status``."""
+    _traceback_on_request(cause or error)
     print(f"vcyto: error: {' '.join(str(error).split())}", file=sys.stderr)
     return status
 
 
+def _traceback_on_request(error: Exception):
+    """With VCYTO_DEBUG set, the traceback of ``error`` on stderr; the one-line error and the exit status follow
+    as without it (bad input stays 2)."""
+    if os.environ.get("VCYTO_DEBUG"):
+        traceback.print_exception(type(error), error, error.__traceback__)

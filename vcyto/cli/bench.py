@@ -196,9 +196,9 @@ def _sweep(args, scenario, progress):
     try:
         counts = tuple(int(part) for part in args.workers.split(","))
     except ValueError:
-        raise UsageError(f"--workers wants pool sizes such as 1,2 (got {args.workers!r})") from None
+        raise UsageError(f"--workers: wants pool sizes such as 1,2 (got {args.workers!r})") from None
     if args.repeats < 1 or not counts or min(counts) < 1:
-        raise UsageError("--repeats and every pool size in --workers must be at least 1")
+        raise UsageError("--repeats/--workers: the repeats and every pool size must be at least 1")
     spec = args.spec or str(EXAMPLES / "sweeps" / "bench-rom.toml")
     progress = Progress(quiet=args.quiet or args.json)
     try:
@@ -217,7 +217,8 @@ def _sort(args, scenario, progress):
     except ValueError:
         counts = []
     if not counts or min(counts) < 1 or max(counts) > 10**7:
-        raise UsageError(f"--counts wants positive cell counts such as 1000,10000 (got {args.counts!r})")
+        raise UsageError(f"--counts: wants positive cell counts (at most 10,000,000) such as 1000,10000 "
+                         f"(got {args.counts!r})")
     result = sort.bench_sort(counts, args.rate, not args.no_record, not args.no_rerun, args.seed, progress)
     return result, sort.report_lines(result)
 

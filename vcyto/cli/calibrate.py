@@ -74,7 +74,7 @@ def command_calibrate(args):
     pulse = None
     if args.pulse is not None or args.lead is not None:
         if args.pulse is None or args.lead is None:
-            raise UsageError("--pulse and --lead go together: give both to measure the envelope of that pulse, "
+            raise UsageError("--pulse/--lead: they go together: give both to measure the envelope of that pulse, "
                              "or neither to search for the shortest reliable pulse")
         pulse = (base.pulse, base.lead)
     detector = detector_settings(args, scenario)

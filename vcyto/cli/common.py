@@ -50,9 +50,10 @@ def output_options(parser: argparse.ArgumentParser):
     parser.add_argument("--quiet", action="store_true", help="no progress messages on stderr")
 
 
-def output_path(path: str | None, default: bool = False) -> Path | None:
+def output_path(path: str | None, default: bool = False, option: str = "--png") -> Path | None:
     """Check before any work that an output file can be written, and reserve it: a file that exists is never
-    overwritten (a default name becomes NAME-2, NAME-3, ...; a name the user gave is refused)."""
+    overwritten (a default name becomes NAME-2, NAME-3, ...; a name the user gave is refused). A file that cannot
+    be written is bad input (``UsageError`` naming ``option``), refused before the run."""
     if path is None:
         return None
     target = Path(path)
@@ -60,13 +61,13 @@ def output_path(path: str | None, default: bool = False) -> Path | None:
     if default:
         directory.mkdir(parents=True, exist_ok=True)
     if not directory.is_dir():
-        raise UsageError(f"cannot write {path}: directory {directory} does not exist")
+        raise UsageError(f"{option}: cannot write {path}: {directory} is not an existing directory")
     if not os.access(directory, os.W_OK):
-        raise UsageError(f"cannot write {path}: directory {directory} is not writable")
+        raise UsageError(f"{option}: cannot write {path}: the directory {directory} is not writable")
     if default:
         return outputs.unique_path(target)
     if target.exists():
-        raise UsageError(f"{path} exists: a run never overwrites a file; choose another name or remove it")
+        raise UsageError(f"{option}: {path} exists: a run never overwrites a file; choose another name or remove it")
     return target
 
 
@@ -77,21 +78,23 @@ def emit(args, result: dict, lines: list[str]):
         print("\n".join(lines))
 
 
-def output_directory(path: str | None) -> Path | None:
-    """Create (if needed) and check the output directory before any work."""
+def output_directory(path: str | None, option: str = "--output") -> Path | None:
+    """Create (if needed) and check the output directory before any work; a directory that cannot be created or
+    written is bad input (``UsageError`` naming ``option``), refused before the run."""
     if path is None or path == "":
         return None
     directory = Path(path)
     try:
         directory.mkdir(parents=True, exist_ok=True)
     except OSError as error:
-        raise UsageError(f"cannot create output directory {path}: {error.strerror}") from None
+        raise UsageError(f"{option}: cannot create the directory {path} ({error.strerror}); choose a directory "
+                         "you can write to") from None
     if not os.access(directory, os.W_OK):
-        raise UsageError(f"output directory {path} is not writable")
+        raise UsageError(f"{option}: the directory {path} is not writable; choose a directory you can write to")
     free = shutil.disk_usage(directory).free
     if free < MIN_FREE_BYTES:
-        raise UsageError(f"only {free / 1e6:.0f} MB free in {path}: recordings need at least "
-                         f"{MIN_FREE_BYTES / 1e6:.0f} MB; free some space or choose another --output")
+        raise UsageError(f"{option}: only {free / 1e6:.0f} MB free in {path}: recordings need at least "
+                         f"{MIN_FREE_BYTES / 1e6:.0f} MB; free some space or choose another {option}")
     return directory
 
 

@@ -25,7 +25,8 @@ def command_replay(args):
     from ..replay import ReplayError, replay
     path = Path(args.file)
     if not path.is_file():
-        raise UsageError(f"recording {args.file} does not exist or is not a file")
+        raise UsageError(f"FILE: the recording {args.file} does not exist or is not a file; give the path of an "
+                         ".mcap that vcyto stream wrote")
     view = runfiles.choose_view(args, True, spawn_by_default=False, error=UsageError)
     if view.kind == "save" and view.path is None:
         view.path = outputs.unique_path(path.with_suffix(".replay.rrd"))

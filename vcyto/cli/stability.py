@@ -31,7 +31,7 @@ def command_stability(args):
     scenario = scenario_from(args)
     cells = [name.strip() for name in args.cells.split(",") if name.strip()]
     if not cells:
-        raise UsageError("--cells needs at least one cell type, e.g. --cells RBC,melanoma")
+        raise UsageError("--cells: needs at least one cell type, e.g. --cells RBC,melanoma")
     for name in cells:
         scenario.cell_type(name)
     sizes = _lengths(args.mesh_sizes)

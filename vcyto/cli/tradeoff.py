@@ -39,7 +39,7 @@ def _times_before_pulse_end(text: str, option: str, example: str, what: str) -> 
     """Times (bare numbers in ms; returned in s) for the extra tradeoff scenes: positive and below 2 ms."""
     times = positive_list(text, option, example, lambda part: units.parse_quantity(part, "time", "ms", option))
     if max(times) >= 2e-3:
-        raise UsageError(f"{option} takes {what} below 2 ms (the scenes' pulse ends at 2.1 ms; got {text})")
+        raise UsageError(f"{option}: takes {what} below 2 ms (the scenes' pulse ends at 2.1 ms; got {text})")
     return times
 
 

@@ -111,7 +111,7 @@ def _dask_executor(scheduler: str, workers: int):
     try:
         from distributed import Client, LocalCluster
     except ImportError:
-        raise SweepError("--scheduler needs Dask: pip install 'vcyto[cluster]' (or pip install distributed)") from None
+        raise SweepError("--scheduler: needs Dask: pip install 'vcyto[cluster]' (or pip install distributed)") from None
     cluster = None
     try:
         if scheduler == "local":

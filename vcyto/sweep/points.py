@@ -93,7 +93,7 @@ def _option_value(action: argparse.Action, value, where: str):
 def _typed(action: argparse.Action, value, where: str):
     """``value`` read by the option's type (``vcyto.arguments``): SI for quantities, range-checked."""
     try:
-        return action.type(value)
+        return action.type(value, where) if isinstance(action.type, Quantity) else action.type(value)
     except argparse.ArgumentTypeError as error:
         raise SweepError(f"{where}: {error}") from None
 
@@ -129,7 +129,7 @@ def _point(values: tuple, base: argparse.Namespace, options: dict) -> Point:
     try:
         scenario, settings = stream_run(arguments)
     except ValueError as error:
-        raise SweepError(f"point {label}: {one_line(error)}") from None
+        raise SweepError(f"parameters: the point {label or '(the base run)'}: {one_line(error)}") from None
     identity = json.dumps({"scenario": scenario_to_toml(scenario), "settings": repr(settings)})
     inputs = hashlib.sha256(identity.encode()).hexdigest()[:16]
     return Point(values, scenario, settings, _point_id(inputs), inputs)

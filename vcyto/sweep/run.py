@@ -38,7 +38,8 @@ def run_sweep(sweep: Sweep, output: Path, executor, slots: int = 1, progress=Non
                chunk_points for chunk_points in _chunks(todo, slots, chunk)}
     try:                                 # on Ctrl-C the executor's owner (``executor``) stops the workers
         for future in as_completed(futures):
-            finished = [_row(point, outcome) for point, outcome in zip(futures[future], _outcomes(future, futures))]
+            outcomes = zip(futures[future], _outcomes(future, futures))
+            finished = [_row(point, outcome, sweep.columns) for point, outcome in outcomes]
             table.append(finished)
             rows.update((row["point"], row) for row in finished)
             tracker.finished(finished)
@@ -83,10 +84,13 @@ def _outcomes(future, futures) -> list[dict]:
         return [{"status": "failed", "error": message}] * len(futures[future])
 
 
-def _row(point: Point, outcome: dict) -> dict:
+def _row(point: Point, outcome: dict, columns: list[str]) -> dict:
+    """The table row of ``point``: every column in table order (None where the outcome has no value), as a
+    re-run reads it back from the table."""
     from .. import __version__
-    return {"point": point.id, **dict(point.values), "seed": point.settings.seed, **outcome, "inputs": point.inputs,
-            "vcyto": __version__}
+    row = {"point": point.id, **dict(point.values), "seed": point.settings.seed, **outcome, "inputs": point.inputs,
+           "vcyto": __version__}
+    return {column: row.get(column) for column in columns}
 
 
 class _Tracker:
@@ -125,7 +129,7 @@ class _Tracker:
 
 
 def _summary(sweep: Sweep, output: Path, rows: dict, ran: int, repaired: int, wall: float) -> dict:
-    current = [dict(rows[point.id]) for point in sweep.points if point.id in rows]
+    current = [{**rows[point.id], **dict(point.values)} for point in sweep.points if point.id in rows]
     ok = [row for row in current if row["status"] == "ok"]
     scored = [row for row in ok if math.isfinite(float_or_nan(row.get(sweep.plot)))]
     best = max(scored, key=lambda row: float_or_nan(row[sweep.plot]), default=None)

@@ -38,13 +38,13 @@ def load_sweep(path: str | os.PathLike) -> Sweep:
         with open(path, "rb") as file:
             document = tomllib.load(file)
     except RecursionError:
-        raise SweepError(f"sweep spec '{os.fspath(path)}' nests tables or arrays too deeply") from None
+        raise SweepError(f"{os.fspath(path)}: the sweep spec nests tables or arrays too deeply") from None
     except FileNotFoundError:
-        raise SweepError(f"sweep spec '{os.fspath(path)}' does not exist; check the path") from None
+        raise SweepError(f"{os.fspath(path)}: the sweep spec does not exist; check the path") from None
     except OSError as error:
-        raise SweepError(f"cannot read sweep spec '{os.fspath(path)}': {error.strerror}") from None
+        raise SweepError(f"{os.fspath(path)}: cannot read the sweep spec: {error.strerror}") from None
     except (tomllib.TOMLDecodeError, UnicodeDecodeError) as error:
-        raise SweepError(f"sweep spec '{os.fspath(path)}' is not valid TOML: {one_line(error)}") from None
+        raise SweepError(f"{os.fspath(path)}: the sweep spec is not valid TOML: {one_line(error)}") from None
     return parse_sweep(document, Path(path).parent, name=os.fspath(path))
 
 

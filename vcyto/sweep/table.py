@@ -6,11 +6,14 @@ from __future__ import annotations
 import csv
 import io
 import os
+import re
 from pathlib import Path
 
 from .model import SweepError, one_line
 
 RESULTS, FIGURE, SUMMARY = "results.csv", "summary.png", "sweep.json"
+TEXT_COLUMNS = ("point", "status", "error", "inputs", "vcyto")
+INTEGER = re.compile(r"[+-]?[0-9]+")
 ROW_STATUSES = ("ok", "failed", "truncated")   # truncated: the run hit a cap before its sample ended
 
 
@@ -38,7 +41,8 @@ class ResultTable:
         for line in lines[1:]:
             fields = next(csv.reader([line]), [])
             if line.endswith("\n") and len(fields) == len(self.columns) and fields[1] in ROW_STATUSES:
-                rows[fields[0]] = dict(zip(self.columns, fields))
+                rows[fields[0]] = {column: field if column in TEXT_COLUMNS else _value(field)
+                                   for column, field in zip(self.columns, fields)}
             else:
                 self.repaired += 1
         if self.repaired:
@@ -63,9 +67,22 @@ class ResultTable:
         os.replace(temporary, self.path)
 
 
+def _value(text: str):
+    """A cell read back as the run wrote it: empty is None, an integer an int, a number a float (NaN too),
+    anything else (such as outlet counts "lower=4 upper=2") text."""
+    if text == "":
+        return None
+    if INTEGER.fullmatch(text):
+        return int(text)
+    try:
+        return float(text)
+    except ValueError:
+        return text
+
+
 def _cell(value) -> str:
     if value is None:
         return ""
     if isinstance(value, float):
-        return repr(value)
+        return repr(float(value))
     return one_line(str(value))

@@ -71,7 +71,8 @@ class ControllerSettings:
                 raise ValueError(f"controller {name} must be a finite number >= 0 (got {value!r})")
         if len(self.envelope) != 2 or not all(math.isfinite(v) for v in self.envelope) \
                 or self.envelope[0] > self.envelope[1]:
-            raise ValueError(f"controller envelope must be two finite offsets (low <= high) in s (got {self.envelope!r})")
+            raise ValueError("controller envelope must be two finite offsets (low <= high) in s "
+                             f"(got {self.envelope!r})")
 
     def window(self, margin: bool = True) -> tuple[float, float]:
         """The offsets (s) at which another cell counts as coincident with a sort: the envelope, widened by the

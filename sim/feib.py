@@ -9,9 +9,9 @@ the interior pressure that balances the force's area-changing part (``pressure``
 membrane along its normal to restore the cell's area (``projection``); with ``numerics.redistribute`` the
 points are re-spaced along the spline whenever a spacing leaves ``numerics.spacing_band``.
 Then each cell's fate is settled (the outlet its centroid crosses x = length through), its shape figures
-are updated (``Measures``) and the health checks run (``sim.health``). Membrane points that have passed x = length through an outlet are outside the
-mesh: they move with the outlet's velocity at x = length (the outflow continued straight) and exert no
-force on the fluid.
+are updated (``Measures``) and the health checks run (``sim.health``). Membrane points that have passed
+x = length through an outlet are outside the mesh: they move with the outlet's velocity at x = length (the
+outflow continued straight) and exert no force on the fluid.
 """
 
 from __future__ import annotations
@@ -60,8 +60,8 @@ class Measures:
         low, high = float(lengths.min()) / mesh_h, float(lengths.max()) / mesh_h
         before = before or cls()
         return cls(ratio, float(lengths.sum()), low, high, min(before.area_ratio_min, ratio),
-                   max(before.area_ratio_max, ratio), min(before.spacing_lowest, low), max(before.spacing_highest, high),
-                   before.area_corrected + corrected)
+                   max(before.area_ratio_max, ratio), min(before.spacing_lowest, low),
+                   max(before.spacing_highest, high), before.area_corrected + corrected)
 
     def as_dict(self) -> dict:
         return {name: getattr(self, name) for name in self.__dataclass_fields__}

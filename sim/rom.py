@@ -372,9 +372,9 @@ class RomPlant:
 
     def _record(self, i: int) -> CellTruth:
         code = int(self._fate[i])
-        return CellTruth(i, self._names[self._kind[i]], float(self._born[i]), self._outlet_names.get(code) or FATES[code],
-                         float(self._exit_time[i]), float(self._exit_y[i]), float(self._position[i, 0]),
-                         float(self._position[i, 1]), 1.0)
+        fate = self._outlet_names.get(code) or FATES[code]
+        return CellTruth(i, self._names[self._kind[i]], float(self._born[i]), fate, float(self._exit_time[i]),
+                         float(self._exit_y[i]), float(self._position[i, 0]), float(self._position[i, 1]), 1.0)
 
     def adopt(self, time_s: float, level: float, cells: dict, injected: int):
         """Continue from another plant's state (the ``auto`` plant's hand-over): at ``time_s`` (a whole number

@@ -126,8 +126,8 @@ def test_cache_command_reports_and_clears_the_configured_directory(tmp_path):
 
 
 def test_constant_matrices_come_from_the_cache_bit_for_bit(cache):
-    from sim.fluid import TaylorHood
     from sim.mesh import channel_mesh
+    from sim.taylorhood import TaylorHood
     base = scenario()
     store.install(None)
     cold = TaylorHood(channel_mesh(base.channel, base.numerics.mesh_h))

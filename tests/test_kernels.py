@@ -5,9 +5,9 @@ import pytest
 from skfem import LinearForm, asm
 from skfem.helpers import grad
 
-from sim.fluid import TaylorHood
 from sim.mesh import channel_mesh
 from sim.scenario import UM, Scenario
+from sim.taylorhood import TaylorHood
 from sim.transfer import PointLocator
 
 

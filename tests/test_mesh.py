@@ -1,9 +1,9 @@
 import numpy as np
 import pytest
 
-from sim.fluid import TaylorHood
 from sim.mesh import channel_mesh
 from sim.scenario import UM, Scenario
+from sim.taylorhood import TaylorHood
 
 
 def test_paper_resolution_has_the_papers_dofs(paper_solver):

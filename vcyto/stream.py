@@ -70,7 +70,8 @@ class StreamSettings:
             if not (math.isfinite(getattr(self, name)) and getattr(self, name) > 0):
                 raise ValueError(f"{name} must be a finite positive time (got {getattr(self, name)!r})")
         if self.window_mesh_h is not None and not (math.isfinite(self.window_mesh_h) and self.window_mesh_h > 0):
-            raise ValueError(f"the auto model's window mesh size must be a positive length (got {self.window_mesh_h!r})")
+            raise ValueError("the auto model's window mesh size must be a positive length "
+                             f"(got {self.window_mesh_h!r})")
 
 
 def make_plant(scenario: Scenario, settings: StreamSettings):

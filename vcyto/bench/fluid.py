@@ -14,10 +14,11 @@ import time
 import numpy as np
 
 from sim import store
-from sim.fluid import NavierStokes, TaylorHood
+from sim.fluid import NavierStokes
 from sim.linalg import Pardiso, SuperLU, pardiso_available
 from sim.mesh import channel_mesh
 from sim.scenario import UM, Scenario
+from sim.taylorhood import TaylorHood
 
 STEPS = {"imex": 40, "stokes": 40, "oseen": 4, "implicit": 4}
 

@@ -8,9 +8,10 @@ import time
 
 import numpy as np
 
-from sim.fluid import NavierStokes, TaylorHood
+from sim.fluid import NavierStokes
 from sim.mesh import channel_mesh
 from sim.scenario import UM, Scenario
+from sim.taylorhood import TaylorHood
 
 
 def bench_treatments(scenario: Scenario, steps: int = 20, progress=lambda message: None) -> dict:

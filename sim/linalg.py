@@ -24,7 +24,9 @@ import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
-SOLVERS = ("auto", "pardiso", "superlu")
+from .scenario import LINEAR_SOLVERS
+
+SOLVERS = LINEAR_SOLVERS              # the one list: sim.scenario
 
 
 class SolverError(RuntimeError):

@@ -14,7 +14,7 @@ import argparse
 
 from controller.sorter import MODES
 from sim import plants
-from sim.scenario import CONVECTIONS, MEMBRANE_METHODS, SAW_MODELS, ScenarioError
+from sim.scenario import CONVECTIONS, LINEAR_SOLVERS, MEMBRANE_METHODS, SAW_MODELS, ScenarioError
 
 from . import arguments as limits
 from . import units
@@ -36,7 +36,7 @@ def scenario_options(parser: argparse.ArgumentParser):
                        help="time step (default 2.5us; vcyto paper: the paper's step for the scenario)")
     group.add_argument("--convection", choices=CONVECTIONS, help="convection treatment (default imex)")
     group.add_argument("--saw-model", choices=SAW_MODELS, help="SAW model (default paper)")
-    group.add_argument("--solver", choices=("auto", "pardiso", "superlu"), help="linear solver (default auto)")
+    group.add_argument("--solver", choices=LINEAR_SOLVERS, help="linear solver (default auto)")
     group.add_argument("--membrane", choices=tuple(MEMBRANE_METHODS),
                        help="membrane method: conserving (area constraint + point redistribution; the default) or "
                             "paper (the paper's literal method, which leaks area; the default of vcyto paper)")

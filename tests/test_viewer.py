@@ -90,3 +90,29 @@ def test_garbage_is_refused_in_one_line(tmp_path, content):
 def test_missing_recording_is_refused():
     result = vcyto("replay", "no-such-run.mcap")
     assert result.returncode == 2 and "does not exist" in result.stderr
+
+
+def test_a_long_sort_logs_a_bounded_set_of_entities_and_every_path_once(tmp_path):
+    """300 cells through rom: the view's entities do not grow with the cells (16 path slots, one cells entity),
+    while every cell's path is logged once, in its slot, labelled with its key."""
+    result = vcyto("stream", "--model", "rom", "--count", "300", "--rate", "1000", "--arrivals", "poisson",
+                   "--mix", "RBC:0.9,melanoma:0.1", "--json", "--quiet", "--output", str(tmp_path),
+                   "--save", str(tmp_path / "live.rrd"))
+    assert result.returncode == 0, result.stderr
+    summary = json.loads(result.stdout)
+    left = [cell for cell in summary["cells"] if cell["outlet"] not in ("not_injected",)]
+    paths = collections.Counter()
+    temporal = set()
+    for chunk in RrdReader(str(tmp_path / "live.rrd")).stream():
+        if chunk.is_static:
+            continue
+        temporal.add(chunk.entity_path)
+        if chunk.entity_path.startswith("/device/paths/"):
+            batch = chunk.to_record_batch()
+            for labels in batch.column("LineStrips2D:labels").to_pylist():
+                key = int(labels[0].split(":")[0])
+                assert chunk.entity_path == f"/device/paths/{key % 16}"
+                paths[key] += 1
+    assert len([e for e in temporal if e.startswith("/device/paths/")]) == 16
+    assert len(temporal) <= 16 + 8                      # slots + idt, cells, events, pulses (2), log, flow
+    assert paths == collections.Counter({cell["key"]: 1 for cell in left})

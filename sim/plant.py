@@ -50,7 +50,7 @@ def membrane_truths(cells) -> tuple[CellTruth, ...]:
     return tuple(truths)
 
 
-ADAPTIVE_PERIOD = 20e-6      # the longest control period of a FeibPlant whose steps a tolerance picks
+ADAPTIVE_PERIOD = 10e-6      # the longest control period of a FeibPlant whose steps a tolerance picks
 
 
 class FeibPlant:
@@ -60,7 +60,7 @@ class FeibPlant:
         self.scenario = scenario
         self.ib = plant or ImmersedBoundary(scenario)
         dt = scenario.numerics.dt
-        # with a tolerance the period holds one step of the coarsest level (sim.adaptive), at most 20 us (the
+        # with a tolerance the period holds one step of the coarsest level (sim.adaptive), at most 10 us (the
         # IDT drive changes only between periods: a longer one would delay pulses by more than the steps' error)
         natural = dt if self.ib.adaptive is None else max(dt, min(self.ib.adaptive.levels[-1], ADAPTIVE_PERIOD))
         self.control_period = control_period or natural

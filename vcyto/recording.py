@@ -54,15 +54,6 @@ PER_STEP = ("/loop/step", "/cells")
 FORMAT = "2"                  # 1: JSON channels only, membranes in /cells; 2: Foxglove channels beside them
 
 
-def _rounded(value: float, digits: int):
-    return round(value, digits) if np.isfinite(value) else None
-
-
-def _finite(value):
-    """JSON has no NaN: report it as null."""
-    return None if value is None or (isinstance(value, float) and not np.isfinite(value)) else value
-
-
 def plain_metadata(metadata: dict) -> dict:
     """Metadata values as plain strings: settings (dataclasses) and containers as JSON text."""
     def text(value):
@@ -171,7 +162,7 @@ class McapRecorder:
         for event in events:
             self._event(event, positions.get(event.key))
         for decision in decisions:
-            self._write("/controller/decision", now, {key: _finite(getattr(decision, key))
+            self._write("/controller/decision", now, {key: getattr(decision, key)
                                                       for key in SCHEMAS["/controller/decision"]["properties"]})
             reason = f" ({decision.reason})" if decision.reason else ""
             self._log(now, f"event {decision.event_id}: {decision.action}{reason}",
@@ -219,7 +210,7 @@ class McapRecorder:
     def _outcome(self, now: float, cell):
         name = self._classes.settle(cell)
         self._write("/outcome", now, {"key": cell.key, "type": cell.type, "outlet": cell.fate, "class": name,
-                                      "exit_time": _finite(cell.exit_time), "exit_y_um": _finite(cell.exit_y / UM)})
+                                      "exit_time": cell.exit_time, "exit_y_um": cell.exit_y / UM})
         self._log(now, f"cell {cell.key} ({cell.type}) left by: {cell.fate} ({name})",
                   "INFO" if name in ("sorted", "passed") else "WARN")
         path = self._paths.pop(cell.key, None) or [(cell.x / UM, cell.y / UM)]
@@ -234,9 +225,10 @@ class McapRecorder:
         if not shape:                          # a model without membranes (JSON: null)
             row.update(perimeter_um=None, spacing_min_h=None, spacing_max_h=None)
             return row
-        row.update(perimeter_um=_rounded(shape.get("perimeter", float("nan")) * 1e6, 4),
-                   spacing_min_h=_rounded(shape.get("spacing_min", float("nan")), 4),
-                   spacing_max_h=_rounded(shape.get("spacing_max", float("nan")), 4))
+        # a missing or non-finite figure is written as null (``_write``)
+        row.update(perimeter_um=round(shape.get("perimeter", float("nan")) * 1e6, 4),
+                   spacing_min_h=round(shape.get("spacing_min", float("nan")), 4),
+                   spacing_max_h=round(shape.get("spacing_max", float("nan")), 4))
         return row
 
     def on_end(self, ending: dict):

@@ -176,7 +176,8 @@ class NavierStokes:
         numerics = self.scenario.numerics
         factor = factorize(rows[:, self.free].tocsr(), numerics.linear_solver, symmetric=symmetric,
                            previous=previous, reproducible=numerics.reproducible,
-                           coordinates=self.free_x if symmetric else None)
+                           coordinates=self.free_x if symmetric else None,
+                           precision=numerics.precision if symmetric else "double")
         if reuse:
             self._reusable[reuse] = factor
         self.timings.factor += clock.perf_counter() - started
@@ -208,14 +209,22 @@ class NavierStokes:
             rhs[n_velocity:] = continuity
         return rhs
 
-    def _solve(self, system, rhs, inflow_weight=1.0, jet_weight=0.0):
-        """Solve ``system`` for the reduced ``rhs`` with boundary velocity inflow_weight * inflow + jet_weight * jet."""
+    def _free_solution(self, velocity, pressure) -> np.ndarray:
+        """The reduced unknowns of a velocity (2, N) and pressure: the inverse of what ``_solve`` returns."""
+        return np.concatenate((velocity.ravel()[self.free_velocity], pressure / self.pressure_scale))
+
+    def _solve(self, system, rhs, inflow_weight=1.0, jet_weight=0.0, near=None):
+        """Solve ``system`` for the reduced ``rhs`` with boundary velocity inflow_weight * inflow + jet_weight * jet.
+
+        ``near`` (velocity, pressure) is a solution close to this one (the last step's): the mixed-precision
+        solve refines from it (``sim.linalg.MixedPrecision``); direct solves ignore it."""
         if inflow_weight:
             rhs -= inflow_weight * system.lift_inflow
         if jet_weight:
             rhs -= jet_weight * system.lift_jet
+        guess = None if near is None else self._free_solution(*near)
         started = clock.perf_counter()
-        free_solution = system.factor.solve(rhs)
+        free_solution = system.factor.solve(rhs, guess)
         self.timings.solve += clock.perf_counter() - started
         velocity = inflow_weight * self.inflow + jet_weight * self.jet if (inflow_weight or jet_weight) \
             else np.zeros((2, self.space.N))
@@ -244,12 +253,12 @@ class NavierStokes:
         jet = self.jet_weight(new_time, actuation)
         iterations = 1
         if treatment in ("imex", "stokes"):
-            velocity, pressure = self._solve(self._constant, rhs, 1.0, jet)
+            velocity, pressure = self._solve(self._constant, rhs, 1.0, jet, near=(state.velocity, state.pressure))
         elif treatment == "oseen":
             system = self._linearised(state.velocity, newton=False, with_mass=True)
             velocity, pressure = self._solve(system, rhs, 1.0, jet)
         else:
-            velocity, pressure, iterations = self._implicit(state.velocity, rhs, jet, new_time)
+            velocity, pressure, iterations = self._implicit(state, rhs, jet, new_time)
         self._check(velocity, new_time, treatment)
         self.timings.steps += 1
         return Flow(new_time, velocity, pressure, level, iterations)
@@ -270,17 +279,20 @@ class NavierStokes:
         return self._system(blocks[0][0], blocks[1][1], blocks[0][1], blocks[1][0],
                             reuse=("newton" if newton else "oseen") + ("-mass" if with_mass else ""))
 
-    def _implicit(self, previous, rhs, jet, time):
+    def _implicit(self, state, rhs, jet, time):
         """Solve (26) with c(v^{m+1}) to ``nonlinear_tolerance``: fixed point, then Newton if needed.
 
         ``rhs`` holds rho/dt M v^m + loads (reduced); each fixed-point iterate costs one back-solve.
         """
         numerics, density = self.scenario.numerics, self.scenario.fluid.density
+        previous = state.velocity
         scale = np.linalg.norm(rhs) + 1e-300
         convection = self._free_rhs(self.space.convection_load(previous))
         residuals = []
+        near = (state.velocity, state.pressure)
         for iteration in range(1, numerics.max_nonlinear_iterations + 1):
-            velocity, pressure = self._solve(self._constant, rhs - density * convection, 1.0, jet)
+            velocity, pressure = self._solve(self._constant, rhs - density * convection, 1.0, jet, near)
+            near = (velocity, pressure)
             new_convection = self._free_rhs(self.space.convection_load(velocity))
             # the residual of (26) at the new iterate is rho (c(v_new) - c(v_old))
             residuals.append(density * np.linalg.norm(new_convection - convection) / scale)
@@ -381,10 +393,12 @@ class NavierStokes:
         self._constant_system()
 
     def backsolve(self, rhs: np.ndarray) -> np.ndarray:
-        """One bare back-solve of the constant factorisation (the benchmarks' yardstick)."""
+        """One bare back-solve of the constant factorisation (the benchmarks' yardstick); with mixed precision
+        the single-precision back-solve that each refinement correction costs."""
         if self._constant is None:
             raise ValueError(f"the {self.scenario.numerics.convection} treatment has no constant factorisation")
-        return self._constant.factor.solve(rhs)
+        factor = self._constant.factor
+        return getattr(factor, "inner", factor).solve(rhs)
 
     def constant_matrix(self) -> sp.csr_matrix:
         """The reduced (Dirichlet-free) matrix of the imex/stokes treatments, pressure scaled."""

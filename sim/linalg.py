@@ -24,7 +24,7 @@ import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
-from .scenario import LINEAR_SOLVERS
+from .scenario import LINEAR_SOLVERS, PRECISIONS
 
 SOLVERS = LINEAR_SOLVERS              # the one list: sim.scenario
 
@@ -35,7 +35,15 @@ class SolverError(RuntimeError):
 
 @lru_cache(maxsize=1)
 def _mkl_runtime():
-    """Load ``libmkl_rt`` from this environment, or return None when MKL is not installed."""
+    """Load ``libmkl_rt`` from this environment, or return None when MKL is not installed.
+
+    MKL brings Intel's OpenMP runtime, which then also runs numba's parallel kernels (its GNU-compatible
+    entry points come first); its threads spin for 200 ms after every parallel region (KMP_BLOCKTIME),
+    so each step's momentum kernel left a thread spinning through the next back-solve, on a core the
+    split solve's second thread needed (measured: 100 ms of CPU per 100 ms after a step; steps 10-40 %
+    slower, by how the threads landed). Unless the user set it, KMP_BLOCKTIME=0: idle threads sleep at
+    once (docs/numerics.md, "Linear solvers")."""
+    os.environ.setdefault("KMP_BLOCKTIME", "0")
     names = [os.environ.get("VCYTO_MKL_RT", "")]
     for root in {sys.prefix, site.getuserbase()}:
         names += sorted(glob.glob(os.path.join(root, "lib", "libmkl_rt.so*")), key=len)
@@ -51,10 +59,25 @@ def _mkl_runtime():
     return None
 
 
-def _aligned_empty(size: int, alignment: int = 64) -> np.ndarray:
-    """An uninitialised float64 array whose data starts on an ``alignment``-byte boundary."""
-    raw = np.empty(size + alignment // 8, dtype=np.float64)
-    offset = (-raw.ctypes.data % alignment) // 8
+def openmp_blocktime(milliseconds: int) -> bool:
+    """Set how long Intel OpenMP's idle threads spin (for teams the calling thread starts from now on);
+    False when that runtime is not loaded. The benchmarks give PARDISO's parallel substitution its own best
+    setting (200 ms: threads hot between calls) while they time it."""
+    if _mkl_runtime() is None:
+        return False
+    try:
+        runtime = ctypes.CDLL("libiomp5.so")
+    except OSError:
+        return False
+    runtime.kmp_set_blocktime(ctypes.c_int(int(milliseconds)))
+    return True
+
+
+def _aligned_empty(size: int, alignment: int = 64, dtype=np.float64) -> np.ndarray:
+    """An uninitialised array whose data starts on an ``alignment``-byte boundary."""
+    itemsize = np.dtype(dtype).itemsize
+    raw = np.empty(size + alignment // itemsize, dtype=dtype)
+    offset = (-raw.ctypes.data % alignment) // itemsize
     return raw[offset: offset + size]
 
 
@@ -78,22 +101,28 @@ class Pardiso:
 
     ``symmetric=True`` factors the real symmetric indefinite matrix (LDL^T with Bunch-Kaufman pivoting
     and weighted matching), which halves the factor's size and so the memory traffic of a back-solve.
+    ``single=True`` factors and substitutes in single precision (``iparm[27] = 1``): half the bytes of
+    factor, solutions to ~1e-6 relative; meant as the inner solver of ``MixedPrecision``. Inputs and
+    outputs stay float64.
     """
 
     _INT = ctypes.c_int32
 
-    def __init__(self, matrix: sp.spmatrix, symmetric: bool = False, reproducible: bool = True):
+    def __init__(self, matrix: sp.spmatrix, symmetric: bool = False, reproducible: bool = True,
+                 single: bool = False):
         library = _mkl_runtime()
         if library is None:
             raise SolverError("MKL PARDISO is not available: install the 'mkl' package or use solver='superlu'")
         self._pardiso = library.pardiso
         self.symmetric = symmetric
         self.mtype = -2 if symmetric else 11
+        self.single = single
+        self._dtype = np.float32 if single else np.float64
         stored = sp.triu(matrix, format="csr") if symmetric else sp.csr_matrix(matrix)
         stored.sum_duplicates()
         stored.sort_indices()
         self.shape = stored.shape
-        self._data = np.ascontiguousarray(stored.data, dtype=np.float64)
+        self._data = np.ascontiguousarray(stored.data, dtype=self._dtype)
         self._indptr = np.ascontiguousarray(stored.indptr, dtype=np.int32)
         self._indices = np.ascontiguousarray(stored.indices, dtype=np.int32)
         self._handle = np.zeros(64, dtype=np.int64)
@@ -109,42 +138,46 @@ class Pardiso:
         # forward/backward substitution: 1 = sequential, bit-for-bit reproducible (12 ms here);
         # 2 = parallel, 2x faster but its reductions make the last bits vary from run to run
         self.iparm[24] = 1 if reproducible else 2
+        self.iparm[27] = 1 if single else 0
         self.iparm[34] = 1     # zero-based indexing
-        self._call(12, np.zeros(self.shape[0]))
+        self._call(12, np.zeros(self.shape[0], dtype=self._dtype))
         self.factor_nonzeros = int(self.iparm[17])
 
     def _call(self, phase: int, rhs: np.ndarray, solution: np.ndarray | None = None) -> np.ndarray:
         solution = np.zeros_like(rhs) if solution is None else solution
         error = self._INT(0)
         nrhs = 1 if rhs.ndim == 1 else rhs.shape[1]
+        if rhs.dtype != self._dtype or solution.dtype != self._dtype:
+            raise SolverError(f"PARDISO phase {phase}: vectors must be {np.dtype(self._dtype).name}")
         pointer_int = ctypes.POINTER(self._INT)
-        pointer_double = ctypes.POINTER(ctypes.c_double)
+        address = ctypes.c_void_p      # float64 or float32 data, by iparm[27]
         self._pardiso(
             self._handle.ctypes.data_as(ctypes.POINTER(ctypes.c_int64)),
             ctypes.byref(self._INT(1)), ctypes.byref(self._INT(1)), ctypes.byref(self._INT(self.mtype)),
             ctypes.byref(self._INT(phase)), ctypes.byref(self._INT(self.shape[0])),
-            self._data.ctypes.data_as(pointer_double),
+            address(self._data.ctypes.data),
             self._indptr.ctypes.data_as(pointer_int), self._indices.ctypes.data_as(pointer_int),
             None, ctypes.byref(self._INT(nrhs)), self.iparm.ctypes.data_as(pointer_int),
-            ctypes.byref(self._INT(0)), rhs.ctypes.data_as(pointer_double),
-            solution.ctypes.data_as(pointer_double), ctypes.byref(error),
+            ctypes.byref(self._INT(0)), address(rhs.ctypes.data),
+            address(solution.ctypes.data), ctypes.byref(error),
         )
         if error.value != 0:
             raise SolverError(f"PARDISO phase {phase} failed with error {error.value}")
         return solution
 
-    def solve(self, rhs: np.ndarray) -> np.ndarray:
-        """Back-solve. The right-hand side goes through one persistent buffer: MKL's results can depend on
-        the memory alignment of its inputs, and a fixed buffer makes equal inputs give equal bits."""
+    def solve(self, rhs: np.ndarray, guess: np.ndarray | None = None) -> np.ndarray:
+        """Back-solve (``guess`` is not used: a direct solve needs none). The right-hand side goes through one
+        persistent buffer: MKL's results can depend on the memory alignment of its inputs, and a fixed buffer
+        makes equal inputs give equal bits."""
         rhs = np.asarray(rhs, dtype=np.float64)
         if rhs.ndim != 1:
-            return self._call(33, np.asfortranarray(rhs))
+            return self._call(33, np.asfortranarray(rhs, dtype=self._dtype)).astype(np.float64)
         if self._rhs_buffer is None or len(self._rhs_buffer) != len(rhs):
-            self._rhs_buffer = _aligned_empty(len(rhs))
-            self._solution_buffer = _aligned_empty(len(rhs))
+            self._rhs_buffer = _aligned_empty(len(rhs), dtype=self._dtype)
+            self._solution_buffer = _aligned_empty(len(rhs), dtype=self._dtype)
         self._rhs_buffer[:] = rhs
         self._call(33, self._rhs_buffer, self._solution_buffer)
-        return self._solution_buffer.copy()
+        return self._solution_buffer.astype(np.float64)
 
     def phase(self, phase: int, rhs: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
         """One partial substitution of a vector: 331 forward, 332 diagonal, 333 backward (A^-1 = 333 332 331).
@@ -152,12 +185,13 @@ class Pardiso:
         Inputs and outputs go through fixed aligned buffers (see ``solve``); the result is written to ``out``
         (or a new array)."""
         if self._phase_buffers is None or len(self._phase_buffers[0]) != len(rhs):
-            self._phase_buffers = (_aligned_empty(len(rhs)), _aligned_empty(len(rhs)))
+            self._phase_buffers = (_aligned_empty(len(rhs), dtype=self._dtype),
+                                   _aligned_empty(len(rhs), dtype=self._dtype))
         source, target = self._phase_buffers
         source[:] = rhs
         self._call(phase, source, target)
         if out is None:
-            return target.copy()
+            return target.astype(np.float64)
         out[:] = target
         return out
 
@@ -170,13 +204,13 @@ class Pardiso:
         """Numerical factorisation of a matrix with the same sparsity pattern, reusing the ordering."""
         stored = sp.triu(matrix, format="csr") if self.symmetric else sp.csr_matrix(matrix)
         stored.sort_indices()
-        self._data = np.ascontiguousarray(stored.data, dtype=np.float64)
-        self._call(22, np.zeros(self.shape[0]))
+        self._data = np.ascontiguousarray(stored.data, dtype=self._dtype)
+        self._call(22, np.zeros(self.shape[0], dtype=self._dtype))
         return self
 
     def release(self):
         if self._handle.any():
-            self._call(-1, np.zeros(self.shape[0]))
+            self._call(-1, np.zeros(self.shape[0], dtype=self._dtype))
             self._handle[:] = 0
 
     def __del__(self):
@@ -202,31 +236,94 @@ class SuperLU:
         self.symmetric = symmetric
         self.factor_nonzeros = int(self._lu.L.nnz + self._lu.U.nnz)
 
-    def solve(self, rhs: np.ndarray) -> np.ndarray:
+    def solve(self, rhs: np.ndarray, guess: np.ndarray | None = None) -> np.ndarray:
         return self._lu.solve(rhs)
 
     def release(self):
         self._lu = None
 
 
+class MixedPrecision:
+    """A double-precision solve from a single-precision factorisation, by iterative refinement.
+
+    x_0 = ``guess`` (the previous time step's solution; zero without one), then
+    x_{k+1} = x_k + S (b - A x_k) with S the single-precision solve and the residual in double precision.
+    S is accurate to ~1e-6 relative (the matrix is well conditioned: measured 7.5e-7 at the paper's mesh),
+    so each correction shrinks the error ~1e6-fold: the refinement stops after the correction d_k with
+    ||d_k||_inf <= ``tolerance`` ||x_{k+1}||_inf, which leaves an error of ~1e-6 ``tolerance`` ||x||
+    (1e-11 relative with the default). A time step whose solution moved less than ``tolerance`` from the
+    last costs one residual and one single-precision back-solve; larger changes (a start from rest, an IDT
+    switching on) cost a second. Every operation has a fixed order, so equal inputs give equal bits.
+    """
+
+    TOLERANCE = 1e-2
+    MAX_CORRECTIONS = 4
+
+    def __init__(self, matrix: sp.spmatrix, inner, tolerance: float = TOLERANCE):
+        self._matrix = sp.csr_matrix(matrix, dtype=np.float64)
+        self._inner = inner
+        self.tolerance = tolerance
+        self.shape, self.symmetric = inner.shape, inner.symmetric
+        self.factor_nonzeros = inner.factor_nonzeros
+        self.solves = self.corrections = 0        # totals, for the benchmarks
+
+    def solve(self, rhs: np.ndarray, guess: np.ndarray | None = None) -> np.ndarray:
+        rhs = np.asarray(rhs, dtype=np.float64)
+        if rhs.ndim != 1:
+            return np.column_stack([self.solve(column) for column in rhs.T])
+        solution = np.zeros_like(rhs) if guess is None else np.array(guess, dtype=np.float64)
+        self.solves += 1
+        solve_residual = getattr(self._inner, "solve_residual", None)     # the split solve's, in parallel
+        for _ in range(self.MAX_CORRECTIONS):
+            if solve_residual is not None:
+                correction = solve_residual(rhs, solution)
+            else:
+                correction = self._inner.solve(rhs - self._matrix @ solution)
+            solution += correction
+            self.corrections += 1
+            size, scale = np.max(np.abs(correction)), np.max(np.abs(solution))
+            if not (np.isfinite(size) and np.isfinite(scale)):
+                return solution                   # the caller's finiteness check reports it with its cause
+            if size <= self.tolerance * scale:
+                return solution
+        raise SolverError(f"mixed-precision refinement did not converge in {self.MAX_CORRECTIONS} corrections "
+                          f"(last {size:.3g} of {scale:.3g}): the single-precision factorisation is too "
+                          "inaccurate for this matrix; set numerics.precision = 'double'")
+
+    @property
+    def inner(self):
+        """The single-precision factorisation (its ``solve`` is one correction's back-solve)."""
+        return self._inner
+
+    def release(self):
+        self._inner.release()
+
+
 def factorize(matrix: sp.spmatrix, solver: str = "auto", symmetric: bool = False, previous=None,
-              reproducible: bool = True, coordinates: np.ndarray | None = None):
+              reproducible: bool = True, coordinates: np.ndarray | None = None, precision: str = "double"):
     """Factor ``matrix`` with the named back-end ('auto' prefers PARDISO); returns an object with ``solve``.
 
     With ``previous`` (an earlier PARDISO factorisation of a matrix with the same sparsity pattern, e.g. the
     previous Newton or Oseen matrix) only the numerical factorisation is redone: ~3x cheaper.
     With ``coordinates`` (the x coordinate of each unknown) a large symmetric reproducible PARDISO system is
     solved by two sequential halves on two threads (``sim.splitsolve``): reproducible at the parallel speed.
+    ``precision="mixed"`` (PARDISO only) factors in single precision and refines in double
+    (``MixedPrecision``); other back-ends and refactorisations stay in double precision.
     """
     if solver not in SOLVERS:
         raise SolverError(f"unknown linear solver {solver!r}: choose one of {', '.join(SOLVERS)}")
     if isinstance(previous, Pardiso) and previous.symmetric == symmetric and previous.same_pattern(matrix):
         return previous.refactor(matrix)
+    if precision not in PRECISIONS:
+        raise SolverError(f"unknown precision {precision!r}: choose one of {', '.join(PRECISIONS)}")
     if solver == "pardiso" or (solver == "auto" and pardiso_available()):
+        single = precision == "mixed"
         if pardiso_available() and symmetric and reproducible and coordinates is not None and split_wanted(matrix):
             from .splitsolve import SplitPardiso
-            return SplitPardiso(matrix, coordinates)
-        return Pardiso(matrix, symmetric=symmetric, reproducible=reproducible)
+            factor = SplitPardiso(matrix, coordinates, single=single)
+        else:
+            factor = Pardiso(matrix, symmetric=symmetric, reproducible=reproducible, single=single)
+        return MixedPrecision(matrix, factor) if single else factor
     return SuperLU(matrix, symmetric=symmetric)
 
 

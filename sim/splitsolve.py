@@ -70,9 +70,10 @@ def _one_mkl_thread():
 class _Half:
     """One side of the cut: its sequential factorisation and H = D^{-1} F C."""
 
-    def __init__(self, block: sp.csr_matrix):
+    def __init__(self, block: sp.csr_matrix, single: bool = False):
         _one_mkl_thread()
-        self.factor = Pardiso(block, symmetric=True, reproducible=True)
+        self.factor = Pardiso(block, symmetric=True, reproducible=True, single=single)
+        self._agreement = 1e-6 if single else 1e-13
         n = block.shape[0]
         self.y, self.z, self.x = (np.zeros(n) for _ in range(3))
         self.h = self.h_t = None
@@ -80,11 +81,12 @@ class _Half:
 
     def _diagonal(self, n: int) -> np.ndarray | None:
         """PARDISO's diagonal substitution (phase 332) as a vector when it is one (1x1 pivots: checked on two
-        random vectors to 1e-13), else None: 332 costs a quarter of a half's solve, a product almost nothing."""
+        random vectors to 1e-13, 1e-6 in single precision), else None: 332 costs a quarter of a half's
+        solve, a product almost nothing."""
         dinv = self.factor.phase(332, np.ones(n))
         for probe in np.random.default_rng(18).uniform(1.0, 2.0, size=(2, n)):
             exact = self.factor.phase(332, probe)
-            if not np.all(np.abs(dinv * probe - exact) <= 1e-13 * np.abs(exact)):
+            if not np.all(np.abs(dinv * probe - exact) <= self._agreement * np.abs(exact)):
                 return None
         return dinv
 
@@ -156,16 +158,18 @@ class _Worker(threading.Thread):
 class SplitPardiso:
     """A symmetric matrix solved by two sequential PARDISO halves on two threads (module docstring)."""
 
-    def __init__(self, matrix: sp.spmatrix, x: np.ndarray):
+    def __init__(self, matrix: sp.spmatrix, x: np.ndarray, single: bool = False):
         matrix = sp.csr_matrix(matrix)
+        self.single = single
         self.shape = matrix.shape
         self.symmetric = True
         self.parts = separator_split(matrix, np.asarray(x, dtype=float))
         left, right, separator = self.parts
         self._worker = _Worker()
         blocks = [matrix[p][:, p].tocsr() for p in (left, right)]
+        self._rows = [matrix[p] for p in self.parts]      # for residuals computed where they are used
         couplings = [matrix[p][:, separator].tocsc() for p in (left, right)]
-        self.halves = self._both(lambda: _Half(blocks[0]), lambda: _Half(blocks[1]))
+        self.halves = self._both(lambda: _Half(blocks[0], single), lambda: _Half(blocks[1], single))
         self.factor_nonzeros = sum(h.factor.factor_nonzeros for h in self.halves)
         self.separator_size = len(separator)
         self._schur = None
@@ -175,7 +179,7 @@ class SplitPardiso:
         """H of each half and the separator's Schur complement: from the store (sim.store) or computed."""
         matrix, couplings = self._pending
         key = {"matrix": digest(matrix.data, matrix.indices, matrix.indptr), "parts": digest(*self.parts),
-               "mkl": mkl_version(), "factors": digest(*(h.probe(c) for h, c in zip(self.halves, couplings)))}
+               "mkl": mkl_version(), "single": self.single, "factors": digest(*(h.probe(c) for h, c in zip(self.halves, couplings)))}
         stored = reuse("split-solve", key, lambda: self._coupling(matrix, couplings))
         for i, half in enumerate(self.halves):
             half.use(sp.csr_matrix((stored[f"h{i}_data"], stored[f"h{i}_indices"], stored[f"h{i}_indptr"]),
@@ -216,7 +220,7 @@ class SplitPardiso:
         finally:
             library.MKL_Set_Num_Threads_Local(ctypes.c_int(previous))
 
-    def solve(self, rhs: np.ndarray) -> np.ndarray:
+    def solve(self, rhs: np.ndarray, guess: np.ndarray | None = None) -> np.ndarray:
         rhs = np.asarray(rhs, dtype=np.float64)
         if rhs.ndim != 1:
             return np.column_stack([self.solve(column) for column in rhs.T])
@@ -226,6 +230,24 @@ class SplitPardiso:
         first, second = self.halves
         g_first, g_second = self._both(lambda: first.forward(rhs[left]), lambda: second.forward(rhs[right]))
         separator_solution = sla.lu_solve(self._schur, rhs[separator] - g_first - g_second, check_finite=False)
+        x_first, x_second = self._both(lambda: first.backward(separator_solution),
+                                       lambda: second.backward(separator_solution))
+        solution = np.empty(self.shape[0])
+        solution[left], solution[right], solution[separator] = x_first, x_second, separator_solution
+        return solution
+
+    def solve_residual(self, rhs: np.ndarray, x: np.ndarray) -> np.ndarray:
+        """The solve of rhs - A x, each half's residual computed on its own thread before its forward
+        substitution (``sim.linalg.MixedPrecision``'s corrections)."""
+        if self._schur is None:
+            self._couple()
+        left, right, separator = self.parts
+        first, second = self.halves
+        rows = self._rows
+        g_first, g_second = self._both(lambda: first.forward(rhs[left] - rows[0] @ x),
+                                       lambda: second.forward(rhs[right] - rows[1] @ x))
+        separator_rhs = rhs[separator] - rows[2] @ x
+        separator_solution = sla.lu_solve(self._schur, separator_rhs - g_first - g_second, check_finite=False)
         x_first, x_second = self._both(lambda: first.backward(separator_solution),
                                        lambda: second.backward(separator_solution))
         solution = np.empty(self.shape[0])

@@ -30,7 +30,10 @@ def _fluid_parser(targets):
     fluid = targets.add_parser("fluid", help="set-up and per-step cost of the fluid solver, per convection treatment")
     scenario_options(fluid)
     fluid.add_argument("--repeats", type=Integer(low=2, high=100_000), default="40",
-                       help="timed repetitions per median, >= 2 (default 40)")
+                       help="timed repetitions per median of the other treatments and back-ends, >= 2 (default 40)")
+    fluid.add_argument("--rounds", type=Integer(low=1, high=10_000), default="8",
+                       help="rounds of 0.5 s blocks (the fastest back-solves, the default back-solve, the default "
+                            "step) behind the ratios, >= 1 (default 8)")
     output_options(fluid)
     fluid.set_defaults(handler=command_bench)
 
@@ -149,7 +152,7 @@ def _tolerance(args, scenario, progress):
 
 def _fluid(args, scenario, progress):
     from ..bench import fluid
-    result = fluid.bench_fluid(scenario, args.repeats, progress)
+    result = fluid.bench_fluid(scenario, args.repeats, progress, rounds=args.rounds)
     return result, fluid.report_lines(result)
 
 

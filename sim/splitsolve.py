@@ -179,7 +179,8 @@ class SplitPardiso:
         """H of each half and the separator's Schur complement: from the store (sim.store) or computed."""
         matrix, couplings = self._pending
         key = {"matrix": digest(matrix.data, matrix.indices, matrix.indptr), "parts": digest(*self.parts),
-               "mkl": mkl_version(), "single": self.single, "factors": digest(*(h.probe(c) for h, c in zip(self.halves, couplings)))}
+               "mkl": mkl_version(), "single": self.single,
+               "factors": digest(*(h.probe(c) for h, c in zip(self.halves, couplings)))}
         stored = reuse("split-solve", key, lambda: self._coupling(matrix, couplings))
         for i, half in enumerate(self.halves):
             half.use(sp.csr_matrix((stored[f"h{i}_data"], stored[f"h{i}_indices"], stored[f"h{i}_indptr"]),

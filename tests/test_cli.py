@@ -56,12 +56,16 @@ def test_flow_json_on_a_coarse_mesh(tmp_path):
 
 
 def test_bench_fluid_reports_every_treatment_and_the_ratio():
-    result = vcyto("bench", "fluid", "--mesh-h", "10um", "--repeats", "3", "--json")
+    result = vcyto("bench", "fluid", "--mesh-h", "10um", "--repeats", "3", "--rounds", "2", "--json")
     assert result.returncode == 0, result.stderr
     report = json.loads(result.stdout)
     assert set(report["steps_ms"]) == {"imex", "stokes", "oseen", "implicit"}
     assert all(value > 0 for value in report["steps_ms"].values())
     assert report["imex_over_backsolve"] > 0 and report["backsolve_ms"] > 0
+    assert report["rounds"] == 2 and len(report["imex_over_fastest_backsolve_rounds"]) == 2
+    if report["linear_solver"] == "pardiso":        # the mixed-precision default against both fastest solves
+        assert report["fastest_backsolve_ms"] > 0 and report["fastest_single_backsolve_ms"] > 0
+        assert report["double_backsolve_ms"] > 0 and report["corrections_per_step"] >= 1
 
 
 def test_bench_rejects_too_few_repeats():

@@ -76,39 +76,34 @@ def _bench_fluid(scenario: Scenario, repeats: int, progress, rounds: int) -> dic
         corrections.start()
         stepping["state"] = base.step(stepping["state"])
         corrections.stop()
-    blocks = dict(fastest)
+    blocks = {name: (lambda f=solve: f(rhs)) for name, solve in fastest.items()}
     blocks["default"] = lambda: base.backsolve(rhs)
     if double is not None:
         blocks["double"] = lambda: double(rhs)
     blocks["step"] = step
-    timed = []
-    for _ in range(rounds):
-        times = {}
-        for name, function in blocks.items():
-            if name in fastest:
-                times[name] = _hot_block_ms(lambda f=function: f(rhs))
-            else:
-                times[name] = _block_ms(function)
-        timed.append(times)
-    rounds = timed
+    timed = [{name: (_hot_block_ms if name in fastest else _block_ms)(function) for name, function in blocks.items()}
+             for _ in range(rounds)]
     best = "fastest" if "fastest" in fastest else "default"
-    result["rounds"] = len(rounds)
-    result["backsolve_ms"] = statistics.median(r["default"] for r in rounds)
-    result["fastest_backsolve_ms"] = statistics.median(r[best] for r in rounds)
+
+    def median(name, over=None):
+        return statistics.median(r[name] / (r[over] if over else 1.0) for r in timed)
+    result["rounds"] = len(timed)
+    result["backsolve_ms"] = median("default")
+    result["fastest_backsolve_ms"] = median(best)
     result["fastest_backsolve"] = getattr(fastest.get(best), "label", "the default")
     if "fastest_single" in fastest:
-        result["fastest_single_backsolve_ms"] = statistics.median(r["fastest_single"] for r in rounds)
+        result["fastest_single_backsolve_ms"] = median("fastest_single")
         result["fastest_single_backsolve"] = fastest["fastest_single"].label
-        result["imex_over_fastest_single_backsolve"] = statistics.median(r["step"] / r["fastest_single"] for r in rounds)
+        result["imex_over_fastest_single_backsolve"] = median("step", "fastest_single")
     if double is not None:
-        result["double_backsolve_ms"] = statistics.median(r["double"] for r in rounds)
+        result["double_backsolve_ms"] = median("double")
         result["double_backsolve"] = double.label
-    result["imex_over_backsolve"] = statistics.median(r["step"] / r["default"] for r in rounds)
-    result["imex_over_fastest_backsolve"] = statistics.median(r["step"] / r[best] for r in rounds)
-    result["imex_over_fastest_backsolve_rounds"] = [round(r["step"] / r[best], 3) for r in rounds]
+    result["imex_over_backsolve"] = median("step", "default")
+    result["imex_over_fastest_backsolve"] = median("step", best)
+    result["imex_over_fastest_backsolve_rounds"] = [round(r["step"] / r[best], 3) for r in timed]
     if corrections.counted:
         result["corrections_per_step"] = corrections.per_step()
-    result["steps_ms"] = {"imex": statistics.median(r["step"] for r in rounds)}
+    result["steps_ms"] = {"imex": median("step")}
     for treatment, count in STEPS.items():
         if treatment == "imex":
             continue

@@ -37,29 +37,30 @@ def test_single_precision_alone_is_inaccurate_and_refinement_restores_double(flu
     exact = Pardiso(matrix, symmetric=True).solve(rhs)
     assert np.linalg.norm(solution - exact) <= 1e-9 * np.linalg.norm(exact)
     assert mixed.corrections == 2                             # from zero: the solve, then one correction
-    nearby = exact * (1 + 1e-4)                               # a guess as close as the last time step's
+    nearby = exact * (1 + 1e-2)                               # a guess as close as the last time step's
     before = mixed.corrections
-    assert np.linalg.norm(mixed.solve(rhs, nearby) - exact) <= 1e-9 * np.linalg.norm(exact)
+    # one correction; what is left is the single solve's ~1e-6 of the 1e-2 change
+    assert np.linalg.norm(mixed.solve(rhs, nearby) - exact) <= 2e-8 * np.linalg.norm(exact)
     assert mixed.corrections - before == 1
 
 
 def test_refinement_that_does_not_converge_is_a_clear_error():
     matrix, rhs = saddle_point()
 
-    class HalfWay:                                            # an inner solve that is off by a factor of 2
+    class FifthWay:                                           # an inner solve that is off by a factor of 5
         shape, symmetric, factor_nonzeros = matrix.shape, True, 0
 
         def __init__(self):
             self._exact = Pardiso(matrix, symmetric=True)
 
         def solve(self, vector):
-            return 0.5 * self._exact.solve(vector)
+            return 0.2 * self._exact.solve(vector)
 
         def release(self):
             pass
 
     with pytest.raises(SolverError, match="did not converge.*numerics.precision = 'double'"):
-        MixedPrecision(matrix, HalfWay()).solve(rhs)
+        MixedPrecision(matrix, FifthWay()).solve(rhs)
 
 
 def test_unknown_precision_is_a_clear_error():
@@ -86,8 +87,8 @@ def test_split_solve_in_single_precision_refined(fluid):
 
 
 def test_mixed_steps_follow_the_double_steps_through_an_idt_pulse():
-    """20 steps off, 40 with the IDT on, 20 off at h = 10 um: the velocity within 1e-7 of double precision's
-    at every step (the refinement's tolerance 1e-2 times the single solve's ~1e-6), about one correction
+    """20 steps off, 40 with the IDT on, 20 off at h = 10 um: the velocity within 5e-7 of double precision's
+    at every step (the refinement's tolerance 0.1 times the single solve's ~1e-6), about one correction
     a step."""
     scenario = Scenario().with_numerics(mesh_h=10 * UM)
     runs = {}
@@ -99,9 +100,9 @@ def test_mixed_steps_follow_the_double_steps_through_an_idt_pulse():
             velocities.append(state.velocity)
         runs[precision] = (velocities, fluid._constant.factor)
     worst = max(np.max(np.abs(d - m)) / np.max(np.abs(d)) for d, m in zip(runs["double"][0], runs["mixed"][0]))
-    assert worst <= 1e-7
+    assert 0 < worst <= 5e-7
     factor = runs["mixed"][1]
-    assert factor.solves == 80 and factor.corrections <= 1.5 * factor.solves
+    assert factor.solves == 80 and factor.corrections <= 1.2 * factor.solves
 
 
 SPIN = """

@@ -243,6 +243,11 @@ class SuperLU:
         self._lu = None
 
 
+def _largest(vector: np.ndarray) -> float:
+    """max |v_i| without a temporary array (NaN when any entry is NaN)."""
+    return max(vector.max(), -vector.min())
+
+
 class MixedPrecision:
     """A double-precision solve from a single-precision factorisation, by iterative refinement.
 
@@ -283,7 +288,7 @@ class MixedPrecision:
                 correction = self._inner.solve(rhs - self._matrix @ solution)
             solution += correction
             self.corrections += 1
-            size, scale = np.max(np.abs(correction)), np.max(np.abs(solution))
+            size, scale = _largest(correction), _largest(solution)
             if not (np.isfinite(size) and np.isfinite(scale)):
                 return solution                   # the caller's finiteness check reports it with its cause
             if size <= self.tolerance * scale:

@@ -11,7 +11,7 @@ left unknowns coupled to right ones, a line of nodes across the channel), so tha
 Each A_i is factored by its own sequential PARDISO (A_i^{-1} = G_i D_i^{-1} F_i: the forward (phase 331),
 diagonal (332) and backward (333) substitutions, with G_i = F_i^T for a symmetric matrix). With
 H_i = D_i^{-1} F_i C_i (sparse: a few hundred thousand entries) and the dense separator matrix
-K = A_S - sum_i (F_i C_i)^T H_i, a solve is
+K = A_S - sum_i (F_i C_i)^T H_i (kept as its inverse: a dense product per solve), a solve is
 
     thread i:  y_i = F_i b_i,  z_i = D_i^{-1} y_i,  g_i = H_i^T y_i
     both:      x_S = K^{-1} (b_S - g_1 - g_2)
@@ -178,14 +178,14 @@ class SplitPardiso:
     def _couple(self):
         """H of each half and the separator's Schur complement: from the store (sim.store) or computed."""
         matrix, couplings = self._pending
-        key = {"matrix": digest(matrix.data, matrix.indices, matrix.indptr), "parts": digest(*self.parts),
+        key = {"layout": 2, "matrix": digest(matrix.data, matrix.indices, matrix.indptr), "parts": digest(*self.parts),
                "mkl": mkl_version(), "single": self.single,
                "factors": digest(*(h.probe(c) for h, c in zip(self.halves, couplings)))}
         stored = reuse("split-solve", key, lambda: self._coupling(matrix, couplings))
         for i, half in enumerate(self.halves):
             half.use(sp.csr_matrix((stored[f"h{i}_data"], stored[f"h{i}_indices"], stored[f"h{i}_indptr"]),
                                    shape=(len(self.parts[i]), self.separator_size)))
-        self._schur = (stored["schur_lu"], stored["schur_pivots"])
+        self._schur = stored["schur_inverse"]
         self.factor_nonzeros += sum(h.h.nnz for h in self.halves)
         self._pending = None
 
@@ -195,8 +195,8 @@ class SplitPardiso:
                                    lambda: self.halves[1].coupling(couplings[1]))
         separator = self.parts[2]
         schur = matrix[separator][:, separator].toarray() - first[1] - second[1]
-        lu, pivots = sla.lu_factor(schur, check_finite=False)
-        arrays = {"schur_lu": lu, "schur_pivots": pivots}
+        # its inverse, applied as a dense product: 0.03 ms against an LU solve's 0.17 ms (329 unknowns)
+        arrays = {"schur_inverse": sla.inv(schur, check_finite=False)}
         for i, (h, _) in enumerate((first, second)):
             arrays.update({f"h{i}_data": h.data, f"h{i}_indices": h.indices, f"h{i}_indptr": h.indptr})
         return arrays
@@ -225,30 +225,25 @@ class SplitPardiso:
         rhs = np.asarray(rhs, dtype=np.float64)
         if rhs.ndim != 1:
             return np.column_stack([self.solve(column) for column in rhs.T])
-        if self._schur is None:
-            self._couple()
-        left, right, separator = self.parts
-        first, second = self.halves
-        g_first, g_second = self._both(lambda: first.forward(rhs[left]), lambda: second.forward(rhs[right]))
-        separator_solution = sla.lu_solve(self._schur, rhs[separator] - g_first - g_second, check_finite=False)
-        x_first, x_second = self._both(lambda: first.backward(separator_solution),
-                                       lambda: second.backward(separator_solution))
-        solution = np.empty(self.shape[0])
-        solution[left], solution[right], solution[separator] = x_first, x_second, separator_solution
-        return solution
+        return self._solve(rhs)
 
     def solve_residual(self, rhs: np.ndarray, x: np.ndarray) -> np.ndarray:
         """The solve of rhs - A x, each half's residual computed on its own thread before its forward
         substitution (``sim.linalg.MixedPrecision``'s corrections)."""
+        return self._solve(np.asarray(rhs, dtype=np.float64), x)
+
+    def _solve(self, rhs: np.ndarray, x: np.ndarray | None = None) -> np.ndarray:
         if self._schur is None:
             self._couple()
         left, right, separator = self.parts
         first, second = self.halves
         rows = self._rows
-        g_first, g_second = self._both(lambda: first.forward(rhs[left] - rows[0] @ x),
-                                       lambda: second.forward(rhs[right] - rows[1] @ x))
-        separator_rhs = rhs[separator] - rows[2] @ x
-        separator_solution = sla.lu_solve(self._schur, separator_rhs - g_first - g_second, check_finite=False)
+
+        def part(i, indices):              # rhs (minus A x) on these rows
+            return rhs[indices] if x is None else rhs[indices] - rows[i] @ x
+        g_first, g_second = self._both(lambda: first.forward(part(0, left)), lambda: second.forward(part(1, right)))
+        separator_rhs = part(2, separator) - g_first - g_second
+        separator_solution = self._schur @ separator_rhs
         x_first, x_second = self._both(lambda: first.backward(separator_solution),
                                        lambda: second.backward(separator_solution))
         solution = np.empty(self.shape[0])

@@ -118,15 +118,19 @@ def test_poiseuille_flow_is_reproduced_to_round_off():
 
 
 @pytest.mark.parametrize("convection", ["imex", "oseen", "implicit", "stokes"])
-def test_poiseuille_flow_is_a_fixed_point_of_every_treatment(convection):
-    scenario = straight_channel(convection=convection, dt=25e-6)
+@pytest.mark.parametrize("precision", ["double", "mixed"])
+def test_poiseuille_flow_is_a_fixed_point_of_every_treatment(convection, precision):
+    """To round-off in double precision; mixed precision (single-precision factors refined once a step) adds
+    up to ~1e-7 in the first step from rest pressure, which the steps then damp (docs/numerics.md)."""
+    scenario = straight_channel(convection=convection, dt=25e-6, precision=precision)
     solver = NavierStokes(scenario)
     velocity, _ = poiseuille(solver.space.nodes, scenario)
     state = solver.rest()
     state = type(state)(0.0, velocity, state.pressure)
     for _ in range(3):
         state = solver.step(state)
-    assert np.abs(state.velocity - velocity).max() <= 1e-11 * np.abs(velocity).max()
+    mixed = precision == "mixed" and convection in ("imex", "stokes", "implicit") and solver.solver_name == "pardiso"
+    assert np.abs(state.velocity - velocity).max() <= (5e-7 if mixed else 1e-11) * np.abs(velocity).max()
 
 
 # ---------------------------------------------------------------- mass conservation

@@ -18,7 +18,9 @@ K = A_S - sum_i (F_i C_i)^T H_i (kept as its inverse: a dense product per solve)
     thread i:  x_i = G_i (z_i - H_i x_S)
 
 Every operation runs in a fixed order on one thread with one MKL thread, so equal inputs give equal bits,
-whatever the machine's load; the two halves stream their factors through memory at the same time.
+whatever the machine's load; the two halves stream their factors through memory at the same time. With
+``single=True`` the factors, H and the halves' vectors are single precision (the inner solve of
+``sim.linalg.MixedPrecision``); the separator's solve stays double.
 
 The halves are factored at once when the solver is built; the coupling (H_i and K: one forward and one
 diagonal substitution per separator unknown) on the first solve, through ``sim.store`` so an application
@@ -74,8 +76,11 @@ class _Half:
         _one_mkl_thread()
         self.factor = Pardiso(block, symmetric=True, reproducible=True, single=single)
         self._agreement = 1e-6 if single else 1e-13
+        # the substitutions' vectors and H in the factor's precision: no conversions between the phases, and
+        # half the bytes for H's products in single precision
+        self.dtype = np.float32 if single else np.float64
         n = block.shape[0]
-        self.y, self.z, self.x = (np.zeros(n) for _ in range(3))
+        self.y, self.z, self.x = (np.zeros(n, dtype=self.dtype) for _ in range(3))
         self.h = self.h_t = None
         self.dinv = self._diagonal(n)
 
@@ -88,7 +93,7 @@ class _Half:
             exact = self.factor.phase(332, probe)
             if not np.all(np.abs(dinv * probe - exact) <= self._agreement * np.abs(exact)):
                 return None
-        return dinv
+        return dinv.astype(self.dtype)
 
     def _solve_diagonal(self, vector: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
         if self.dinv is None:
@@ -117,6 +122,7 @@ class _Half:
         return h, (sp.hstack(columns_e, format="csc").T @ h).toarray()
 
     def use(self, h: sp.csr_matrix):
+        h = h.astype(self.dtype)
         self.h, self.h_t = h, h.T.tocsr()
 
     def forward(self, rhs: np.ndarray) -> np.ndarray:
@@ -125,7 +131,7 @@ class _Half:
         return self.h_t @ self.y
 
     def backward(self, separator_solution: np.ndarray) -> np.ndarray:
-        w = self.z - self.h @ separator_solution
+        w = self.z - self.h @ separator_solution.astype(self.dtype)
         return self.factor.phase(333, w, self.x)
 
 
@@ -178,7 +184,7 @@ class SplitPardiso:
     def _couple(self):
         """H of each half and the separator's Schur complement: from the store (sim.store) or computed."""
         matrix, couplings = self._pending
-        key = {"layout": 2, "matrix": digest(matrix.data, matrix.indices, matrix.indptr), "parts": digest(*self.parts),
+        key = {"layout": 3, "matrix": digest(matrix.data, matrix.indices, matrix.indptr), "parts": digest(*self.parts),
                "mkl": mkl_version(), "single": self.single,
                "factors": digest(*(h.probe(c) for h, c in zip(self.halves, couplings)))}
         stored = reuse("split-solve", key, lambda: self._coupling(matrix, couplings))

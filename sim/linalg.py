@@ -18,6 +18,7 @@ import glob
 import os
 import site
 import sys
+from contextlib import contextmanager
 from functools import lru_cache
 
 import numpy as np
@@ -59,18 +60,29 @@ def _mkl_runtime():
     return None
 
 
-def openmp_blocktime(milliseconds: int) -> bool:
-    """Set how long Intel OpenMP's idle threads spin (for teams the calling thread starts from now on);
-    False when that runtime is not loaded. The benchmarks give PARDISO's parallel substitution its own best
-    setting (200 ms: threads hot between calls) while they time it."""
-    if _mkl_runtime() is None:
-        return False
+@contextmanager
+def spinning_openmp_threads(milliseconds: int = 200):
+    """Within the block, Intel OpenMP's idle threads spin ``milliseconds`` (for teams the calling thread
+    starts), then back to the process's setting (KMP_BLOCKTIME, 0 unless the user set it). The benchmarks
+    give PARDISO's parallel substitution its own best setting (threads hot between calls) while they time it.
+    Does nothing when that runtime is not loaded."""
+    runtime = None
+    if _mkl_runtime() is not None:
+        try:
+            runtime = ctypes.CDLL("libiomp5.so")
+        except OSError:
+            runtime = None
+    if runtime is not None:
+        runtime.kmp_set_blocktime(ctypes.c_int(int(milliseconds)))
     try:
-        runtime = ctypes.CDLL("libiomp5.so")
-    except OSError:
-        return False
-    runtime.kmp_set_blocktime(ctypes.c_int(int(milliseconds)))
-    return True
+        yield
+    finally:
+        if runtime is not None:
+            try:
+                restored = int(os.environ.get("KMP_BLOCKTIME", "0"))
+            except ValueError:
+                restored = 0
+            runtime.kmp_set_blocktime(ctypes.c_int(restored))
 
 
 def _aligned_empty(size: int, alignment: int = 64, dtype=np.float64) -> np.ndarray:
@@ -116,7 +128,6 @@ class Pardiso:
         self._pardiso = library.pardiso
         self.symmetric = symmetric
         self.mtype = -2 if symmetric else 11
-        self.single = single
         self._dtype = np.float32 if single else np.float64
         stored = sp.triu(matrix, format="csr") if symmetric else sp.csr_matrix(matrix)
         stored.sum_duplicates()
@@ -273,6 +284,7 @@ class MixedPrecision:
         self.shape, self.symmetric = inner.shape, inner.symmetric
         self.factor_nonzeros = inner.factor_nonzeros
         self.solves = self.corrections = 0        # totals, for the benchmarks
+        self._solve_residual = getattr(inner, "solve_residual", None)     # the split solve's, in parallel
 
     def solve(self, rhs: np.ndarray, guess: np.ndarray | None = None) -> np.ndarray:
         rhs = np.asarray(rhs, dtype=np.float64)
@@ -280,10 +292,9 @@ class MixedPrecision:
             return np.column_stack([self.solve(column) for column in rhs.T])
         solution = np.zeros_like(rhs) if guess is None else np.array(guess, dtype=np.float64)
         self.solves += 1
-        solve_residual = getattr(self._inner, "solve_residual", None)     # the split solve's, in parallel
         for _ in range(self.MAX_CORRECTIONS):
-            if solve_residual is not None:
-                correction = solve_residual(rhs, solution)
+            if self._solve_residual is not None:
+                correction = self._solve_residual(rhs, solution)
             else:
                 correction = self._inner.solve(rhs - self._matrix @ solution)
             solution += correction

@@ -241,8 +241,9 @@ class Numerics:
     area at which the health checks stop a run. ``reproducible`` keeps runs bit-for-bit identical (the
     back-solve's substitutions run sequentially); False lets them run in parallel: faster, but the last
     bits of the results then vary from run to run. ``precision`` is that of the constant fluid matrix's
-    factorisation: ``mixed`` (PARDISO's single-precision factors and back-solves, refined to double
-    precision: 1e-11 relative, ~25 % faster a step) or ``double``; other solvers always use double.
+    factorisation: ``mixed`` (PARDISO's single-precision factors and back-solves, each step refined in
+    double precision from the last step's solution: within ~5e-7 of the double-precision solve, ~10 %
+    faster a step; docs/numerics.md) or ``double``; other solvers always use double.
 
     Cells keeping their size (docs/numerics.md, "Cells that keep their size"): ``area_constraint`` is ``none`` (the
     paper's literal method, which leaks area), ``pressure`` (an interior pressure, the Lagrange multiplier

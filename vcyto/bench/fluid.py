@@ -9,7 +9,6 @@ each ratio is the median of the per-round ratios.
 
 from __future__ import annotations
 
-import os
 import statistics
 import time
 
@@ -17,7 +16,7 @@ import numpy as np
 
 from sim import store
 from sim.fluid import NavierStokes
-from sim.linalg import Pardiso, SuperLU, openmp_blocktime, pardiso_available
+from sim.linalg import Pardiso, SuperLU, pardiso_available, spinning_openmp_threads
 from sim.mesh import channel_mesh
 from sim.scenario import UM, Scenario
 from sim.taylorhood import TaylorHood
@@ -69,13 +68,12 @@ def _bench_fluid(scenario: Scenario, repeats: int, progress, rounds: int) -> dic
     progress(f"{rounds} rounds of blocks: the fastest back-solves, the default's back-solve and step")
     fastest = _fastest_backsolves(base)
     double = _double_default(scenario, space, base)
-    corrections = _Corrections(base)
+    factor = base._constant.factor
+    counted = (getattr(factor, "solves", 0), getattr(factor, "corrections", 0))
     stepping = {"state": state}
 
     def step():
-        corrections.start()
         stepping["state"] = base.step(stepping["state"])
-        corrections.stop()
     blocks = {name: (lambda f=solve: f(rhs)) for name, solve in fastest.items()}
     blocks["default"] = lambda: base.backsolve(rhs)
     if double is not None:
@@ -101,8 +99,8 @@ def _bench_fluid(scenario: Scenario, repeats: int, progress, rounds: int) -> dic
     result["imex_over_backsolve"] = median("step", "default")
     result["imex_over_fastest_backsolve"] = median("step", best)
     result["imex_over_fastest_backsolve_rounds"] = [round(r["step"] / r[best], 3) for r in timed]
-    if corrections.counted:
-        result["corrections_per_step"] = corrections.per_step()
+    if hasattr(factor, "corrections"):          # mixed precision: refinement corrections per step
+        result["corrections_per_step"] = (factor.corrections - counted[1]) / max(1, factor.solves - counted[0])
     result["steps_ms"] = {"imex": median("step")}
     for treatment, count in STEPS.items():
         if treatment == "imex":
@@ -150,18 +148,8 @@ def _block_ms(function) -> float:
 def _hot_block_ms(function) -> float:
     """``_block_ms`` with Intel OpenMP's threads spinning between calls (200 ms), the parallel substitution's
     best setting; vcyto otherwise runs with KMP_BLOCKTIME=0 (``sim.linalg._mkl_runtime``)."""
-    openmp_blocktime(200)
-    try:
+    with spinning_openmp_threads(200):
         return _block_ms(function)
-    finally:
-        openmp_blocktime(_process_blocktime())
-
-
-def _process_blocktime() -> int:
-    try:
-        return int(os.environ.get("KMP_BLOCKTIME", "0"))
-    except ValueError:
-        return 0
 
 
 def _fastest_backsolves(base: NavierStokes) -> dict:
@@ -202,29 +190,6 @@ def _describe(factor) -> str:
     if inner is not None:
         return f"{type(inner).__name__} in single precision, refined in double ({type(factor).__name__})"
     return type(factor).__name__
-
-
-class _Corrections:
-    """Mixed-precision corrections per timed step (1 when the last step's solution was within the
-    refinement's tolerance of the new one)."""
-
-    def __init__(self, base: NavierStokes):
-        self._factor = base._constant.factor
-        self.counted = hasattr(self._factor, "corrections")
-        self._steps = self._corrections = 0
-        self._before = 0
-
-    def start(self):
-        if self.counted:
-            self._before = self._factor.corrections
-
-    def stop(self):
-        if self.counted:
-            self._steps += 1
-            self._corrections += self._factor.corrections - self._before
-
-    def per_step(self) -> float:
-        return self._corrections / max(1, self._steps)
 
 
 def report_lines(result: dict) -> list[str]:

@@ -1,7 +1,5 @@
 """`python -m vcyto`: the command line (the same as `vcyto`)."""
 
-import sys
+from .cli import run
 
-from .cli import main
-
-sys.exit(main())
+run()

@@ -9,8 +9,10 @@ stream settings are ``vcyto.options``. Nothing in the package imports the comman
 from __future__ import annotations
 
 import argparse
+import atexit
 import os
 import sys
+import threading
 import traceback
 
 from sim.fluid import NumericalBlowUp
@@ -84,6 +86,39 @@ def main(argv=None) -> int:
               "the traceback; please report it)", file=sys.stderr)
         return EXIT_INTERNAL
     return status or 0
+
+
+def run() -> None:
+    """The ``vcyto`` executable (and ``python -m vcyto``): ``main``, then ``exit_now`` with its status (argparse's
+    exits for --help, --version and bad usage included)."""
+    try:
+        status = main()
+    except SystemExit as stop:
+        if not (stop.code is None or isinstance(stop.code, int)):
+            raise
+        status = stop.code
+    exit_now(status or 0)
+
+
+def exit_now(status: int) -> None:
+    """End the process with ``status`` once everything is written, without the interpreter's teardown.
+
+    Tearing down the interpreter (freeing every module's objects, numba's compiled code, MKL's threads) took
+    0.13 s after ``vcyto --help`` and 0.24-0.33 s after an FE-IB run (measured): time a user waits for nothing.
+    Every output file is closed by the time ``main`` returns; here the exit handlers run (logging, rerun's
+    flush, temporary directories), stdout and stderr are flushed, and ``os._exit`` ends the process. With
+    a non-daemon thread still running, or under a profiler or tracer (``python -m cProfile``, which writes its
+    results after ``main``), the ordinary exit."""
+    if sys.getprofile() is not None or sys.gettrace() is not None or any(thread.is_alive() and not thread.daemon for thread in threading.enumerate()
+           if thread is not threading.main_thread()):
+        sys.exit(status)
+    atexit._run_exitfuncs()
+    for stream in (sys.stdout, sys.stderr):
+        try:
+            stream.flush()
+        except (OSError, ValueError):     # a closed pipe (`vcyto ... | head`): nothing more can reach it
+            pass
+    os._exit(status)
 
 
 def _fail(error: Exception, status: int, cause: Exception | None = None) -> int:

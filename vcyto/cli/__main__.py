@@ -1,7 +1,5 @@
 """`python -m vcyto.cli`: the command line (the same as `vcyto`)."""
 
-import sys
+from . import run
 
-from . import main
-
-sys.exit(main())
+run()

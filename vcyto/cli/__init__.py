@@ -109,13 +109,14 @@ def exit_now(status: int) -> None:
     flush, temporary directories), stdout and stderr are flushed, and ``os._exit`` ends the process. With
     a non-daemon thread still running, or under a profiler or tracer (``python -m cProfile``, which writes its
     results after ``main``), the ordinary exit."""
-    if sys.getprofile() is not None or sys.gettrace() is not None or any(thread.is_alive() and not thread.daemon for thread in threading.enumerate()
-           if thread is not threading.main_thread()):
+    working = [thread for thread in threading.enumerate()
+               if thread.is_alive() and not thread.daemon and thread is not threading.main_thread()]
+    if sys.getprofile() is not None or sys.gettrace() is not None or working:
         sys.exit(status)
     atexit._run_exitfuncs()
-    for stream in (sys.stdout, sys.stderr):
+    for output in (sys.stdout, sys.stderr):
         try:
-            stream.flush()
+            output.flush()
         except (OSError, ValueError):     # a closed pipe (`vcyto ... | head`): nothing more can reach it
             pass
     os._exit(status)

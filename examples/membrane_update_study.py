@@ -19,7 +19,7 @@ import time
 
 import numpy as np
 
-from sim.feib import ImmersedBoundary, State, membrane_forces, settle
+from sim.feib import ImmersedBoundary, State, settle
 from sim.health import NumericalBlowUp, check_cells
 from sim.openloop import stepping, with_cells
 from sim.scenario import UM, Scenario
@@ -32,15 +32,7 @@ class TrapezoidalUpdate(ImmersedBoundary):
         fluid = fluid or self.fluid
         dt = fluid.scenario.numerics.dt
         active = [cell for cell in state.cells if cell.in_channel]
-        load = np.zeros((2, self.fluid.space.N))
-        located = []
-        for cell in active:
-            points = cell.membrane.points
-            elements, reference = self.locator.locate(self._inside(points))
-            inside = points[:, 0] < self.scenario.channel.length
-            forces = membrane_forces(cell.membrane, self.scenario.numerics) * inside[:, None]
-            self.locator.spread_located(forces, elements, reference, load)
-            located.append((elements, reference))
+        load, located = self.membrane_load(active)
         flow = fluid.step(state.flow, actuation, load if active else None)
         moved = {}
         for cell, (elements, reference) in zip(active, located):

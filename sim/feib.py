@@ -144,15 +144,7 @@ class ImmersedBoundary:
         dt = fluid.scenario.numerics.dt
         started = clock.perf_counter()
         active = [cell for cell in state.cells if cell.in_channel]
-        load = np.zeros((2, self.fluid.space.N))
-        located = []
-        for cell in active:
-            points = cell.membrane.points
-            elements, reference = self.locator.locate(self._inside(points))
-            inside = points[:, 0] < self.scenario.channel.length
-            forces = membrane_forces(cell.membrane, self.scenario.numerics) * inside[:, None]
-            self.locator.spread_located(forces, elements, reference, load)
-            located.append((elements, reference))
+        load, located = self.membrane_load(active)
         fluid_started = clock.perf_counter()
         flow = fluid.step(state.flow, actuation, load if active else None)
         membrane_started = clock.perf_counter()
@@ -169,6 +161,20 @@ class ImmersedBoundary:
         self.timings.health += finished - health_started
         self.timings.steps += 1
         return State(flow, cells, state.step + 1)
+
+    def membrane_load(self, cells):
+        """The P2 load (2, N) of the membrane forces of ``cells`` and where each cell's points lie in the mesh
+        (element, reference coordinates; points through an outlet located just inside it, with no force)."""
+        load = np.zeros((2, self.fluid.space.N))
+        located = []
+        for cell in cells:
+            points = cell.membrane.points
+            elements, reference = self.locator.locate(self._inside(points))
+            inside = points[:, 0] < self.scenario.channel.length
+            forces = membrane_forces(cell.membrane, self.scenario.numerics) * inside[:, None]
+            self.locator.spread_located(forces, elements, reference, load)
+            located.append((elements, reference))
+        return load, located
 
     def _inside(self, points):
         """Points past x = length (through an outlet) are evaluated at x = length, just inside the mesh."""

@@ -1,10 +1,15 @@
-"""The quick exit of the ``vcyto`` executable (``vcyto.cli.exit_now``): outputs and exit handlers complete, the
-status kept, the interpreter's teardown skipped, and the ordinary exit where something must still finish."""
+"""How a command ends. The quick exit of the ``vcyto`` executable (``vcyto.cli.exit_now``): outputs and exit
+handlers complete, the status kept, the interpreter's teardown skipped, the ordinary exit where something must
+still finish. A reader that went away (141), a Ctrl-C while the libraries load (130, one line), and no empty or
+half-written figure left by a run that fails."""
 
 import json
+import os
+import signal
 import subprocess
 import sys
 import textwrap
+import time
 
 SCRIPT = textwrap.dedent("""
     import atexit, sys, threading, time
@@ -54,3 +59,60 @@ def test_the_executable_exits_with_mains_status_through_a_pipe():
     assert shown.returncode == 0 and json.loads(shown.stdout)
     bad = subprocess.run([sys.executable, "-m", "vcyto", "paper", "3"], capture_output=True, text=True, timeout=120)
     assert bad.returncode == 2 and bad.stderr.startswith("vcyto: error:") and "Traceback" not in bad.stderr
+
+
+def test_a_reader_that_went_away_gives_status_141_and_no_error(tmp_path):
+    """`vcyto ... | true`: stdout's pipe is closed before vcyto writes; no error line, no traceback, 141."""
+    for args in (["scenario", "--json"], ["cache", "--json"]):
+        read, write = os.pipe()
+        os.close(read)
+        try:
+            done = subprocess.run([sys.executable, "-m", "vcyto", *args], stdout=write, stderr=subprocess.PIPE,
+                                  text=True, timeout=120)
+        finally:
+            os.close(write)
+        assert done.returncode == 141, (args, done.stderr)
+        assert done.stderr == "", args
+
+
+def test_ctrl_c_while_the_libraries_load_is_one_line_and_130():
+    process = subprocess.Popen([sys.executable, "-m", "vcyto", "paper", "2", "--no-png"], stdout=subprocess.PIPE,
+                               stderr=subprocess.PIPE, text=True)
+    time.sleep(0.25)            # Python is up (~0.05 s); vcyto's imports take ~0.5 s
+    process.send_signal(signal.SIGINT)
+    out, err = process.communicate(timeout=120)
+    assert process.returncode == 130, err
+    assert "Traceback" not in err and len(err.strip().splitlines()) == 1 and "interrupted" in err
+
+
+def test_a_failed_paper_run_leaves_no_empty_png(tmp_path):
+    """The default PNG name is reserved before the run; a run that fails (here a time step far past the
+    melanoma's stability limit) removes it, so no empty file takes the name."""
+    done = subprocess.run([sys.executable, "-m", "vcyto", "paper", "2", "--mesh-h", "10um", "--dt", "1ms", "--quiet"],
+                          capture_output=True, text=True, timeout=600, cwd=tmp_path)
+    assert done.returncode == 1 and done.stderr.startswith("vcyto: error:")
+    assert not list((tmp_path / "recordings").glob("*.png"))
+
+
+def test_a_figure_is_saved_whole_or_not_at_all(tmp_path):
+    """``figures.save_figure`` draws into a temporary file and moves it in place: a save that fails half-way
+    leaves neither a truncated PNG nor the temporary file."""
+    from vcyto.figures import pyplot, save_figure
+    plt = pyplot()
+    figure, axis = plt.subplots()
+    axis.plot([0, 1], [0, 1])
+    save_figure(figure, tmp_path / "whole.png")
+    assert (tmp_path / "whole.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+    def broken_savefig(target, **kwargs):
+        with open(target, "wb") as file:
+            file.write(b"\x89PNG half")
+        raise KeyboardInterrupt
+
+    figure.savefig = broken_savefig
+    try:
+        save_figure(figure, tmp_path / "half.png")
+    except KeyboardInterrupt:
+        pass
+    plt.close(figure)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["whole.png"]

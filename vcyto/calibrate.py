@@ -334,7 +334,7 @@ def make_calibration_plant(scenario: Scenario, model: str, control_period: float
 
 def save_figure(calibration: Calibration, path) -> None:
     """The envelope scans (fate against offset, one row per type) and the pulse bands, as a PNG."""
-    from .figures import pyplot
+    from .figures import pyplot, save_figure
     plt = pyplot()
     figure, (left, right) = plt.subplots(1, 2, figsize=(11, 3.6), gridspec_kw={"width_ratios": [3, 2]})
     colours = {SORTED: "tab:red", DEFAULT: "tab:blue"}
@@ -365,7 +365,7 @@ def save_figure(calibration: Calibration, path) -> None:
     right.set_title("leads that sort every target type (x: none)", fontsize=9)
     right.legend(fontsize=7)
     figure.tight_layout()
-    figure.savefig(path, dpi=120)
+    save_figure(figure, path)
     plt.close(figure)
 
 

@@ -2,6 +2,10 @@
 
 from __future__ import annotations
 
+import os
+import tempfile
+from pathlib import Path
+
 import numpy as np
 
 from sim.scenario import UM, Scenario
@@ -13,6 +17,20 @@ def pyplot():
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
     return plt
+
+
+def save_figure(figure, path, dpi: int = 120) -> None:
+    """Write ``figure`` as a PNG at ``path`` all at once: drawn into a temporary file beside it, then moved in
+    place (``os.replace``), so an interrupted or failed save never leaves a truncated image under the name."""
+    path = Path(path)
+    handle, temporary = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    os.close(handle)
+    try:
+        figure.savefig(temporary, format="png", dpi=dpi)
+        os.replace(temporary, path)
+    except BaseException:
+        Path(temporary).unlink(missing_ok=True)
+        raise
 
 
 def speed_image(locator: PointLocator, velocity: np.ndarray, scenario: Scenario, pixel: float = 1 * UM):

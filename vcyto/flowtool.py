@@ -59,7 +59,7 @@ def save_png(path: str, scenario: Scenario, solver: NavierStokes, flows, paths: 
         figures.draw_device(axis, scenario)
         axis.set_title(f"{title}: leaves by {line.outlet} at y = {line.exit_y / UM:.0f} um")
     figure.colorbar(image, ax=axes, label="speed (m/s)", shrink=0.8)
-    figure.savefig(path, dpi=120)
+    figures.save_figure(figure, path)
     plt.close(figure)
 
 

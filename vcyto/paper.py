@@ -173,7 +173,7 @@ def save_png(path: str, result: dict, scenario: Scenario):
     axis.set_title(f"paper scenario {result['scenario']}: {cell['type']} leaves by the {cell['outlet']} outlet "
                    f"at t = {cell['exit_time_ms']:.2f} ms")
     figure.colorbar(image, ax=axis, label="speed (m/s)", shrink=0.8)
-    figure.savefig(path, dpi=120)
+    figures.save_figure(figure, path)
     plt.close(figure)
 
 

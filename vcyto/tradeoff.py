@@ -239,7 +239,7 @@ def save(result: dict, directory) -> dict:
     """tradeoff.md, tradeoff.csv and tradeoff.png (run wall time against mean path error, per level)."""
     from pathlib import Path
 
-    from .figures import pyplot
+    from .figures import pyplot, save_figure
     directory = Path(directory)
     (directory / "tradeoff.md").write_text("\n".join(table_lines(result)) + "\n")
     with open(directory / "tradeoff.csv", "w", newline="") as handle:
@@ -264,6 +264,6 @@ def save(result: dict, directory) -> dict:
     axis.set_ylabel("mean centroid path distance to the reference (um)\n(reference drawn at 1e-3)")
     axis.set_title("speed against accuracy (x: an outlet differs from the reference)")
     axis.legend(fontsize=7, loc="center left", bbox_to_anchor=(1.02, 0.5), frameon=False)
-    figure.savefig(directory / "tradeoff.png", dpi=120)
+    save_figure(figure, directory / "tradeoff.png")
     plt.close(figure)
     return {name: str(directory / name) for name in ("tradeoff.md", "tradeoff.csv", "tradeoff.png")}

@@ -28,6 +28,7 @@ from .common import (
     EXIT_INPUT,
     EXIT_INTERNAL,
     EXIT_NUMERICAL,
+    EXIT_PIPE,
     EXIT_SIGINT,
     EXIT_SIGTERM,
     RunStopped,
@@ -77,6 +78,9 @@ def main(argv=None) -> int:
     except MemoryError as error:
         return _fail(MemoryError("memory: the run needs more memory than this machine has; use a coarser "
                                  "mesh, fewer cells or fewer sweep points"), EXIT_NUMERICAL, error)
+    except BrokenPipeError:           # stdout's reader went away (`vcyto ... | head`): no error to report
+        _stdout_to_devnull()
+        return EXIT_PIPE
     except OSError as error:          # a disk that fills up, a file that vanished: the environment, not a bug
         where = getattr(error, "filename", None) or "file"
         return _fail(OSError(f"{where}: cannot write or read it: {error.strerror or error}"), EXIT_NUMERICAL, error)
@@ -97,6 +101,9 @@ def run() -> None:
         if not (stop.code is None or isinstance(stop.code, int)):
             raise
         status = stop.code
+    except KeyboardInterrupt:           # outside a command's own handling (while the options are read)
+        print("vcyto: interrupted", file=sys.stderr)
+        status = EXIT_SIGINT
     exit_now(status or 0)
 
 
@@ -117,9 +124,21 @@ def exit_now(status: int) -> None:
     for output in (sys.stdout, sys.stderr):
         try:
             output.flush()
-        except (OSError, ValueError):     # a closed pipe (`vcyto ... | head`): nothing more can reach it
+        except BrokenPipeError:           # the reader went away (`vcyto --help | head`): as main says for a run
+            status = EXIT_PIPE if output is sys.stdout and status == 0 else status
+        except (OSError, ValueError):     # nothing more can reach it
             pass
     os._exit(status)
+
+
+def _stdout_to_devnull():
+    """Point stdout at /dev/null: what is still buffered for a reader that has gone can go nowhere else."""
+    try:
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
+        os.close(devnull)
+    except (OSError, ValueError):      # stdout is not a file descriptor (a test's capture)
+        pass
 
 
 def _fail(error: Exception, status: int, cause: Exception | None = None) -> int:

@@ -8,6 +8,7 @@ import math
 import os
 import shutil
 import sys
+from contextlib import contextmanager
 from pathlib import Path
 
 from .. import outputs, units
@@ -24,6 +25,7 @@ EXIT_NUMERICAL = 1
 EXIT_INTERNAL = 3
 EXIT_SIGINT = 130           # 128 + SIGINT, as shells report it
 EXIT_SIGTERM = 143          # 128 + SIGTERM
+EXIT_PIPE = 141             # 128 + SIGPIPE: the reader of stdout went away (`vcyto ... | head`)
 MIN_FREE_BYTES = 100e6
 
 
@@ -69,6 +71,18 @@ def output_path(path: str | None, default: bool = False, option: str = "--png") 
     if target.exists():
         raise UsageError(f"{option}: {path} exists: a run never overwrites a file; choose another name or remove it")
     return target
+
+
+@contextmanager
+def removed_unless_written(path: Path | None):
+    """Around the work that writes ``path`` (a file ``output_path`` reserved): if that work ends with an error or an
+    interrupt before writing it, the empty file is removed, so a failed run leaves no empty file holding the name."""
+    try:
+        yield path
+    except BaseException:
+        if path is not None and path.is_file() and path.stat().st_size == 0:
+            path.unlink()
+        raise
 
 
 def emit(args, result: dict, lines: list[str]):

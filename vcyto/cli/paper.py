@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from ..arguments import Quantity
 from ..options import check_run_time, scenario_from, scenario_options, tolerance_options
-from .common import emit, output_options, output_path
+from .common import emit, output_options, output_path, removed_unless_written
 
 
 def add_command(commands):
@@ -32,13 +32,14 @@ def command_paper(args):
     check_run_time(args, scenario, args.max_time, "--dt/--max-time")
     png = None if args.no_png else output_path(args.png or f"recordings/paper{args.number}.png", default=not args.png)
     progress = Progress(quiet=args.quiet or args.json)
-    try:
-        result = paper.run_paper(args.number, scenario, args.max_time, progress)
-    finally:
-        progress.close()
-    lines = paper.report_lines(result)
-    if png:
-        paper.save_png(str(png), result, scenario)
-        result["png"] = str(png)
-        lines.append(f"  saved {png}")
+    with removed_unless_written(png):
+        try:
+            result = paper.run_paper(args.number, scenario, args.max_time, progress)
+        finally:
+            progress.close()
+        lines = paper.report_lines(result)
+        if png:
+            paper.save_png(str(png), result, scenario)
+            result["png"] = str(png)
+            lines.append(f"  saved {png}")
     emit(args, paper.public(result), lines)

@@ -15,7 +15,7 @@ from .model import Sweep, float_or_nan
 def save_plot(path: Path, sweep: Sweep, rows: list[dict]) -> None:
     """The plotted metric over the first parameter (a line) or the first two (a heat map; random sampling: a
     scatter coloured by the metric); other parameters are averaged over. Failed points are left out."""
-    from ..figures import pyplot
+    from ..figures import pyplot, save_figure
     plt = pyplot()
     values = {point.id: dict(point.values) for point in sweep.points}
     names = [parameter.name for parameter in sweep.parameters][:2]
@@ -32,7 +32,7 @@ def save_plot(path: Path, sweep: Sweep, rows: list[dict]) -> None:
     title = f"{sweep.plot} ({Path(sweep.path).stem})"
     axis.set_title(title + (f"\nmean over {', '.join(averaged)}" if averaged else ""))
     figure.tight_layout()
-    figure.savefig(path, dpi=120)
+    save_figure(figure, path)
     plt.close(figure)
 
 

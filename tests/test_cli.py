@@ -141,3 +141,20 @@ def test_bench_realtime_prints_the_outlets_as_text():
               "yield": 0.9, "abort_rate": 0.1, "outlets": {"lower": 94, "upper": 6}}
     last = realtime_lines(result)[-1]
     assert last.endswith("outlets: lower 94, upper 6") and "{" not in last, last
+
+
+def test_stream_help_names_the_controller_defaults_that_run():
+    """--help's "default" of each controller option is the shipped calibration (ControllerSettings), in ms."""
+    import argparse
+    import re
+
+    from controller.sorter import ControllerSettings
+    from vcyto.cli import build_parser
+    commands = next(a for a in build_parser()._actions if isinstance(a, argparse._SubParsersAction))
+    helps = {a.option_strings[0]: a.help for a in commands.choices["stream"]._actions if a.option_strings}
+    shipped = ControllerSettings()
+    expected = {"--delay": [shipped.delay], "--lead": [shipped.lead], "--pulse": [shipped.pulse],
+                "--timing-error": [shipped.timing_error], "--envelope": list(shipped.envelope)}
+    for option, seconds in expected.items():
+        stated = re.search(r"default (-?[0-9.]+(?:,-?[0-9.]+)?)", helps[option]).group(1)
+        assert [float(v) for v in stated.split(",")] == pytest.approx([s * 1e3 for s in seconds], rel=1e-3), option

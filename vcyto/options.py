@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import argparse
 
-from controller.sorter import MODES
+from controller.sorter import MODES, ControllerSettings
 from sim import plants
 from sim.scenario import CONVECTIONS, LINEAR_SOLVERS, MEMBRANE_METHODS, SAW_MODELS, ScenarioError
 
@@ -20,6 +20,12 @@ from . import arguments as limits
 from . import units
 from .arguments import Integer, Number, Quantity
 from .config import load_scenario
+
+SHIPPED = ControllerSettings()      # the shipped calibration: the defaults --help names
+
+
+def _ms(seconds: float) -> str:
+    return f"{seconds * 1e3:.4g}"
 
 
 class UsageError(ValueError):
@@ -217,7 +223,7 @@ def controller_settings(args):
     if getattr(args, "envelope", None):
         values = units.parse_list(args.envelope, "time", "ms", field="--envelope")
         if len(values) != 2 or values[0] > values[1]:
-            raise UsageError(f"--envelope: wants two offsets LO,HI with LO <= HI, such as -0.236,0.27 (ms) "
+            raise UsageError(f"--envelope: wants two offsets LO,HI with LO <= HI, such as -0.21,0.2 (ms) "
                              f"(got {args.envelope!r})")
         changes["envelope"] = tuple(values)
     if args.no_controller:
@@ -272,21 +278,23 @@ def _sorting_options(parser: argparse.ArgumentParser):
                         help="controller settings file written by vcyto calibrate (default: the shipped calibration, "
                              "docs/usage.md 'Sorting like a sorter'); the options below override it")
     optics.add_argument("--delay", type=Quantity("time", "ms", low=0, low_open=True, high=10.0), metavar="TIME",
-                        help="sort delay: detection to the SAW window at the reference velocity (ms; default 0.548)")
+                        help="sort delay: detection to the SAW window at the reference velocity (ms; default "
+                             f"{_ms(SHIPPED.delay)})")
     optics.add_argument("--lead", type=Quantity("time", "ms", low=0, high=10.0), metavar="TIME",
-                        help="IDT on this long before the predicted arrival (ms; default 0.3)")
+                        help=f"IDT on this long before the predicted arrival (ms; default {_ms(SHIPPED.lead)})")
     optics.add_argument("--pulse", type=Quantity("time", "ms", low=0, low_open=True, high=10.0), metavar="TIME",
-                        help="IDT pulse length (ms; default 0.4)")
+                        help=f"IDT pulse length (ms; default {_ms(SHIPPED.pulse)})")
     optics.add_argument("--mode", choices=MODES,
                         help="sort mode: purity (abort when a type-I cell is predicted in the widened envelope; "
                              "the default), enrichment (abort only inside the envelope itself), yield (never abort), "
                              "single (purity, and abort two type-II cells in each other's envelope)")
     optics.add_argument("--envelope", metavar="LO,HI",
                         help="offsets from a sorted cell's arrival at which another cell is deflected too (ms; default "
-                             "-0.236,0.27: vcyto calibrate on rom and feib, docs/usage.md 'Sorting like a sorter')")
+                             f"{_ms(SHIPPED.envelope[0])},{_ms(SHIPPED.envelope[1])}: vcyto calibrate on rom and feib, "
+                             "docs/usage.md 'Sorting like a sorter')")
     optics.add_argument("--timing-error", type=Quantity("time", "ms", low=0, high=10.0), metavar="TIME",
                         help="uncertainty of one predicted arrival; the purity window is the envelope widened by twice "
-                             "this (ms; default 0.027)")
+                             f"this (ms; default {_ms(SHIPPED.timing_error)})")
     optics.add_argument("--no-controller", action="store_true", help="never switch the IDT on")
 
 

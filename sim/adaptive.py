@@ -29,11 +29,10 @@ import math
 import numpy as np
 
 from .fluid import NavierStokes
-from .stability import paper_bound
+from .health import STABLE_FRACTION, paper_bound
 
 LEVELS = 4
 SAFETY = 0.3
-STABLE_FRACTION = 3.4
 
 
 class AdaptiveSteps:

@@ -11,7 +11,9 @@ and tearing too, so a membrane that explodes through the outlet is not counted a
 Which hint a failure carries depends on the membrane's explicit time step ``membrane_time_step``, about
 eta dq / kappa_e (tension) or eta dq^3 / kappa_b (bending), dq the reference spacing of its points (docs/results.md,
 "Stability"): a step beyond a quarter of it may be the cause, and the hint is a smaller dt; a step far
-below it is not, and the hint names what is (the flow folding or tearing the membrane).
+below it is not, and the hint names what is (the flow folding or tearing the membrane). The smaller dt it
+suggests is STABLE_FRACTION times the paper's bound (33) for that cell (``paper_bound``), which is below
+every measured stability limit (docs/results.md, "Stability"), or a quarter of dt if dt is already below that.
 """
 
 from __future__ import annotations
@@ -22,7 +24,22 @@ import numpy as np
 
 from . import kernels
 from .fluid import NumericalBlowUp
-from .scenario import UM, Scenario
+from .membrane import Membrane
+from .scenario import UM, CellType, Scenario
+
+# a time step this many times the paper's bound (33), with C_cell = 1, is below every measured stability limit:
+# the melanoma's 37.6 us at 3.33 um is 4.2x its bound, >= 5.6x at 6.67 um; the RBC's >= 100 us (docs/results.md)
+STABLE_FRACTION = 3.4
+
+
+def paper_bound(cell_type: CellType, scenario: Scenario) -> float:
+    """The right-hand side of the paper's (33) times h, with C_cell = 1, on the initial shape (``sim.stability``)."""
+    spacing = scenario.numerics.membrane_spacing * scenario.numerics.mesh_h
+    membrane = Membrane.of(cell_type, (0.0, 0.0), spacing)
+    first = np.linalg.norm(membrane.evaluate(4, derivative=1), axis=1).max()
+    third = np.linalg.norm(membrane.evaluate(4, derivative=3), axis=1).max()
+    stiffness = cell_type.kappa_e * first + cell_type.kappa_b * third
+    return scenario.fluid.viscosity * scenario.numerics.mesh_h / (8 * stiffness)
 
 
 class HealthError(NumericalBlowUp):
@@ -43,17 +60,30 @@ class HealthLimits:
     tolerance: float
     max_stretch: float = 20.0
     viscosity: float = 6.0e-3
+    scenario: Scenario | None = None
 
     @classmethod
     def of(cls, scenario: Scenario) -> "HealthLimits":
         channel = scenario.channel
         return cls(channel.length, channel.height, tuple(o.span for o in channel.outlets),
                    scenario.numerics.max_area_change, scenario.numerics.dt, 1e-3 * scenario.numerics.mesh_h,
-                   scenario.numerics.max_stretch, scenario.fluid.viscosity)
+                   scenario.numerics.max_stretch, scenario.fluid.viscosity, scenario)
 
-    def dt_hint(self) -> str:
-        return (f"the time step dt = {self.dt * 1e6:.4g} us is probably beyond this cell's stability limit: "
-                f"try dt = {self.dt / 4 * 1e6:.4g} us")
+    def suggested_dt(self, cell_type: CellType | None = None) -> float:
+        """A smaller dt to try: STABLE_FRACTION x the cell's bound (33) when dt is above that, else dt / 4."""
+        if cell_type is not None and self.scenario is not None:
+            stable = STABLE_FRACTION * paper_bound(cell_type, self.scenario)
+            if self.dt > stable:
+                return stable
+        return self.dt / 4
+
+    def dt_hint(self, cell_type: CellType | None = None) -> str:
+        suggested = self.suggested_dt(cell_type)
+        advice = f"try dt = {_duration(suggested)}"
+        if cell_type is not None and suggested < self.dt / 4:
+            advice += f" (below the measured stability limits of a {cell_type.name} on this mesh; `vcyto stability` " \
+                      "measures the limit)"
+        return (f"the time step dt = {_duration(self.dt)} is probably beyond this cell's stability limit: {advice}")
 
     def dt_is_suspect(self, membrane) -> bool:
         """Whether dt is close to or beyond the membrane's explicit limit (within a factor 4 of it)."""
@@ -62,11 +92,15 @@ class HealthLimits:
     def fold_hint(self, membrane) -> str:
         """The hint for a fold when dt is not the suspect: the flow folded the membrane."""
         if self.dt_is_suspect(membrane):
-            return self.dt_hint() + ", or use more membrane points (numerics.membrane_spacing)"
+            return self.dt_hint(membrane.cell_type) + ", or use more membrane points (numerics.membrane_spacing)"
         return (f"dt = {self.dt * 1e6:.4g} us is far below this membrane's explicit limit (about "
                 f"{membrane_time_step(membrane, self.viscosity) * 1e6:.3g} us), so it is not a time-step instability: "
                 "the flow folded the membrane (a filament thinner than the mesh, or a cell pressed against a wall or "
                 "held at a corner); use a finer mesh (numerics.mesh_h) or slower inflow")
+
+
+def _duration(seconds: float) -> str:
+    return f"{seconds * 1e3:.4g} ms" if seconds >= 1e-3 else f"{seconds * 1e6:.4g} us"
 
 
 def under_resolved(cell_type, mesh_h: float) -> str | None:
@@ -104,7 +138,7 @@ def check_cells(cells, limits: HealthLimits, step: int, time: float):
 def check_leaving_cell(cell, limits: HealthLimits, step: int, time: float):
     """A cell that left in this step: its exit counts only if the membrane is whole."""
     if not np.all(np.isfinite(cell.membrane.points)):
-        raise HealthError(cell.id, step, time, "non-finite membrane positions", limits.dt_hint())
+        raise HealthError(cell.id, step, time, "non-finite membrane positions", limits.dt_hint(cell.membrane.cell_type))
     _check_torn(cell, limits, step, time)
 
 
@@ -114,7 +148,7 @@ def _check_torn(cell, limits: HealthLimits, step: int, time: float):
         hint = ("the flow is too fast for this membrane (the paper's Remark 2.4: an inflow violating its condition "
                 "(16) tears membranes apart): lower the inlet speeds (channel.inlets.N.v_hat)")
         if limits.dt_is_suspect(cell.membrane):
-            hint += "; dt is also near this membrane's explicit limit: " + limits.dt_hint()
+            hint += "; dt is also near this membrane's explicit limit: " + limits.dt_hint(cell.membrane.cell_type)
         raise HealthError(cell.id, step, time,
                           f"the membrane is torn apart: stretched to {ratio:.1f} times its resting length "
                           f"(numerics.max_stretch = {limits.max_stretch:g})", hint)
@@ -123,7 +157,7 @@ def _check_torn(cell, limits: HealthLimits, step: int, time: float):
 def check_cell(cell, limits: HealthLimits, step: int, time: float):
     points = cell.membrane.points
     if not np.all(np.isfinite(points)):
-        raise HealthError(cell.id, step, time, "non-finite membrane positions", limits.dt_hint())
+        raise HealthError(cell.id, step, time, "non-finite membrane positions", limits.dt_hint(cell.membrane.cell_type))
     _check_torn(cell, limits, step, time)
     i, j = kernels.first_self_intersection(np.ascontiguousarray(points))
     if i >= 0:
@@ -132,13 +166,14 @@ def check_cell(cell, limits: HealthLimits, step: int, time: float):
     ratio = cell.membrane.area() / cell.membrane.initial_area
     if abs(ratio - 1) > limits.max_area_change:
         raise HealthError(cell.id, step, time, f"enclosed area is {100 * ratio:.0f} % of the initial area",
-                          limits.dt_hint() + " (or raise numerics.max_area_change if the loss is expected)")
+                          limits.dt_hint(cell.membrane.cell_type)
+                          + " (or raise numerics.max_area_change if the loss is expected)")
     outside = _outside_channel(points, limits)
     if outside.any():
         worst = points[np.argmax(outside)]
         raise HealthError(cell.id, step, time,
                           f"membrane point at ({worst[0] / UM:.2f}, {worst[1] / UM:.2f}) um is outside the channel",
-                          "the cell was pushed through a wall: " + limits.dt_hint())
+                          "the cell was pushed through a wall: " + limits.dt_hint(cell.membrane.cell_type))
 
 
 def _outside_channel(points, limits: HealthLimits) -> np.ndarray:

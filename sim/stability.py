@@ -21,8 +21,7 @@ import numpy as np
 
 from .feib import ImmersedBoundary
 from .fluid import Flow, NavierStokes
-from .health import HealthError
-from .membrane import Membrane
+from .health import HealthError, paper_bound  # noqa: F401  (paper_bound: part of this module's API)
 from .openloop import stepping, with_cells
 from .scenario import CellType, Scenario
 
@@ -35,16 +34,6 @@ class StabilityResult:
     unstable_dt: float
     trials: int
     failure: str
-
-
-def paper_bound(cell_type: CellType, scenario: Scenario) -> float:
-    """The right-hand side of (33) times h, with C_cell = 1, on the initial shape."""
-    spacing = scenario.numerics.membrane_spacing * scenario.numerics.mesh_h
-    membrane = Membrane.of(cell_type, (0.0, 0.0), spacing)
-    first = np.linalg.norm(membrane.evaluate(4, derivative=1), axis=1).max()
-    third = np.linalg.norm(membrane.evaluate(4, derivative=3), axis=1).max()
-    stiffness = cell_type.kappa_e * first + cell_type.kappa_b * third
-    return scenario.fluid.viscosity * scenario.numerics.mesh_h / (8 * stiffness)
 
 
 def actuation_for(cell_type: CellType) -> float:

@@ -145,10 +145,15 @@ def check_leaving_cell(cell, limits: HealthLimits, step: int, time: float):
 def _check_torn(cell, limits: HealthLimits, step: int, time: float):
     ratio = stretch(cell.membrane)
     if ratio > limits.max_stretch:
+        cell_type = cell.membrane.cell_type
         hint = ("the flow is too fast for this membrane (the paper's Remark 2.4: an inflow violating its condition "
                 "(16) tears membranes apart): lower the inlet speeds (channel.inlets.N.v_hat)")
-        if limits.dt_is_suspect(cell.membrane):
-            hint += "; dt is also near this membrane's explicit limit: " + limits.dt_hint(cell.membrane.cell_type)
+        far_too_large = limits.scenario is not None and \
+            limits.dt > STABLE_FRACTION * paper_bound(cell_type, limits.scenario)
+        if far_too_large:       # the likelier cause first
+            hint = limits.dt_hint(cell_type) + "; if it tears at that dt too, " + hint
+        elif limits.dt_is_suspect(cell.membrane):
+            hint += "; dt is also near this membrane's explicit limit: " + limits.dt_hint(cell_type)
         raise HealthError(cell.id, step, time,
                           f"the membrane is torn apart: stretched to {ratio:.1f} times its resting length "
                           f"(numerics.max_stretch = {limits.max_stretch:g})", hint)

@@ -158,3 +158,27 @@ def test_stream_help_names_the_controller_defaults_that_run():
     for option, seconds in expected.items():
         stated = re.search(r"default (-?[0-9.]+(?:,-?[0-9.]+)?)", helps[option]).group(1)
         assert [float(v) for v in stated.split(",")] == pytest.approx([s * 1e3 for s in seconds], rel=1e-3), option
+
+
+def test_hints_name_commands_as_they_can_be_typed(monkeypatch, tmp_path):
+    """`replay with: ...` and `open with: ...` give this environment's script by path when PATH does not find
+    it (a venv not activated), by name when it does."""
+    import os
+    from pathlib import Path
+
+    from vcyto import runfiles
+    script = Path(sys.executable).parent / "vcyto"
+    assert script.is_file()
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setenv("PATH", "/usr/bin:/bin")
+    assert Path(os.path.abspath(runfiles.typed("vcyto"))).resolve() == script.resolve()
+    monkeypatch.setenv("PATH", f"{script.parent}:/usr/bin:/bin")
+    assert runfiles.typed("vcyto") == "vcyto"
+    assert runfiles.typed("no-such-script") == "no-such-script"
+
+
+def test_the_latency_line_says_n_a_without_decisions():
+    from vcyto.sortreport import _latency_line
+    assert _latency_line({}) == "controller latency n/a (no decisions)"
+    assert _latency_line({"p99": float("nan")}) == "controller latency n/a (no decisions)"
+    assert _latency_line({"p99": 12.345}) == "controller latency p99 12.3 us"

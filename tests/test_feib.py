@@ -1,11 +1,13 @@
 """The FE-IB method: transfer adjointness, Laplace's law, a relaxing ellipse, blow-up detection, the paper."""
 
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
-from sim.feib import Cell, ImmersedBoundary, State
-from sim.health import HealthError
+from sim.feib import Cell, ImmersedBoundary, State, new_cell
+from sim.health import STABLE_FRACTION, HealthError, paper_bound
 from sim.membrane import Membrane
 from sim.scenario import UM, CellType, Scenario
 
@@ -109,6 +111,32 @@ def test_a_step_far_beyond_the_stable_dt_is_stopped_with_a_diagnosis():
     error = caught.value
     assert error.cell_id == 7 and error.step >= 1
     assert "cell 7 at step" in str(error) and "try dt =" in str(error)
+    # the dt to try is one that runs: 3.4x the paper's bound (33) for the melanoma on this mesh, below its
+    # measured limit (>= 5.6x the bound at 6.67 um, 4.2x at 3.33 um), not a quarter of 1 ms
+    suggested = STABLE_FRACTION * paper_bound(scenario.cell_type("melanoma"), scenario)
+    assert f"try dt = {suggested * 1e6:.4g} us" in error.hint and suggested < 1e-3 / 4
+    runs = scenario.with_numerics(dt=suggested)
+    plant = ImmersedBoundary(runs)
+    state = plant.start(1.0, [plant.new_cell(runs.cell_type("melanoma"), 7, 0.0)])
+    for _ in range(20):
+        state = plant.step(state, 1.0)
+    assert state.cells[0].in_channel
+
+
+def test_a_torn_membrane_at_a_far_too_large_dt_blames_dt_first():
+    """A tear at a dt far above the stable one names the smaller dt first, the inflow (Remark 2.4) second; at a
+    dt well below the membrane's explicit limit it names only the inflow."""
+    from sim.health import HealthLimits, check_cell
+    melanoma = Scenario().cell_type("melanoma")
+    for dt, first in ((1e-3, "the time step dt = 1 ms"), (1e-8, "the flow is too fast")):
+        scenario = Scenario().with_numerics(dt=dt)
+        cell = new_cell(scenario, melanoma, 3, 0.0, centre=(150 * UM, 100 * UM))
+        centre = cell.membrane.centroid()
+        stretched = replace(cell, membrane=cell.membrane.with_points(centre + 30 * (cell.membrane.points - centre)))
+        with pytest.raises(HealthError) as caught:
+            check_cell(stretched, HealthLimits.of(scenario), 1, dt)
+        assert "torn apart" in caught.value.problem and caught.value.hint.startswith(first), caught.value.hint
+        assert ("try dt" in caught.value.hint) == (dt == 1e-3)
 
 
 def test_same_inputs_same_trajectory(coarse_plant):

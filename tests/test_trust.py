@@ -362,7 +362,7 @@ def test_a_numerical_failure_says_where_its_partial_record_is(tmp_path):
                    "--no-viewer", "--name", "boom", "--quiet")
     assert result.returncode == 1, result.stderr
     lines = result.stderr.strip().splitlines()
-    assert len(lines) == 1 and lines[0].startswith("vcyto: error: the run failed at t = ")
+    assert len(lines) == 1 and lines[0].startswith("vcyto: error: the run failed in the step after t = ")
     assert str(tmp_path / "boom.json") in lines[0] and "Traceback" not in result.stderr
     summary = strict_load((tmp_path / "boom.json").read_text())
     assert summary["status"] == "failed" and summary["reason"]

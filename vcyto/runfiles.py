@@ -7,10 +7,14 @@
 - ``StreamFiles``: the files of one ``vcyto stream`` run, reserved exclusively before any work
   (``vcyto.outputs.reserve_run``) and written at the end, complete or not (the summary's ``status`` says).
 - ``close_quietly``: closes the sinks, turning a viewer that went away into a note instead of a crash.
+- ``typed``: how to type ``vcyto`` or ``rerun`` in the hints a run prints (their path when the environment is
+  not activated).
 """
 
 from __future__ import annotations
 
+import os
+import shutil
 import signal
 import sys
 from dataclasses import dataclass, field
@@ -34,7 +38,20 @@ class View:
 
     def describe(self, run_path=None) -> str:
         return f"streamed to the viewer at {self.url}" if self.kind == "connect" else \
-            f"saved to {self.path or run_path}"
+            f"saved to {self.path or run_path} (open with: {typed('rerun')} {self.path or run_path})"
+
+
+def typed(command: str) -> str:
+    """How to type ``command`` (a script of this environment: ``vcyto``, ``rerun``) so that it runs this
+    environment's: its name when PATH finds that one (an activated venv), else its path (relative when shorter)."""
+    here = Path(sys.executable).parent / command
+    if not here.is_file():
+        return command
+    found = shutil.which(command)
+    if found and Path(found).resolve() == here.resolve():
+        return command
+    relative = os.path.relpath(here)
+    return relative if not relative.startswith("..") else str(here)
 
 
 def say(message: str) -> None:

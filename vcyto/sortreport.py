@@ -306,7 +306,7 @@ def sort_report_lines(result: dict) -> list[str]:
         f"simulated {result['simulated_time_ms']:.3f} ms (IDT on {result['idt_on_time_ms']:.3f} ms) in "
         f"{result['wall_time_s']:.1f} s wall ({result['model']} model: set-up {result['setup_time_s']:.1f} s, loop "
         f"{result['wall_time_s'] - result['setup_time_s']:.3g} s); "
-        f"controller latency p99 {result['controller_latency_us'].get('p99', float('nan')):.1f} us",
+        + _latency_line(result['controller_latency_us']),
     ]
     if (result.get("time_steps") or {}).get("levels_us"):
         from .paper import time_step_line
@@ -324,3 +324,10 @@ def sort_report_lines(result: dict) -> list[str]:
 
 
 __all__ = ["summarise", "statistics_of", "yield_estimate", "report_lines", "true_class", "DEFAULT_OUTLET"]
+
+
+def _latency_line(latency_us: dict) -> str:
+    """The controller's p99 decision latency, or n/a when it decided nothing."""
+    p99 = latency_us.get("p99")
+    return f"controller latency p99 {p99:.1f} us" if p99 is not None and math.isfinite(p99) else \
+        "controller latency n/a (no decisions)"

@@ -163,7 +163,7 @@ def _report_stream(args, result, stopped, view, files, settings, scenario):
     if files is not None and files.path("mcap") is not None:
         mcap = files.path("mcap")
         result["files"]["mcap"] = str(mcap)
-        lines.append(f"recording: {mcap} (MCAP; replay with: vcyto replay {mcap})")
+        lines.append(f"recording: {mcap} (MCAP; replay with: {runfiles.typed('vcyto')} replay {mcap})")
     if view.kind is not None and (view.kind == "connect" or view.path or files is not None):
         rrd = files.path("rrd") if files is not None else None
         result["files"]["rerun"] = view.url if view.kind == "connect" else str(view.path or rrd)
@@ -180,10 +180,11 @@ def _report_stream(args, result, stopped, view, files, settings, scenario):
     emit(args, result, lines)
     if stopped is None:
         return
-    written = ", ".join(result["files"].get(key) for key in ("mcap", "summary", "fcs") if key in result["files"])
+    written = ", ".join(result["files"][key] for key in ("mcap", "summary", "fcs", "rerun") if key in result["files"]
+                        and not result["files"][key].startswith(("rerun+http", "http", "tcp")))
     kept = f"; what ran is in {written}" if written else ""
     if stopped.status == "failed":
-        runfiles.say(f"error: the run failed at t = {result.get('simulated_time_ms', 0):.3f} ms: "
+        runfiles.say(f"error: the run failed in the step after t = {result.get('simulated_time_ms', 0):.3f} ms: "
                      f"{' '.join(stopped.reason.split())}{kept}")
         raise RunStopped(EXIT_NUMERICAL)
     signal_name = signals_seen.get("last", "SIGINT")

@@ -95,6 +95,8 @@ def run_stream(scenario: Scenario, settings: StreamSettings, progress=None, plan
     rng = np.random.default_rng(settings.seed)
     arrivals_rng, detector_rng = rng.spawn(2)
     sample = offer(settings.arrivals, arrivals_rng)
+    if plant is None and progress is not None:
+        progress.note(f"setting up the {settings.model} plant (kept in the set-up cache after the first run)")
     plant = plant or make_plant(scenario, settings)
     observers = list(sinks) + ([ProgressSink(progress, len(sample.admitted))] if progress is not None else [])
     run = _Run(plant, settings, Detector(settings.detector, detector_rng), SortController(settings.controller),

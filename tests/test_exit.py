@@ -116,3 +116,19 @@ def test_a_figure_is_saved_whole_or_not_at_all(tmp_path):
         pass
     plt.close(figure)
     assert sorted(p.name for p in tmp_path.iterdir()) == ["whole.png"]
+
+
+def test_an_interrupted_paper_run_says_where_and_leaves_no_png(tmp_path):
+    """SIGTERM (as SIGINT) during the steps: one line naming the step and time, 143, no PNG left behind."""
+    process = subprocess.Popen([sys.executable, "-m", "vcyto", "paper", "1", "--mesh-h", "10um", "--dt", "1us", "--max-time",
+                                "1000"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=tmp_path)
+    deadline = time.time() + 300
+    seen = ""
+    while "step " not in seen and time.time() < deadline:       # progress lines: the steps have started
+        seen += process.stderr.readline()
+    process.send_signal(signal.SIGTERM)
+    out, err = process.communicate(timeout=120)
+    assert process.returncode == 143, err
+    last = err.strip().splitlines()[-1]
+    assert last.startswith("vcyto: interrupted by SIGTERM at step ") and "saves nothing" in last
+    assert "Traceback" not in err and not list((tmp_path / "recordings").glob("*.png"))

@@ -35,6 +35,14 @@ PAPER = {
 }
 
 
+class Interrupted(KeyboardInterrupt):
+    """A paper run stopped by Ctrl-C (or SIGTERM) after ``step`` steps, at ``time`` (s)."""
+
+    def __init__(self, step: int, time: float):
+        super().__init__(step, time)
+        self.step, self.time = step, time
+
+
 def paper_scenario(number: int, base: Scenario, dt_given: bool) -> Scenario:
     """The base scenario with the paper's time step for scenario ``number`` (unless the user set one)."""
     return base if dt_given else base.with_numerics(dt=PAPER[number].dt)
@@ -55,11 +63,14 @@ def run_paper(number: int, scenario: Scenario, max_time: float = 20e-3, progress
     steady = time.perf_counter() - started - setup
     path, outlines, times = [cell.membrane.centroid()], [(0.0, cell.membrane.points)], [state.time]
     stepping_started = time.perf_counter()
-    for state in stepping(plant.step, state, spec.actuation, until=max_time):
-        membrane = state.cells[0].membrane
-        path.append(membrane.centroid())
-        times.append(state.time)
-        update(f"step {state.step}, t = {state.time * 1e3:.3f} ms, centroid x = {path[-1][0] / UM:.1f} um")
+    try:
+        for state in stepping(plant.step, state, spec.actuation, until=max_time):
+            membrane = state.cells[0].membrane
+            path.append(membrane.centroid())
+            times.append(state.time)
+            update(f"step {state.step}, t = {state.time * 1e3:.3f} ms, centroid x = {path[-1][0] / UM:.1f} um")
+    except KeyboardInterrupt:
+        raise Interrupted(state.step, state.time) from None
     step_wall = time.perf_counter() - stepping_started
     final = state.cells[0]
     timings = plant.timings

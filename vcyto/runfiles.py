@@ -159,7 +159,8 @@ def close_quietly(sink, recording=None) -> list[str]:
     try:
         sink.close()
     except (RuntimeError, ConnectionError) as problem:      # the viewer went away: the MCAP has everything
-        again = f"vcyto replay {recording} shows the run again" if recording else "the view of the run is incomplete"
+        again = f"{typed('vcyto')} replay {recording} shows the run again" if recording else \
+            "the view of the run is incomplete"
         return [f"the Rerun viewer stopped receiving ({' '.join(str(problem).split())[:160]}); {again}"]
     return []
 

@@ -4,7 +4,16 @@ from __future__ import annotations
 
 from ..arguments import Quantity
 from ..options import check_run_time, scenario_from, scenario_options, tolerance_options
-from .common import emit, output_options, output_path, removed_unless_written
+from .common import (
+    EXIT_SIGINT,
+    EXIT_SIGTERM,
+    RunStopped,
+    emit,
+    output_options,
+    output_path,
+    removed_unless_written,
+    signals_seen,
+)
 
 
 def add_command(commands):
@@ -24,7 +33,7 @@ def add_command(commands):
 
 
 def command_paper(args):
-    from .. import paper
+    from .. import paper, runfiles
     from ..progress import Progress
     # with --tolerance the finest level is --dt or 2.5 us, the step the tolerance is stated against
     scenario = paper.paper_scenario(args.number, scenario_from(args, membrane="paper"),
@@ -32,9 +41,16 @@ def command_paper(args):
     check_run_time(args, scenario, args.max_time, "--dt/--max-time")
     png = None if args.no_png else output_path(args.png or f"recordings/paper{args.number}.png", default=not args.png)
     progress = Progress(quiet=args.quiet or args.json)
-    with removed_unless_written(png):
+    signals_seen.clear()
+    with removed_unless_written(png), runfiles.signals_as_interrupt(signals_seen):
         try:
             result = paper.run_paper(args.number, scenario, args.max_time, progress)
+        except paper.Interrupted as stop:
+            progress.close()
+            signal_name = signals_seen.get("last", "SIGINT")
+            runfiles.say(f"interrupted by {signal_name} at step {stop.step} (t = {stop.time * 1e3:.3f} ms); an "
+                         "unfinished paper run saves nothing")
+            raise RunStopped(EXIT_SIGTERM if signal_name == "SIGTERM" else EXIT_SIGINT) from None
         finally:
             progress.close()
         lines = paper.report_lines(result)

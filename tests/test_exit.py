@@ -103,6 +103,9 @@ def test_a_figure_is_saved_whole_or_not_at_all(tmp_path):
     axis.plot([0, 1], [0, 1])
     save_figure(figure, tmp_path / "whole.png")
     assert (tmp_path / "whole.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    umask = os.umask(0)
+    os.umask(umask)
+    assert (tmp_path / "whole.png").stat().st_mode & 0o777 == 0o666 & ~umask      # not mkstemp's 0600
 
     def broken_savefig(target, **kwargs):
         with open(target, "wb") as file:

@@ -135,3 +135,19 @@ def test_an_interrupted_paper_run_says_where_and_leaves_no_png(tmp_path):
     last = err.strip().splitlines()[-1]
     assert last.startswith("vcyto: interrupted by SIGTERM at step ") and "saves nothing" in last
     assert "Traceback" not in err and not list((tmp_path / "recordings").glob("*.png"))
+
+
+def test_a_signal_while_a_run_creates_its_files_is_deferred_not_lost():
+    """``runfiles.interrupts_deferred``: SIGINT/SIGTERM inside the block raise nothing there (a recorder's header
+    is never cut in half), are noted as pending with their name, and the handlers are restored after."""
+    from vcyto.runfiles import interrupts_deferred
+    before = signal.getsignal(signal.SIGINT)
+    seen = {}
+    with interrupts_deferred(seen) as block:
+        os.kill(os.getpid(), signal.SIGTERM)
+        time.sleep(0.05)                     # the handler runs here: it must not raise
+        assert block.pending and seen["last"] == "SIGTERM"
+    assert signal.getsignal(signal.SIGINT) is before
+    with interrupts_deferred({}) as quiet:
+        pass
+    assert not quiet.pending

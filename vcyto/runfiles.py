@@ -190,6 +190,33 @@ class signals_as_interrupt:
         return False
 
 
+class interrupts_deferred:
+    """Within the block SIGINT and SIGTERM are noted, not raised, so that what must not be cut in half (creating a
+    run's files and recorders: an MCAP header half written is a torn file) completes; ``pending`` says whether
+    one arrived (``seen["last"]`` names it) and the caller then stops as if it had arrived just after."""
+
+    def __init__(self, seen: dict):
+        self.seen = seen
+        self.pending = False
+
+    def __enter__(self):
+        def note(signum, frame):
+            self.seen["last"] = signal.Signals(signum).name
+            self.pending = True
+        self._previous = {}
+        for number in (signal.SIGTERM, signal.SIGINT):
+            try:
+                self._previous[number] = signal.signal(number, note)
+            except ValueError:          # not the main thread
+                pass
+        return self
+
+    def __exit__(self, *exc):
+        for number, previous in self._previous.items():
+            signal.signal(number, previous)
+        return False
+
+
 def stopped_summary(settings, reason: str) -> dict:
     """The summary of a run stopped before its loop began (no cell has moved)."""
     return {"status": "interrupted", "reason": reason, "cells": [], "statistics": {"cells": 0},

@@ -75,22 +75,23 @@ def command_stream(args):
     signals_seen.clear()
     view = runfiles.choose_view(args, output is not None, spawn_by_default=True, error=UsageError)
     files = None
-    if output is not None:
-        try:
-            files = runfiles.StreamFiles(output, args.name, record=not args.no_record,
-                                         rrd=view.kind == "save" and view.path is None)
-        except outputs.NameTaken as error:
-            raise UsageError(str(error)) from None
-    result, stopped = _run_with_sinks(args, scenario, settings, view, files)
+    # the run's files and recorders are created whole: a Ctrl-C meanwhile takes effect once they exist
+    with runfiles.interrupts_deferred(signals_seen) as setting_up:
+        if output is not None:
+            try:
+                files = runfiles.StreamFiles(output, args.name, record=not args.no_record,
+                                             rrd=view.kind == "save" and view.path is None)
+            except outputs.NameTaken as error:
+                raise UsageError(str(error)) from None
+        background = _open_sinks(args, scenario, settings, view, files)
+    result, stopped = _run_with_sinks(args, scenario, settings, view, files, background, setting_up.pending)
     _report_stream(args, result, stopped, view, files, settings, scenario)
     return _partial_status(args, result)
 
 
-def _run_with_sinks(args, scenario, settings, view, files):
-    """Run the loop with the MCAP and Rerun sinks; (summary, StreamStopped or None). The sinks are closed
-    whatever happens; a run stopped by Ctrl-C, SIGTERM or a numerical failure returns its partial summary."""
-    from .. import runfiles, stream
-    from ..progress import Progress
+def _open_sinks(args, scenario, settings, view, files):
+    """The MCAP and Rerun sinks of the run, on a background thread (their work overlaps the plant's solve), or
+    None."""
     from ..sinks import BackgroundSinks
     sinks = []
     if files is not None and files.path("mcap") is not None:
@@ -99,12 +100,22 @@ def _run_with_sinks(args, scenario, settings, view, files):
                                   flush_every=args.flush_every, field_every=args.field_every))
     if view.kind is not None and (view.kind == "connect" or view.path or files is not None):
         sinks += _rerun_sink(args, scenario, settings, view, files)
+    return BackgroundSinks(sinks) if sinks else None
+
+
+def _run_with_sinks(args, scenario, settings, view, files, background, interrupted: bool):
+    """Run the loop with the sinks; (summary, StreamStopped or None). The sinks are closed whatever happens; a
+    run stopped by Ctrl-C, SIGTERM or a numerical failure returns its partial summary. ``interrupted``: a signal
+    came while the files and sinks were created; the run stops before its first step."""
+    from .. import runfiles, stream
+    from ..progress import Progress
     progress = Progress(quiet=args.quiet or args.json)
-    background = BackgroundSinks(sinks) if sinks else None      # their work overlaps the plant's solve
     stopped, failed = None, True
     try:
         with runfiles.signals_as_interrupt(signals_seen):
             try:
+                if interrupted:
+                    raise KeyboardInterrupt
                 result = stream.run_stream(scenario, settings, progress, sinks=[background] if background else [])
             except stream.StreamStopped as error:
                 stopped, result = error, error.result

@@ -10,6 +10,7 @@ import subprocess
 import sys
 import textwrap
 import time
+from pathlib import Path
 
 SCRIPT = textwrap.dedent("""
     import atexit, sys, threading, time
@@ -123,8 +124,8 @@ def test_a_figure_is_saved_whole_or_not_at_all(tmp_path):
 
 def test_an_interrupted_paper_run_says_where_and_leaves_no_png(tmp_path):
     """SIGTERM (as SIGINT) during the steps: one line naming the step and time, 143, no PNG left behind."""
-    process = subprocess.Popen([sys.executable, "-m", "vcyto", "paper", "1", "--mesh-h", "10um", "--dt", "1us", "--max-time",
-                                "1000"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=tmp_path)
+    command = [sys.executable, "-m", "vcyto", "paper", "1", "--mesh-h", "10um", "--dt", "1us", "--max-time", "1000"]
+    process = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=tmp_path)
     deadline = time.time() + 300
     seen = ""
     while "step " not in seen and time.time() < deadline:       # progress lines: the steps have started
@@ -151,3 +152,28 @@ def test_a_signal_while_a_run_creates_its_files_is_deferred_not_lost():
     with interrupts_deferred({}) as quiet:
         pass
     assert not quiet.pending
+
+
+def test_a_write_that_fails_half_way_keeps_the_old_contents_and_names_the_file(tmp_path):
+    """``outputs.write_whole`` (summaries, FCS, Gating-ML, PNGs): a disk that fills up in the middle leaves the
+    reserved placeholder as it was, no temporary file, and an error naming the file the user will look for."""
+    import errno
+
+    from vcyto.outputs import write_into, write_whole
+    summary = tmp_path / "run.json"
+    summary.write_text('{"status": "running"}\n')
+
+    def fill_up(temporary):
+        Path(temporary).write_text('{"status": "complete", "cells": [')
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    try:
+        write_whole(summary, fill_up)
+    except OSError as error:
+        assert error.filename == str(summary) and error.errno == errno.ENOSPC
+    else:
+        raise AssertionError("the failed write was not reported")
+    assert summary.read_text() == '{"status": "running"}\n'
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["run.json"]
+    write_into(summary, '{"status": "complete"}\n')
+    assert json.loads(summary.read_text()) == {"status": "complete"}

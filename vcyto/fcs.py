@@ -22,6 +22,8 @@ from pathlib import Path
 import flowio
 import numpy as np
 
+from . import outputs
+
 CHANNELS = ("Time", "FL1", "FSC", "Velocity", "Class", "Decision", "Outlet")
 DESCRIPTIONS = ("time of detection (ms)", "fluorescence (a.u.)", "forward scatter, cell area (um^2)",
                 "velocity through the detection window (mm/s)", "detected class (1=I, 2=II)",
@@ -105,9 +107,11 @@ def write_fcs(path: Path, result: dict, metadata: dict | None = None, settings=N
     for index in range(len(CHANNELS)):
         keywords[f"$P{index + 1}R"] = channel_range(table32[:, index])
     keywords.update({key: str(value) for key, value in (metadata or {}).items()})
-    with open(path, "wb") as handle:
-        flowio.create_fcs(handle, table32.flatten(), list(CHANNELS), opt_channel_names=list(DESCRIPTIONS),
-                          metadata_dict=keywords)
+    def write(temporary):
+        with open(temporary, "wb") as handle:
+            flowio.create_fcs(handle, table32.flatten(), list(CHANNELS), opt_channel_names=list(DESCRIPTIONS),
+                              metadata_dict=keywords)
+    outputs.write_whole(path, write)
     return path
 
 

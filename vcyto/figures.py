@@ -2,10 +2,6 @@
 
 from __future__ import annotations
 
-import os
-import secrets
-from pathlib import Path
-
 import numpy as np
 
 from sim.scenario import UM, Scenario
@@ -22,21 +18,8 @@ def pyplot():
 def save_figure(figure, path, dpi: int = 120) -> None:
     """Write ``figure`` as a PNG at ``path`` all at once: drawn into a temporary file beside it, then moved in
     place (``os.replace``), so an interrupted or failed save never leaves a truncated image under the name."""
-    path = Path(path)
-    temporary = path.with_name(f".{path.name}.{secrets.token_hex(4)}.tmp")
-    try:    # created as any file opened for writing is (the umask applies; mkstemp would make it 0600)
-        os.close(os.open(temporary, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666))
-    except OSError as error:
-        raise OSError(error.errno, error.strerror, str(path)) from None
-    try:
-        figure.savefig(temporary, format="png", dpi=dpi)
-        os.replace(temporary, path)
-    except OSError as error:                      # name the file the user asked for, not the temporary one
-        Path(temporary).unlink(missing_ok=True)
-        raise OSError(error.errno, error.strerror, str(path)) from None
-    except BaseException:
-        Path(temporary).unlink(missing_ok=True)
-        raise
+    from .outputs import write_whole
+    write_whole(path, lambda temporary: figure.savefig(temporary, format="png", dpi=dpi))
 
 
 def speed_image(locator: PointLocator, velocity: np.ndarray, scenario: Scenario, pixel: float = 1 * UM):

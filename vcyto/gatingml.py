@@ -11,6 +11,8 @@ from __future__ import annotations
 import xml.etree.ElementTree as ET
 from pathlib import Path
 
+from . import outputs
+
 GATING = "http://www.isac-net.org/std/Gating-ML/v2.0/gating"
 DATA_TYPE = "http://www.isac-net.org/std/Gating-ML/v2.0/datatypes"
 TRANSFORMS = "http://www.isac-net.org/std/Gating-ML/v2.0/transformations"
@@ -38,5 +40,6 @@ def classification_gates(gate: float, channel: str = "FL1") -> ET.ElementTree:
 
 
 def write_gatingml(path: Path, gate: float, channel: str = "FL1") -> Path:
-    classification_gates(gate, channel).write(path, encoding="UTF-8", xml_declaration=True)
+    outputs.write_whole(path, lambda temporary: classification_gates(gate, channel).write(
+        temporary, encoding="UTF-8", xml_declaration=True))
     return Path(path)

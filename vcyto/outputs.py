@@ -15,6 +15,7 @@ import json
 import math
 import os
 import re
+import secrets
 import time
 from pathlib import Path
 
@@ -89,12 +90,30 @@ def reserve_run(directory: Path, suffixes, name: str | None = None, attempts: in
     raise OSError(f"no free run id in {directory} after {attempts} attempts")
 
 
+def write_whole(path: Path, write) -> None:
+    """Give ``path`` the contents ``write(temporary)`` writes into a new file beside it, moved in place with
+    ``os.replace``: an interrupted or failed write (a full disk) never leaves a truncated file under the name,
+    which keeps what it had (a reserved run's placeholder, or nothing). The file gets the umask's mode, as any
+    file opened for writing. A failure names ``path``, not the temporary file."""
+    path = Path(path)
+    temporary = path.with_name(f".{path.name}.{secrets.token_hex(4)}.tmp")
+    try:
+        os.close(os.open(temporary, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666))
+        write(temporary)
+        with open(temporary, "rb+") as file:
+            os.fsync(file.fileno())
+        os.replace(temporary, path)
+    except OSError as error:
+        temporary.unlink(missing_ok=True)
+        raise OSError(error.errno, error.strerror, str(path)) from None
+    except BaseException:
+        temporary.unlink(missing_ok=True)
+        raise
+
+
 def write_into(path: Path, text: str) -> None:
-    """Replace the contents of ``path`` (a file this run reserved) by ``text``, durably."""
-    with open(path, "w") as file:
-        file.write(text)
-        file.flush()
-        os.fsync(file.fileno())
+    """Replace the contents of ``path`` (a file this run reserved) by ``text``, whole and durably."""
+    write_whole(path, lambda temporary: Path(temporary).write_text(text))
 
 
 def unique_directory(path: Path) -> Path:

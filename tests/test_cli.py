@@ -182,3 +182,15 @@ def test_the_latency_line_says_n_a_without_decisions():
     assert _latency_line({}) == "controller latency n/a (no decisions)"
     assert _latency_line({"p99": float("nan")}) == "controller latency n/a (no decisions)"
     assert _latency_line({"p99": 12.345}) == "controller latency p99 12.3 us"
+
+
+@pytest.mark.parametrize("args, message", [
+    (["--save", "/proc/view.rrd"], "--save: cannot write /proc/view.rrd"),
+    (["--save", "view.rrd", "--no-viewer"], "--no-viewer: cannot be combined with --save"),
+    (["--spawn", "--no-viewer"], "--no-viewer: cannot be combined with --spawn"),
+])
+def test_a_view_that_cannot_be_kept_is_refused_before_the_run(args, message, tmp_path):
+    result = vcyto("stream", "--model", "rom", "--output", "", *args, cwd=tmp_path)
+    assert result.returncode == 2 and "Traceback" not in result.stderr
+    assert result.stderr.strip().splitlines() == [f"vcyto: error: {result.stderr.split('error: ')[1].strip()}"]
+    assert message in result.stderr and not list(tmp_path.iterdir())

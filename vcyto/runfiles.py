@@ -63,6 +63,10 @@ def choose_view(args, have_default_file: bool, spawn_by_default: bool, error) ->
     .rrd can be saved when no viewer is reached (else the view is dropped, with a note)."""
     from . import viewer
     if getattr(args, "no_viewer", False):
+        given = [name for name, value in (("--save", args.save), ("--spawn", getattr(args, "spawn", False)),
+                                          ("--connect", getattr(args, "connect", None) is not None)) if value]
+        if given:
+            raise error(f"--no-viewer: cannot be combined with {' and '.join(given)}; drop one of them")
         return View(None)
     if args.save:
         return View("save", path=_new_file(args.save, "--save", error))
@@ -107,6 +111,14 @@ def _new_file(text: str, option: str, error) -> Path:
         raise error(f"{option}: cannot write {text}: directory {directory} does not exist")
     if path.suffix != ".rrd":
         raise error(f"{option}: {text} should end in .rrd (a Rerun recording)")
+    try:                                # can it be created? (a read-only directory, a full disk; as root too)
+        os.close(os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666))
+        path.unlink()
+    except FileExistsError:
+        raise error(f"{option}: {text} already exists; vcyto never overwrites a file: choose another name") from None
+    except OSError as problem:
+        raise error(f"{option}: cannot write {text} ({problem.strerror}); choose a directory you can write to") \
+            from None
     return path
 
 

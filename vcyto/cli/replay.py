@@ -29,7 +29,11 @@ def command_replay(args):
                          ".mcap that vcyto stream wrote")
     view = runfiles.choose_view(args, True, spawn_by_default=False, error=UsageError)
     if view.kind == "save" and view.path is None:
-        view.path = outputs.unique_path(path.with_suffix(".replay.rrd"))
+        try:
+            view.path = outputs.unique_path(path.with_suffix(".replay.rrd"))
+        except OSError as error:
+            raise UsageError(f"cannot write the replay next to the recording ({error.strerror}); give --save "
+                             "FILE.rrd in a directory you can write to") from None
     try:
         result = replay(path, view.target())
     except (ReplayError, KeyError, TypeError, ValueError, IndexError, AttributeError) as error:

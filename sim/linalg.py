@@ -186,7 +186,7 @@ class Pardiso:
         if self._rhs_buffer is None or len(self._rhs_buffer) != len(rhs):
             self._rhs_buffer = _aligned_empty(len(rhs), dtype=self._dtype)
             self._solution_buffer = _aligned_empty(len(rhs), dtype=self._dtype)
-        self._rhs_buffer[:] = rhs
+        narrow(self._rhs_buffer, rhs)
         self._call(33, self._rhs_buffer, self._solution_buffer)
         return self._solution_buffer.astype(np.float64)
 
@@ -199,7 +199,7 @@ class Pardiso:
             self._phase_buffers = (_aligned_empty(len(rhs), dtype=self._dtype),
                                    _aligned_empty(len(rhs), dtype=self._dtype))
         source, target = self._phase_buffers
-        source[:] = rhs
+        narrow(source, rhs)
         self._call(phase, source, target)
         if out is None:
             return target.astype(np.float64)
@@ -315,6 +315,14 @@ class MixedPrecision:
 
     def release(self):
         self._inner.release()
+
+
+def narrow(target: np.ndarray, values: np.ndarray) -> None:
+    """``target[:] = values``; into single precision a value beyond its range becomes inf without numpy's
+    overflow warning (``sim`` prints nothing): the step's finiteness check then reports the blow-up and its
+    cause."""
+    with np.errstate(over="ignore"):
+        target[:] = values
 
 
 def factorize(matrix: sp.spmatrix, solver: str = "auto", symmetric: bool = False, previous=None,

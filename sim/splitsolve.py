@@ -39,7 +39,7 @@ import numpy as np
 import scipy.linalg as sla
 import scipy.sparse as sp
 
-from .linalg import Pardiso, SolverError, _mkl_runtime, mkl_version
+from .linalg import Pardiso, SolverError, _mkl_runtime, mkl_version, narrow
 from .store import digest, reuse
 
 MIN_UNKNOWNS = 20_000        # below this a plain sequential PARDISO solve is as fast
@@ -82,6 +82,7 @@ class _Half:
         n = block.shape[0]
         self.y, self.z, self.x = (np.zeros(n, dtype=self.dtype) for _ in range(3))
         self.h = self.h_t = None
+        self.w = None                  # the separator's solution in the factor's precision
         self.dinv = self._diagonal(n)
 
     def _diagonal(self, n: int) -> np.ndarray | None:
@@ -124,6 +125,7 @@ class _Half:
     def use(self, h: sp.csr_matrix):
         h = h.astype(self.dtype)
         self.h, self.h_t = h, h.T.tocsr()
+        self.w = np.zeros(h.shape[1], dtype=self.dtype)
 
     def forward(self, rhs: np.ndarray) -> np.ndarray:
         self.factor.phase(331, rhs, self.y)
@@ -131,7 +133,8 @@ class _Half:
         return self.h_t @ self.y
 
     def backward(self, separator_solution: np.ndarray) -> np.ndarray:
-        w = self.z - self.h @ separator_solution.astype(self.dtype)
+        narrow(self.w, separator_solution)
+        w = self.z - self.h @ self.w
         return self.factor.phase(333, w, self.x)
 
 

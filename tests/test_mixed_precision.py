@@ -128,3 +128,17 @@ def test_no_openmp_thread_spins_after_a_step():
     cpu = float(subprocess.run([sys.executable, "-c", SPIN], capture_output=True, text=True, cwd=ROOT,
                                check=True, env=environment).stdout)
     assert cpu < 0.05, f"{cpu * 1e3:.0f} ms of CPU in a 200 ms sleep after a step: a thread is spinning"
+
+
+def test_a_blown_up_right_hand_side_gives_inf_without_a_numpy_warning(fluid):
+    """Values beyond single precision's range (a blow-up) become inf in the factor's buffers without numpy's
+    overflow warning (sim prints nothing); the step's finiteness check then reports the blow-up."""
+    import warnings
+    matrix = fluid.constant_matrix()
+    huge = np.full(matrix.shape[0], 1e300)
+    for solver in (Pardiso(matrix, symmetric=True, single=True),
+                   factorize(matrix, "pardiso", symmetric=True, precision="mixed")):
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")
+            solution = solver.solve(huge)
+        assert not np.all(np.isfinite(solution))

@@ -268,3 +268,26 @@ def test_a_rerun_reading_the_table_reports_the_same_types_as_the_run_that_wrote_
     for key in ("highest", "rows"):             # numbers as numbers, NaN as null, text as text, in both runs
         assert strict_json(second[key]) == strict_json(first[key])
     assert json.loads(strict_json(second["rows"]))[0]["purity"] is None
+
+
+def test_the_progress_bar_counts_truncated_points_apart_from_failed_ones():
+    from vcyto.sweep.run import _Tracker, report_lines
+    notes = []
+
+    class Recorder:
+        interval = 1.0
+
+        def note(self, message):
+            notes.append(message)
+
+        def update(self, message):
+            notes.append(message)
+
+    tracker = _Tracker(3, 0, Recorder())
+    tracker.finished([{"point": 0, "status": "truncated", "error": "max_time"},
+                      {"point": 1, "status": "failed", "error": "blow-up"}, {"point": 2, "status": "ok"}])
+    assert "3/3 points, 1 failed, 1 truncated" in tracker.bar()
+    counts = {"points": 2, "ok": 2, "failed": 0, "truncated": 0, "ran": 2, "done_before": 0, "wall_time_s": 1.0,
+              "repaired_rows": 0, "stale_rows": 0, "highest": None, "files": {}, "rows": []}
+    assert "raise max_time" not in report_lines(counts)[0]
+    assert "raise max_time" in report_lines({**counts, "ok": 1, "truncated": 1})[0]

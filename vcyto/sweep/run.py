@@ -97,7 +97,7 @@ class _Tracker:
     """The progress bar on stderr: points done of all, failures as they come, time left."""
 
     def __init__(self, total: int, done: int, progress):
-        self.total, self.done, self.failed, self.progress = total, done, 0, progress
+        self.total, self.done, self.failed, self.truncated, self.progress = total, done, 0, 0, progress
         self.started, self.initial = time.perf_counter(), done
         if progress and done:
             progress.note(f"{done} of {total} points already in the table; running the other {total - done}")
@@ -105,10 +105,14 @@ class _Tracker:
     def finished(self, rows):
         self.done += len(rows)
         for row in rows:
-            if row["status"] != "ok":
-                self.failed += 1
-                if self.progress and self.failed <= FAILURES_SHOWN:
-                    more = " (further failures are only counted)" if self.failed == FAILURES_SHOWN else ""
+            if row["status"] != "ok":       # truncated (not a result: max_time) or failed
+                if row["status"] == "truncated":
+                    self.truncated += 1
+                else:
+                    self.failed += 1
+                shown = self.failed + self.truncated
+                if self.progress and shown <= FAILURES_SHOWN:
+                    more = " (further failures are only counted)" if shown == FAILURES_SHOWN else ""
                     self.progress.note(f"point {row['point']} {row['status']}: {row['error']}{more}")
         if self.progress:
             self.progress.update(self.bar())
@@ -118,8 +122,9 @@ class _Tracker:
         ran = self.done - self.initial
         left = elapsed / ran * (self.total - self.done) if ran else float("nan")
         filled = int(width * self.done / max(1, self.total))
+        truncated = f"{self.truncated} truncated, " if self.truncated else ""
         return (f"[{'#' * filled}{'.' * (width - filled)}] {self.done}/{self.total} points, {self.failed} failed, "
-                f"{elapsed:.0f} s" + (f", ~{left:.0f} s left" if math.isfinite(left) else ""))
+                f"{truncated}{elapsed:.0f} s" + (f", ~{left:.0f} s left" if math.isfinite(left) else ""))
 
     def close(self):
         if self.progress:
@@ -144,9 +149,10 @@ def _summary(sweep: Sweep, output: Path, rows: dict, ran: int, repaired: int, wa
 
 
 def report_lines(result: dict) -> list[str]:
-    lines = [f"{result['points']} points: {result['ok']} ok, {result['failed']} failed, "
-             f"{result['truncated']} truncated (not results: raise max_time or drop it) ({result['ran']} run now, "
-             f"{result['done_before']} done before) in {result['wall_time_s']:.1f} s"]
+    truncated = f"{result['truncated']} truncated" + (" (not results: raise max_time or drop it)"
+                                                      if result["truncated"] else "")
+    lines = [f"{result['points']} points: {result['ok']} ok, {result['failed']} failed, {truncated} "
+             f"({result['ran']} run now, {result['done_before']} done before) in {result['wall_time_s']:.1f} s"]
     if result["repaired_rows"]:
         lines.append(f"  {result['repaired_rows']} torn row(s) of an interrupted run dropped; those points ran again")
     if result.get("kept_old_rows"):

@@ -124,6 +124,7 @@ def test_default_stream_within_tolerance():
     (["paper", "2", "--tolerance=-1um"], "--tolerance: must be a positive length"),
     (["paper", "1", "--tolerance", "nan"], "--tolerance: 'nan' is not a finite length"),
     (["stream", "--model", "rom", "--tolerance", "1um"], "--tolerance: picks the steps of the feib model only"),
+    (["stream", "--tolerance", "1"], "--tolerance: '1' is 1e+06 um, more than the 50 um"),
     (["bench", "tolerance", "--tolerances", "1us"], "--tolerances: needs positive numbers"),
 ])
 def test_bad_tolerances_are_one_line_errors(arguments, message):

@@ -22,6 +22,7 @@ from .arguments import Integer, Number, Quantity
 from .config import load_scenario
 
 SHIPPED = ControllerSettings()      # the shipped calibration: the defaults --help names
+MAX_TOLERANCE = 50e-6               # a path error per transit of --tolerance (the paper's outlets are 80 um wide)
 
 
 def _ms(seconds: float) -> str:
@@ -70,7 +71,8 @@ def tolerance_options(parser: argparse.ArgumentParser):
     group.add_argument("--tolerance", metavar="LENGTH",
                        help="pick each FE-IB step from dt, 2dt, 4dt, 8dt (dt = --dt, default 2.5us) by an error "
                             "estimate on the membranes, for at most this centroid path error per transit against "
-                            "fixed steps of dt, e.g. 1um; never above the cells' stability limit (default: fixed dt)")
+                            "fixed steps of dt, e.g. 1um (a bare number is in m; at most 50um); never above the "
+                            "cells' stability limit (default: fixed dt)")
 
 
 def length_value(text: str, field: str = "value") -> float:
@@ -86,6 +88,9 @@ def tolerance_override(args) -> list[str]:
     value = length_value(text, "--tolerance")        # a wrong unit, NaN or infinity: QuantityError naming it
     if not value > 0:
         raise UsageError(f"--tolerance: must be a positive length such as 1um or 0.5um (got {text!r})")
+    if value > MAX_TOLERANCE:         # a bare number is in m: `--tolerance 1` would be a metre
+        raise UsageError(f"--tolerance: {text!r} is {value / 1e-6:g} um, more than the {MAX_TOLERANCE / 1e-6:g} um a "
+                         "path error per transit can sensibly be; give a unit, such as 1um")
     if getattr(args, "model", None) not in (None, "feib"):
         raise UsageError(f"--tolerance: picks the steps of the feib model only; drop it or use --model feib "
                          f"(got --model {args.model})")

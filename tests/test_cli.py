@@ -184,6 +184,12 @@ def test_the_latency_line_says_n_a_without_decisions():
     assert _latency_line({"p99": 12.345}) == "controller latency p99 12.3 us"
 
 
+def test_flow_calibration_with_a_png_is_refused_before_the_run(tmp_path):
+    result = vcyto("flow", "--calibrate-streaming", "--png", "x.png", cwd=tmp_path)
+    assert result.returncode == 2 and result.stderr.startswith("vcyto: error: --png: --calibrate-streaming draws")
+    assert not list(tmp_path.iterdir())
+
+
 @pytest.mark.parametrize("args, message", [
     (["--save", "/proc/view.rrd"], "--save: cannot write /proc/view.rrd"),
     (["--save", "view.rrd", "--no-viewer"], "--no-viewer: cannot be combined with --save"),

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from ..options import scenario_from, scenario_options
-from .common import emit, output_options, output_path, stderr_progress
+from .common import UsageError, emit, output_options, output_path, stderr_progress
 
 
 def add_command(commands):
@@ -20,6 +20,9 @@ def add_command(commands):
 def command_flow(args):
     from .. import flowtool
     scenario = scenario_from(args)
+    if args.calibrate_streaming and args.png:
+        raise UsageError("--png: --calibrate-streaming draws no figure; drop --png (or run vcyto flow without "
+                         "--calibrate-streaming for the streamlines' figure)")
     png = output_path(args.png)
     progress = stderr_progress(args.quiet or args.json)
     if args.calibrate_streaming:

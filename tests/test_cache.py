@@ -161,3 +161,21 @@ def test_code_digest_names_the_code():
     assert store.code_digest(form) == store.code_digest(same)
     assert store.code_digest(form) != store.code_digest(other_constant)
     assert store.code_digest(nested) != store.code_digest(nested_other)      # inside a nested code object
+
+
+def test_an_unwritable_cache_says_so_once_and_the_run_goes_on(tmp_path, caplog):
+    """A cache directory that cannot be written (here a file's path) warns once per process, not once per entry,
+    every fetch still builds its arrays, and `vcyto cache` reports it as not writable."""
+    import logging
+
+
+    blocked = tmp_path / "a-file"
+    blocked.write_text("not a directory")
+    cache = DiskCache(blocked / "cache")
+    with caplog.at_level(logging.WARNING, logger="vcyto.cache"):
+        first = cache.fetch("test", {"n": 1}, lambda: {"x": np.arange(3)})
+        second = cache.fetch("test", {"n": 2}, lambda: {"x": np.arange(4)})
+    assert list(first["x"]) == [0, 1, 2] and list(second["x"]) == [0, 1, 2, 3]
+    warnings = [r for r in caplog.records if "cannot be written" in r.getMessage()]
+    assert len(warnings) == 1 and "VCYTO_CACHE_DIR" in warnings[0].getMessage()
+    assert usage(blocked / "cache")["writable"] is False and usage(tmp_path / "ok")["writable"] is True

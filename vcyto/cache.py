@@ -48,6 +48,7 @@ class DiskCache:
     def __init__(self, directory: Path | str | None = None):
         self.directory = Path(directory) if directory is not None else cache_directory()
         self.hits = self.misses = self.rebuilt = 0
+        self.unwritable = False
 
     def _full_key(self, kind: str, key: dict) -> str:
         return json.dumps({"kind": kind, "key": key, "vcyto": __version__, "numpy": np.__version__,
@@ -98,7 +99,10 @@ class DiskCache:
                 Path(temporary).unlink(missing_ok=True)
                 raise
         except OSError as error:  # a read-only or full disk costs the next run its set-up, nothing else
-            LOG.warning("could not write cache entry %s: %s", path, error)
+            if not self.unwritable:       # said once; the other entries of the run would fail the same way
+                LOG.warning("the set-up cache cannot be written (%s: %s); runs go on and pay their set-up each time: "
+                            "set VCYTO_CACHE_DIR to a writable directory, or VCYTO_CACHE=off", path, error)
+            self.unwritable = True
 
 
 def _checksum(arrays: dict) -> str:
@@ -118,7 +122,18 @@ def usage(directory: Path | None = None) -> dict:
     directory = directory or cache_directory()
     files = [*directory.rglob("*.npz"), *directory.glob("units/*.json")] if directory.exists() else []
     return {"directory": str(directory), "enabled": cache_enabled(), "entries": len(files),
-            "bytes": sum(p.stat().st_size for p in files)}
+            "bytes": sum(p.stat().st_size for p in files), "writable": _writable(directory)}
+
+
+def _writable(directory: Path) -> bool:
+    """Whether an entry can be created in ``directory`` (created if missing), probed by creating a file: a
+    read-only mount or an immutable directory refuses even root."""
+    try:
+        directory.mkdir(parents=True, exist_ok=True)
+        with tempfile.NamedTemporaryFile(dir=directory, prefix=".probe.", suffix=".tmp"):
+            return True
+    except OSError:
+        return False
 
 
 def clear(directory: Path | None = None) -> int:

@@ -24,6 +24,9 @@ def command_cache(args):
         result["removed"] = removed
     lines = [f"set-up cache: {result['directory']} ({'on' if result['enabled'] else 'off: VCYTO_CACHE=off'}), "
              f"{result['entries']} entries, {result['bytes'] / 1e6:.1f} MB"]
+    if result["enabled"] and not result["writable"]:
+        lines.append("  it cannot be written: every run pays its set-up; set VCYTO_CACHE_DIR to a writable "
+                     "directory (or VCYTO_CACHE=off)")
     if removed is not None:
         lines.append(f"removed {removed} files")
     emit(args, result, lines)

@@ -57,7 +57,13 @@ def test_a_stream_runs_until_every_cell_has_left(paper_scenario, rom_plant):
     capped = run_stream(paper_scenario, StreamSettings(arrivals, model="rom", max_time=50e-3), plant=rom_plant)
     assert capped["status"] == "truncated" and "max-time" in capped["reason"]
     never = [c for c in capped["cells"] if c["outlet"] == "not_injected"]
-    assert len(never) == capped["statistics"]["not_injected"] > 100
+    stats = capped["statistics"]
+    # the statistics count the cells due by the cap (admitted or turned away by then); the rest are not_yet_due
+    late = sum(c["arrival_ms"] > capped["simulated_time_ms"] for c in capped["cells"])
+    assert len(never) == stats["not_injected"] + late and late > 100
+    assert stats["offered"] + stats["not_yet_due"] == 200                  # every cell of the sample, once
+    due = [c for c in capped["cells"] if c["arrival_ms"] <= capped["simulated_time_ms"]]
+    assert stats["cells"] == len(due)
     assert all(c["outcome"] == "not_injected" for c in never) and capped["statistics"]["outlets"].get("lost", 0) == 0
 
 
@@ -71,12 +77,13 @@ def test_a_capped_run_says_so_and_exits_non_zero_unless_allowed(tmp_path):
     capped = vcyto(*args, "--name", "capped")
     assert capped.returncode == 1 and "partial" in capped.stderr and "Traceback" not in capped.stderr
     summary = json.loads(capped.stdout)
-    assert summary["status"] == "truncated" and summary["statistics"]["not_injected"] > 0
+    assert summary["status"] == "truncated" and summary["statistics"]["not_yet_due"] > 0
     from mcap.reader import make_reader  # the recording says so too
     with open(tmp_path / "capped.mcap", "rb") as handle:
         ending = {m.name: dict(m.metadata) for m in make_reader(handle).iter_metadata()}["run_end"]
     assert ending["status"] == "truncated" and "max-time" in ending["reason"]
     assert int(ending["not_injected"]) == summary["statistics"]["not_injected"]
+    assert int(ending["not_yet_due"]) == summary["statistics"]["not_yet_due"]
     assert vcyto(*args, "--allow-partial").returncode == 0
 
 

@@ -43,14 +43,22 @@ def true_class(cell_type) -> str:
     return TYPE_II if cell_type.target else TYPE_I
 
 
-def summarise(sample, truth, events, controller, scenario, settings) -> dict:
-    """A JSON-ready record of a run: cells (admitted, in arrival order), statistics, the yield estimate."""
+def summarise(sample, truth, events, controller, scenario, settings, partial: bool = False) -> dict:
+    """A JSON-ready record of a run: cells (admitted, in arrival order), statistics, the yield estimate.
+
+    ``partial`` (a run interrupted, failed or cut short): the statistics count only the cells due by the time the
+    run reached (admitted or turned away at the inlet by then); the sample's later cells never had their chance,
+    and counting them (as "never injected", and in the yield's denominator) would understate every rate. Their
+    number is ``not_yet_due``; the per-cell records still list every admitted cell."""
     by_key = {cell.key: cell for cell in truth.cells}
     cells = [_cell_record(key, arrival, name, by_key.get(key), events.get(key), controller, scenario)
              for key, (arrival, name) in enumerate(sample.admitted)]
-    stats = statistics_of(cells, truth.time, rejected=[name for _, name in sample.rejected], scenario=scenario,
+    rejected = [name for time, name in sample.rejected if not partial or time <= truth.time]
+    due = [c for c in cells if not partial or c["arrival_ms"] <= truth.time * 1e3]
+    stats = statistics_of(due, truth.time, rejected=rejected, scenario=scenario,
                           controller_settings=settings.controller)
-    estimate = yield_estimate(cells, scenario, settings)
+    stats["not_yet_due"] = len(cells) - len(due) + len(sample.rejected) - len(rejected)
+    estimate = yield_estimate(due, scenario, settings)
     return {"cells": cells, "statistics": stats, "yield_estimate": estimate,
             "simulated_time_ms": truth.time * 1e3, "model": settings.model, "seed": settings.seed,
             "controller_mode": settings.controller.mode, "controller": _controller_record(settings.controller),
@@ -133,7 +141,9 @@ def statistics_of(cells, simulated_time, rejected=(), scenario=None, controller_
         "co_deflected": len(co_deflected),
         "co_deflected_unexpected": _unexpected(co_deflected, cells, controller_settings),
         "misclassified": sum(c["detected_class"] is not None and c["detected_class"] != c["true_class"] for c in cells),
-        "undetected": sum(c["detected_class"] is None and c["outlet"] != "not_injected" for c in cells),
+        # a cell still in the channel (an unfinished run) may not have reached the detector yet: not undetected
+        "undetected": sum(c["detected_class"] is None and c["outlet"] not in ("not_injected", "in_channel")
+                          for c in cells),
         "not_injected": len(cells) - len(injected),
         "throughput_cells_per_s": (len(injected) / (max(exits) * 1e-3)) if exits and max(exits) > 0 else None,
         "event_rate_per_s": (sum(c["detected_class"] is not None for c in cells) / simulated_time)
@@ -301,7 +311,9 @@ def sort_report_lines(result: dict) -> list[str]:
         f"yield {_percent(stats['yield'])}{expected}, abort rate "
         f"{_percent(stats['abort_rate'])}, co-deflected {stats['co_deflected']} (outside the envelope: "
         f"{stats['co_deflected_unexpected']}), misclassified {stats['misclassified']}, undetected "
-        f"{stats['undetected']}, never injected {stats['not_injected']}",
+        f"{stats['undetected']}, never injected {stats['not_injected']}"
+        + (f"; {stats['not_yet_due']} cells of the sample were not yet due when the run stopped (not counted)"
+           if stats.get("not_yet_due") else ""),
         f"throughput {throughput:.0f} cells/s of simulated time" if throughput else "throughput n/a",
         f"simulated {result['simulated_time_ms']:.3f} ms (IDT on {result['idt_on_time_ms']:.3f} ms) in "
         f"{result['wall_time_s']:.1f} s wall ({result['model']} model: set-up {result['setup_time_s']:.1f} s, loop "

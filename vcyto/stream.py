@@ -119,7 +119,8 @@ def run_stream(scenario: Scenario, settings: StreamSettings, progress=None, plan
     rss_loop = _peak_rss_mb()
     if status == "complete" and not plant.done:
         status, reason = "truncated", _truncation(plant, settings, cap, drain_cap)
-    result = sortreport.summarise(sample, plant.truth(), run.events, run.controller, scenario, settings)
+    result = sortreport.summarise(sample, plant.truth(), run.events, run.controller, scenario, settings,
+                                  partial=status != "complete")
     result.update(status=status, reason=reason, wall_time_s=time.perf_counter() - started, setup_time_s=setup,
                   idt_on_time_ms=run.idt_time * 1e3, steps=run.steps,
                   # peak resident memory after the set-up, at the loop's end (its state), and with the report built
@@ -143,7 +144,7 @@ def _announce_end(sinks, result):
     stats = result["statistics"]
     ending = {"status": result["status"], "reason": result["reason"], "simulated_time_ms": result["simulated_time_ms"],
               **{key: stats.get(key) for key in ("offered", "events", "sorted", "aborts", "purity", "yield",
-                                                 "not_injected")}}
+                                                 "not_injected", "not_yet_due")}}
     for sink in sinks:
         if hasattr(sink, "on_end"):
             sink.on_end(ending)

@@ -200,3 +200,18 @@ def test_a_view_that_cannot_be_kept_is_refused_before_the_run(args, message, tmp
     assert result.returncode == 2 and "Traceback" not in result.stderr
     assert result.stderr.strip().splitlines() == [f"vcyto: error: {result.stderr.split('error: ')[1].strip()}"]
     assert message in result.stderr and not list(tmp_path.iterdir())
+
+
+def test_an_output_directory_refused_for_space_is_not_left_behind(tmp_path, monkeypatch):
+    """Too little free space is refused before the run, and the directory made for the run is removed again; a
+    command writing small files (sweep, tradeoff, calibrate) asks for less room than a stream's recordings."""
+    import shutil
+    from collections import namedtuple
+
+    from vcyto.cli import common
+    usage = namedtuple("usage", "total used free")
+    monkeypatch.setattr(shutil, "disk_usage", lambda path: usage(10**9, 10**9 - 20 * 10**6, 20 * 10**6))
+    with pytest.raises(common.UsageError, match="only 20 MB free"):
+        common.output_directory(str(tmp_path / "new" / "run"))
+    assert not (tmp_path / "new").exists()
+    assert common.output_directory(str(tmp_path / "table"), min_free=common.SMALL_FILES_BYTES).is_dir()

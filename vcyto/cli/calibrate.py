@@ -16,7 +16,7 @@ from .. import outputs, units
 from ..arguments import Number, Quantity
 from ..options import controller_settings, detector_settings, scenario_from, scenario_options
 from ..outputs import strict_json
-from .common import UsageError, emit, output_directory, output_options
+from .common import SMALL_FILES_BYTES, UsageError, emit, output_directory, output_options
 
 
 def add_command(commands):
@@ -68,7 +68,7 @@ def command_calibrate(args):
     from .. import calibrate
     from ..controllerfile import controller_toml
     scenario = scenario_from(args)
-    output = output_directory(args.output)
+    output = output_directory(args.output, min_free=SMALL_FILES_BYTES)
     base = controller_settings(args)
     grid = _calibration_grid(args)
     pulse = None

@@ -26,7 +26,8 @@ EXIT_INTERNAL = 3
 EXIT_SIGINT = 130           # 128 + SIGINT, as shells report it
 EXIT_SIGTERM = 143          # 128 + SIGTERM
 EXIT_PIPE = 141             # 128 + SIGPIPE: the reader of stdout went away (`vcyto ... | head`)
-MIN_FREE_BYTES = 100e6
+MIN_FREE_BYTES = 100e6      # a stream's recordings
+SMALL_FILES_BYTES = 5e6     # tables, summaries and figures (calibrate, sweep, tradeoff)
 
 
 class RunStopped(Exception):
@@ -92,23 +93,31 @@ def emit(args, result: dict, lines: list[str]):
         print("\n".join(lines))
 
 
-def output_directory(path: str | None, option: str = "--output") -> Path | None:
+def output_directory(path: str | None, option: str = "--output", min_free: float = MIN_FREE_BYTES) -> Path | None:
     """Create (if needed) and check the output directory before any work; a directory that cannot be created or
-    written is bad input (``UsageError`` naming ``option``), refused before the run."""
+    written, or with less than ``min_free`` bytes free (recordings need room; tables and figures little), is bad
+    input (``UsageError`` naming ``option``), refused before the run, and a directory created here is removed
+    again."""
     if path is None or path == "":
         return None
     directory = Path(path)
+    created = [p for p in (directory, *directory.parents) if not p.exists()]    # innermost first
     try:
         directory.mkdir(parents=True, exist_ok=True)
     except OSError as error:
         raise UsageError(f"{option}: cannot create the directory {path} ({error.strerror}); choose a directory "
                          "you can write to") from None
-    if not os.access(directory, os.W_OK):
-        raise UsageError(f"{option}: the directory {path} is not writable; choose a directory you can write to")
-    free = shutil.disk_usage(directory).free
-    if free < MIN_FREE_BYTES:
-        raise UsageError(f"{option}: only {free / 1e6:.0f} MB free in {path}: recordings need at least "
-                         f"{MIN_FREE_BYTES / 1e6:.0f} MB; free some space or choose another {option}")
+    try:
+        if not os.access(directory, os.W_OK):
+            raise UsageError(f"{option}: the directory {path} is not writable; choose a directory you can write to")
+        free = shutil.disk_usage(directory).free
+        if free < min_free:
+            raise UsageError(f"{option}: only {free / 1e6:.0f} MB free in {path}: this command's files need at "
+                             f"least {min_free / 1e6:.0f} MB; free some space or choose another {option}")
+    except UsageError:
+        for made in created:            # empty: made just now
+            made.rmdir()
+        raise
     return directory
 
 

@@ -9,7 +9,7 @@ from pathlib import Path
 from .. import outputs
 from ..arguments import Integer
 from ..outputs import strict_json
-from .common import UsageError, emit, output_directory, output_options, signals_seen
+from .common import SMALL_FILES_BYTES, UsageError, emit, output_directory, output_options, signals_seen
 
 
 def add_command(commands):
@@ -41,7 +41,8 @@ def command_sweep(args):
         spec = sweep.load_sweep(args.spec)
     except sweep.SweepError as error:
         raise UsageError(str(error)) from None
-    output = output_directory(args.output or str(Path("recordings") / "sweeps" / Path(args.spec).stem))
+    output = output_directory(args.output or str(Path("recordings") / "sweeps" / Path(args.spec).stem),
+                              min_free=SMALL_FILES_BYTES)
     workers = args.workers or (len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count())
     progress = Progress(quiet=args.quiet or args.json)
     try:

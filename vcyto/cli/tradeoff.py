@@ -6,7 +6,16 @@ import dataclasses
 
 from .. import outputs, units
 from ..options import scenario_from, scenario_options
-from .common import UsageError, emit, non_negative_list, output_directory, output_options, plain_number, positive_list
+from .common import (
+    SMALL_FILES_BYTES,
+    UsageError,
+    emit,
+    non_negative_list,
+    output_directory,
+    output_options,
+    plain_number,
+    positive_list,
+)
 
 
 def add_command(commands):
@@ -47,7 +56,7 @@ def command_tradeoff(args):
     from .. import tradeoff
     from ..progress import Progress
     scenario = scenario_from(args)
-    output = output_directory(args.output)
+    output = output_directory(args.output, min_free=SMALL_FILES_BYTES)
     progress = Progress(quiet=args.quiet or args.json)
     ladder, scenes = tradeoff.FAST_LADDER if args.fast else tradeoff.LADDER, tradeoff.SCENES
     base = next(level for level in ladder if level.model == "auto" and level.window is None)

@@ -177,21 +177,20 @@ def close_quietly(sink, recording=None) -> list[str]:
     return []
 
 
-class signals_as_interrupt:
-    """Within the block SIGTERM raises KeyboardInterrupt, as Ctrl-C does, so files are finished the same way;
-    ``seen`` (a dict) gets "last" = the name of the signal that arrived."""
+class _SignalHandlers:
+    """Within the block SIGINT and SIGTERM go to ``handle`` (on the main thread; elsewhere nothing changes)."""
 
     def __init__(self, seen: dict):
         self.seen = seen
 
+    def handle(self, signum, frame):
+        raise NotImplementedError
+
     def __enter__(self):
-        def interrupt(signum, frame):
-            self.seen["last"] = signal.Signals(signum).name
-            raise KeyboardInterrupt
         self._previous = {}
         for number in (signal.SIGTERM, signal.SIGINT):
             try:
-                self._previous[number] = signal.signal(number, interrupt)
+                self._previous[number] = signal.signal(number, self.handle)
             except ValueError:          # not the main thread
                 pass
         return self
@@ -202,31 +201,27 @@ class signals_as_interrupt:
         return False
 
 
-class interrupts_deferred:
+class signals_as_interrupt(_SignalHandlers):
+    """Within the block SIGTERM raises KeyboardInterrupt, as Ctrl-C does, so files are finished the same way;
+    ``seen`` (a dict) gets "last" = the name of the signal that arrived."""
+
+    def handle(self, signum, frame):
+        self.seen["last"] = signal.Signals(signum).name
+        raise KeyboardInterrupt
+
+
+class interrupts_deferred(_SignalHandlers):
     """Within the block SIGINT and SIGTERM are noted, not raised, so that what must not be cut in half (creating a
     run's files and recorders: an MCAP header half written is a torn file) completes; ``pending`` says whether
     one arrived (``seen["last"]`` names it) and the caller then stops as if it had arrived just after."""
 
     def __init__(self, seen: dict):
-        self.seen = seen
+        super().__init__(seen)
         self.pending = False
 
-    def __enter__(self):
-        def note(signum, frame):
-            self.seen["last"] = signal.Signals(signum).name
-            self.pending = True
-        self._previous = {}
-        for number in (signal.SIGTERM, signal.SIGINT):
-            try:
-                self._previous[number] = signal.signal(number, note)
-            except ValueError:          # not the main thread
-                pass
-        return self
-
-    def __exit__(self, *exc):
-        for number, previous in self._previous.items():
-            signal.signal(number, previous)
-        return False
+    def handle(self, signum, frame):
+        self.seen["last"] = signal.Signals(signum).name
+        self.pending = True
 
 
 def stopped_summary(settings, reason: str) -> dict:

@@ -84,7 +84,15 @@ def test_a_capped_run_says_so_and_exits_non_zero_unless_allowed(tmp_path):
     assert ending["status"] == "truncated" and "max-time" in ending["reason"]
     assert int(ending["not_injected"]) == summary["statistics"]["not_injected"]
     assert int(ending["not_yet_due"]) == summary["statistics"]["not_yet_due"]
-    assert vcyto(*args, "--allow-partial").returncode == 0
+    replayed = vcyto("replay", str(tmp_path / "capped.mcap"), "--save", str(tmp_path / "capped.rrd"))
+    assert replayed.returncode == 0 and "the recorded run is partial: it ended truncated" in replayed.stdout
+    allowed = vcyto(*args, "--allow-partial", "--name", "allowed")
+    assert allowed.returncode == 0
+    whole = [a for a in args if a not in ("--max-time", "10")]
+    done = vcyto(*whole, "--name", "whole")
+    assert done.returncode == 0
+    replayed = vcyto("replay", str(tmp_path / "whole.mcap"), "--save", str(tmp_path / "whole.rrd"))
+    assert replayed.returncode == 0 and "partial" not in replayed.stdout and "no end record" not in replayed.stdout
 
 
 def test_a_user_defined_target_type_is_sorted(tmp_path):

@@ -45,7 +45,9 @@ def read_recording(path: Path, protobuf_topics=(MEMBRANES,)):
         try:
             for record in StreamReader(handle, skip_magic=False).records:
                 if isinstance(record, Metadata) and record.name == "run":
-                    metadata = dict(record.metadata)
+                    metadata = {**dict(record.metadata), **metadata}
+                elif isinstance(record, Metadata) and record.name == "run_end":      # how the run ended
+                    metadata["_run_end"] = dict(record.metadata)
                 elif isinstance(record, Channel):
                     if record.message_encoding == "json" or record.topic in protobuf_topics:
                         channels[record.id] = record.topic
@@ -149,5 +151,7 @@ def replay(path: Path, target, progress=None) -> dict:
         else:
             replayer.on(topic, data)
     logger.close()
+    ending = metadata.get("_run_end", {})
     return {"steps": steps, "messages": len(messages), "last_time_ms": last_time * 1e3, "damaged": bool(problem),
-            "problem": problem, "format": metadata.get("recording_format", "1")}
+            "problem": problem, "format": metadata.get("recording_format", "1"),
+            "run_status": ending.get("status"), "run_reason": ending.get("reason", "")}

@@ -127,7 +127,7 @@ def run_stream(scenario: Scenario, settings: StreamSettings, progress=None, plan
                   memory_mb={"after_setup": rss_setup, "after_loop": rss_loop, "peak": _peak_rss_mb()})
     if isinstance(plant, contract.ReportsTimeSteps):     # feib: the dt used over time (--tolerance)
         result["time_steps"] = plant.time_steps()
-    _announce_end(sinks, result)
+    announce_end(sinks, result)
     if isinstance(plant, contract.SwitchesModels):       # the auto plant: what it picked, when and why
         result["auto"] = {"switches": [{"time_ms": t * 1e3, "model": model, "reason": why}
                                        for t, model, why in plant.switches],
@@ -139,7 +139,7 @@ def run_stream(scenario: Scenario, settings: StreamSettings, progress=None, plan
     return result
 
 
-def _announce_end(sinks, result):
+def announce_end(sinks, result):
     """Tell the sinks how the run ended (a partial run's recording must say it is partial)."""
     stats = result["statistics"]
     ending = {"status": result["status"], "reason": result["reason"], "simulated_time_ms": result["simulated_time_ms"],

@@ -48,6 +48,11 @@ def command_replay(args):
     if result["damaged"]:
         lines.append(f"  the file is damaged or truncated ({result['problem']}): everything before the damage "
                      "was replayed, the rest is lost")
+    if result["run_status"] not in (None, "complete"):
+        lines.append(f"  the recorded run is partial: it ended {result['run_status']}"
+                     + (f" ({result['run_reason']})" if result["run_reason"] else ""))
+    elif result["run_status"] is None and not result["damaged"]:
+        lines.append("  the recording has no end record: the run that wrote it was killed or is still running")
     lines.append(f"  Rerun: {view.describe()}")
     result["target"] = view.url if view.kind == "connect" else str(view.path)
     for note in view.notes:

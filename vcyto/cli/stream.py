@@ -123,6 +123,7 @@ def _run_with_sinks(args, scenario, settings, view, files, background, interrupt
                 stopped = stream.StreamStopped("interrupted", "interrupted while setting up, before the first step",
                                                runfiles.stopped_summary(settings, "interrupted while setting up"))
                 result = stopped.result
+                stream.announce_end([background] if background else [], result)   # the recording says so too
         failed = False
     finally:                                               # the sinks are closed once, whatever happened
         view.notes += _close_run(progress, background, files, failed)

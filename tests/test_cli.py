@@ -215,3 +215,9 @@ def test_an_output_directory_refused_for_space_is_not_left_behind(tmp_path, monk
         common.output_directory(str(tmp_path / "new" / "run"))
     assert not (tmp_path / "new").exists()
     assert common.output_directory(str(tmp_path / "table"), min_free=common.SMALL_FILES_BYTES).is_dir()
+
+
+def test_an_empty_case_list_is_refused_and_cache_takes_quiet():
+    empty = vcyto("extremes", "--case", "")
+    assert empty.returncode == 2 and empty.stderr.startswith("vcyto: error: --case: unknown case ''")
+    assert vcyto("cache", "--quiet").returncode == 0

@@ -12,6 +12,7 @@ def add_command(commands):
     cache.add_argument("action", nargs="?", choices=("info", "clear"), default="info",
                        help="info (default): directory and size; clear: delete every entry")
     cache.add_argument("--json", action="store_true", help="print the result as JSON")
+    cache.add_argument("--quiet", action="store_true", help="accepted as by every command (cache prints no progress)")
     cache.set_defaults(handler=command_cache)
 
 

@@ -21,7 +21,7 @@ def command_extremes(args):
     from .. import extremes
     from ..progress import Progress
     base = scenario_from(args)
-    names = [name.strip() for name in args.case.split(",") if name.strip()] if args.case else None
+    names = [name.strip() for name in args.case.split(",") if name.strip()] if args.case is not None else None
     known = [case.name for case in extremes.CASES]
     unknown = [name for name in names or () if name not in known]
     if unknown or names == []:

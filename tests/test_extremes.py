@@ -134,3 +134,20 @@ def test_max_stretch_is_validated():
     with pytest.raises(ScenarioError, match="max_stretch"):
         Scenario().with_numerics(max_stretch=1.0)
     assert Scenario().numerics.max_stretch == 20.0
+
+
+def test_an_interrupt_keeps_the_cases_already_finished(monkeypatch):
+    """Ctrl-C during a case: the cases finished before it are returned (and printed as a partial table)."""
+    from vcyto import extremes
+    calls = []
+
+    def fake(case, base, fast):
+        calls.append(case.name)
+        if len(calls) == 2:
+            raise KeyboardInterrupt
+        return {"case": case.name, "setting": "", "expected": "", "passed": True, "observed": "ran", "problems": []}
+
+    monkeypatch.setattr(extremes, "run_case", fake)
+    result = extremes.run_cases(None, fast=True)
+    assert result["interrupted"] and [row["case"] for row in result["rows"]] == calls[:1]
+    assert "PARTIAL: interrupted" in extremes.report_lines(result)[-1]

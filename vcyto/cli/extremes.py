@@ -32,6 +32,8 @@ def command_extremes(args):
     finally:
         progress.close()
     emit(args, result, extremes.report_lines(result))
+    if result["interrupted"]:
+        raise KeyboardInterrupt         # the finished cases are printed; the exit is an interrupt's (130)
     if not result["passed"]:
         raise extremes.UnexpectedOutcome(f"{sum(not row['passed'] for row in result['rows'])} case(s) did not "
                                          "end as expected (see the table)")

@@ -151,3 +151,26 @@ def test_an_interrupt_keeps_the_cases_already_finished(monkeypatch):
     result = extremes.run_cases(None, fast=True)
     assert result["interrupted"] and [row["case"] for row in result["rows"]] == calls[:1]
     assert "PARTIAL: interrupted" in extremes.report_lines(result)[-1]
+
+
+def test_an_interrupted_stability_map_keeps_its_finished_rows(monkeypatch):
+    from sim.scenario import Scenario
+    from sim.stability import StabilityResult
+    from vcyto import stabilitymap
+    calls = []
+
+    class Quiet:
+        def note(self, message):
+            pass
+
+    def fake(scenario, cell_type, start=None):
+        calls.append(cell_type.name)
+        if len(calls) == 2:
+            raise KeyboardInterrupt
+        return StabilityResult(cell_type.name, scenario.numerics.mesh_h, 1e-4, float("inf"), 1, "")
+
+    monkeypatch.setattr(stabilitymap, "stable_dt", fake)
+    monkeypatch.setattr(stabilitymap, "NavierStokes", lambda scenario: type("F", (), {"steady": lambda s, a: None})())
+    result = stabilitymap.stability_map(Scenario(), ["RBC", "melanoma"], [10e-6], Quiet())
+    assert result["interrupted"] and [row["cell"] for row in result["rows"]] == ["RBC"]
+    assert "PARTIAL: interrupted" in stabilitymap.report_lines(result)[-1]

@@ -44,3 +44,5 @@ def command_stability(args):
     finally:
         progress.close()
     emit(args, result, stabilitymap.report_lines(result))
+    if result["interrupted"]:
+        raise KeyboardInterrupt         # the rows finished are printed; the exit is an interrupt's (130)

@@ -69,13 +69,16 @@ class HealthLimits:
                    scenario.numerics.max_area_change, scenario.numerics.dt, 1e-3 * scenario.numerics.mesh_h,
                    scenario.numerics.max_stretch, scenario.fluid.viscosity, scenario)
 
+    def stable_dt(self, cell_type: CellType | None) -> float | None:
+        """STABLE_FRACTION x the cell's bound (33) on this scenario's mesh (None without a cell type or scenario)."""
+        if cell_type is None or self.scenario is None:
+            return None
+        return STABLE_FRACTION * paper_bound(cell_type, self.scenario)
+
     def suggested_dt(self, cell_type: CellType | None = None) -> float:
-        """A smaller dt to try: STABLE_FRACTION x the cell's bound (33) when dt is above that, else dt / 4."""
-        if cell_type is not None and self.scenario is not None:
-            stable = STABLE_FRACTION * paper_bound(cell_type, self.scenario)
-            if self.dt > stable:
-                return stable
-        return self.dt / 4
+        """A smaller dt to try: the cell's stable dt (``stable_dt``) when dt is above it, else dt / 4."""
+        stable = self.stable_dt(cell_type)
+        return stable if stable is not None and self.dt > stable else self.dt / 4
 
     def dt_hint(self, cell_type: CellType | None = None) -> str:
         suggested = self.suggested_dt(cell_type)
@@ -148,9 +151,8 @@ def _check_torn(cell, limits: HealthLimits, step: int, time: float):
         cell_type = cell.membrane.cell_type
         hint = ("the flow is too fast for this membrane (the paper's Remark 2.4: an inflow violating its condition "
                 "(16) tears membranes apart): lower the inlet speeds (channel.inlets.N.v_hat)")
-        far_too_large = limits.scenario is not None and \
-            limits.dt > STABLE_FRACTION * paper_bound(cell_type, limits.scenario)
-        if far_too_large:       # the likelier cause first
+        stable = limits.stable_dt(cell_type)
+        if stable is not None and limits.dt > stable:       # far too large: the likelier cause first
             hint = limits.dt_hint(cell_type) + "; if it tears at that dt too, " + hint
         elif limits.dt_is_suspect(cell.membrane):
             hint += "; dt is also near this membrane's explicit limit: " + limits.dt_hint(cell_type)

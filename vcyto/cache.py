@@ -27,6 +27,7 @@ from sim import store
 from sim.store import digest
 
 from . import __version__
+from .outputs import create_new
 
 FORMAT = 1
 LOG = logging.getLogger(__name__)
@@ -128,10 +129,12 @@ def usage(directory: Path | None = None) -> dict:
 def _writable(directory: Path) -> bool:
     """Whether an entry can be created in ``directory`` (created if missing), probed by creating a file: a
     read-only mount or an immutable directory refuses even root."""
+    probe = directory / f".probe.{os.getpid()}.tmp"
     try:
         directory.mkdir(parents=True, exist_ok=True)
-        with tempfile.NamedTemporaryFile(dir=directory, prefix=".probe.", suffix=".tmp"):
-            return True
+        create_new(probe)
+        probe.unlink()
+        return True
     except OSError:
         return False
 

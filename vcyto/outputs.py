@@ -90,6 +90,12 @@ def reserve_run(directory: Path, suffixes, name: str | None = None, attempts: in
     raise OSError(f"no free run id in {directory} after {attempts} attempts")
 
 
+def create_new(path: Path, mode: int = 0o666) -> None:
+    """Create the empty file ``path``, which must not exist (``FileExistsError`` otherwise), with ``mode`` less the
+    umask, as any file opened for writing; other ``OSError``s say it cannot be created there."""
+    os.close(os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, mode))
+
+
 def write_whole(path: Path, write) -> None:
     """Give ``path`` the contents ``write(temporary)`` writes into a new file beside it, moved in place with
     ``os.replace``: an interrupted or failed write (a full disk) never leaves a truncated file under the name,
@@ -98,7 +104,7 @@ def write_whole(path: Path, write) -> None:
     path = Path(path)
     temporary = path.with_name(f".{path.name}.{secrets.token_hex(4)}.tmp")
     try:
-        os.close(os.open(temporary, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666))
+        create_new(temporary)
         write(temporary)
         with open(temporary, "rb+") as file:
             os.fsync(file.fileno())
@@ -133,7 +139,7 @@ def unique_path(path: Path) -> Path:
     for attempt in range(1000):
         candidate = path if attempt == 0 else path.with_name(f"{path.stem}-{attempt + 1}{path.suffix}")
         try:
-            os.close(os.open(candidate, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o644))
+            create_new(candidate, 0o644)
             return candidate
         except FileExistsError:
             continue

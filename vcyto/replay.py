@@ -45,7 +45,7 @@ def read_recording(path: Path, protobuf_topics=(MEMBRANES,)):
         try:
             for record in StreamReader(handle, skip_magic=False).records:
                 if isinstance(record, Metadata) and record.name == "run":
-                    metadata = {**dict(record.metadata), **metadata}
+                    metadata.update(record.metadata)
                 elif isinstance(record, Metadata) and record.name == "run_end":      # how the run ended
                     metadata["_run_end"] = dict(record.metadata)
                 elif isinstance(record, Channel):

@@ -112,7 +112,7 @@ def _new_file(text: str, option: str, error) -> Path:
     if path.suffix != ".rrd":
         raise error(f"{option}: {text} should end in .rrd (a Rerun recording)")
     try:                                # can it be created? (a read-only directory, a full disk; as root too)
-        os.close(os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666))
+        outputs.create_new(path)
         path.unlink()
     except FileExistsError:
         raise error(f"{option}: {text} already exists; vcyto never overwrites a file: choose another name") from None

@@ -239,3 +239,66 @@ def linearised_convection(element_dofs, inverse_jacobians, determinants, phi, dp
                     else:
                         xx[position] += advection
                         yy[position] += advection
+
+
+# ---------------------------------------------------------------------- the split solve's vector work
+# (sim.splitsolve) Each runs on one thread without the GIL, so the two halves of a solve work at once. Every
+# sum runs in index order from zero in the vectors' own precision, as scipy's CSR product does: the same bits.
+
+@njit(cache=True, nogil=True)
+def gather_residual(rhs, rows, data, indices, indptr, x, out):
+    """out[k] = rhs[rows[k]] - (A x)_k, A's rows k given in CSR (none given: out[k] = rhs[rows[k]]); rounded to
+    ``out``'s precision."""
+    if indptr.shape[0] != rows.shape[0] + 1:
+        for k in range(rows.shape[0]):
+            out[k] = rhs[np.uint64(rows[k])]
+        return
+    for k in range(rows.shape[0]):
+        total = 0.0
+        for jj in range(np.uint64(indptr[k]), np.uint64(indptr[k + 1])):
+            total += data[jj] * x[np.uint64(indices[jj])]
+        out[k] = rhs[np.uint64(rows[k])] - total
+
+
+@njit(cache=True, nogil=True)
+def transposed_products(y, dinv, z, data, indices, indptr, g, zero):
+    """z = dinv * y (when ``dinv`` has entries) and g = H^T y, H^T given in CSR (``zero``: the sums' type)."""
+    if dinv.shape[0] == y.shape[0]:
+        for k in range(y.shape[0]):
+            z[k] = dinv[k] * y[k]
+    for r in range(g.shape[0]):
+        total = zero
+        for jj in range(np.uint64(indptr[r]), np.uint64(indptr[r + 1])):
+            total += data[jj] * y[np.uint64(indices[jj])]
+        g[r] = total
+
+
+@njit(cache=True, nogil=True)
+def minus_product(z, data, indices, indptr, w, out, zero):
+    """out = z - H w, H given in CSR (``zero``: the sums' type)."""
+    for r in range(z.shape[0]):
+        total = zero
+        for jj in range(np.uint64(indptr[r]), np.uint64(indptr[r + 1])):
+            total += data[jj] * w[np.uint64(indices[jj])]
+        out[r] = z[r] - total
+
+
+@njit(cache=True, nogil=True)
+def scatter_add(solution, rows, x, accumulate):
+    """solution[rows[k]] (+)= x[k] (added with ``accumulate``, else set); the largest |x[k]| and the largest
+    |solution[rows[k]]| after it, NaN for either when a value is not finite."""
+    size = 0.0
+    scale = 0.0
+    finite = True
+    for k in range(rows.shape[0]):
+        row = np.uint64(rows[k])
+        change = np.float64(x[k])
+        value = solution[row] + change if accumulate else change
+        solution[row] = value
+        if not (np.isfinite(change) and np.isfinite(value)):
+            finite = False
+        size = max(size, abs(change))
+        scale = max(scale, abs(value))
+    if not finite:
+        return np.nan, np.nan
+    return size, scale

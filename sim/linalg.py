@@ -206,6 +206,11 @@ class Pardiso:
         out[:] = target
         return out
 
+    def substitute(self, phase: int, source: np.ndarray, target: np.ndarray) -> np.ndarray:
+        """One partial substitution (see ``phase``) from ``source`` into ``target``: the caller's own fixed,
+        aligned buffers of the factor's precision, used as they are (no copies)."""
+        return self._call(phase, source, target)
+
     def same_pattern(self, matrix: sp.spmatrix) -> bool:
         stored = sp.triu(matrix, format="csr") if self.symmetric else matrix
         return (stored.shape == self.shape and stored.nnz == len(self._data)
@@ -284,22 +289,22 @@ class MixedPrecision:
         self.shape, self.symmetric = inner.shape, inner.symmetric
         self.factor_nonzeros = inner.factor_nonzeros
         self.solves = self.corrections = 0        # totals, for the benchmarks
-        self._solve_residual = getattr(inner, "solve_residual", None)     # the split solve's, in parallel
 
     def solve(self, rhs: np.ndarray, guess: np.ndarray | None = None) -> np.ndarray:
-        rhs = np.asarray(rhs, dtype=np.float64)
+        rhs = np.ascontiguousarray(rhs, dtype=np.float64)
         if rhs.ndim != 1:
             return np.column_stack([self.solve(column) for column in rhs.T])
         solution = np.zeros_like(rhs) if guess is None else np.array(guess, dtype=np.float64)
         self.solves += 1
+        refine = getattr(self._inner, "refine", None)       # the split solve's: residual to update, in parallel
         for _ in range(self.MAX_CORRECTIONS):
-            if self._solve_residual is not None:
-                correction = self._solve_residual(rhs, solution)
+            if refine is not None:
+                size, scale = refine(rhs, solution)
             else:
                 correction = self._inner.solve(rhs - self._matrix @ solution)
-            solution += correction
+                solution += correction
+                size, scale = _largest(correction), _largest(solution)
             self.corrections += 1
-            size, scale = _largest(correction), _largest(solution)
             if not (np.isfinite(size) and np.isfinite(scale)):
                 return solution                   # the caller's finiteness check reports it with its cause
             if size <= self.tolerance * scale:

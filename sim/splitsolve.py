@@ -32,6 +32,7 @@ with MKL 2026.2), hence one column at a time.
 from __future__ import annotations
 
 import ctypes
+import math
 import queue
 import threading
 
@@ -39,7 +40,8 @@ import numpy as np
 import scipy.linalg as sla
 import scipy.sparse as sp
 
-from .linalg import Pardiso, SolverError, _mkl_runtime, mkl_version, narrow
+from . import kernels
+from .linalg import Pardiso, SolverError, _aligned_empty, _mkl_runtime, mkl_version, narrow
 from .store import digest, reuse
 
 MIN_UNKNOWNS = 20_000        # below this a plain sequential PARDISO solve is as fast
@@ -80,9 +82,12 @@ class _Half:
         # half the bytes for H's products in single precision
         self.dtype = np.float32 if single else np.float64
         n = block.shape[0]
-        self.y, self.z, self.x = (np.zeros(n, dtype=self.dtype) for _ in range(3))
+        # fixed aligned buffers handed to PARDISO directly (its results can depend on the alignment)
+        self.source, self.y, self.z, self.x = (_aligned_empty(n, dtype=self.dtype) for _ in range(4))
+        self.zero = self.dtype(0)
         self.h = self.h_t = None
-        self.w = None                  # the separator's solution in the factor's precision
+        self.w = self.g = None         # the separator's solution and H^T y, in the factor's precision
+        self.rows = None               # (this half's unknowns, A's rows of them in CSR): set by SplitPardiso
         self.dinv = self._diagonal(n)
 
     def _diagonal(self, n: int) -> np.ndarray | None:
@@ -125,17 +130,36 @@ class _Half:
     def use(self, h: sp.csr_matrix):
         h = h.astype(self.dtype)
         self.h, self.h_t = h, h.T.tocsr()
-        self.w = np.zeros(h.shape[1], dtype=self.dtype)
+        self.w, self.g = np.zeros(h.shape[1], dtype=self.dtype), np.zeros(h.shape[1], dtype=self.dtype)
 
-    def forward(self, rhs: np.ndarray) -> np.ndarray:
-        self.factor.phase(331, rhs, self.y)
-        self._solve_diagonal(self.y, self.z)
-        return self.h_t @ self.y
+    def forward(self, rhs: np.ndarray, x: np.ndarray | None) -> np.ndarray:
+        """y = F (rhs - A x) on this half's rows (rhs alone without x), z = D^{-1} y; returns H^T y (a buffer
+        the next call overwrites)."""
+        unknowns, rows = self.rows
+        if x is None:
+            kernels.gather_residual(rhs, unknowns, _NONE, _NO_INDICES, _NO_INDICES, rhs, self.source)
+        else:
+            kernels.gather_residual(rhs, unknowns, rows.data, rows.indices, rows.indptr, x, self.source)
+        self.factor.substitute(331, self.source, self.y)
+        if self.dinv is None:
+            self.factor.substitute(332, self.y, self.z)
+        h_t = self.h_t
+        kernels.transposed_products(self.y, _NONE if self.dinv is None else self.dinv, self.z,
+                                    h_t.data, h_t.indices, h_t.indptr, self.g, self.zero)
+        return self.g
 
-    def backward(self, separator_solution: np.ndarray) -> np.ndarray:
+    def backward(self, separator_solution: np.ndarray, solution: np.ndarray, accumulate: bool):
+        """This half's unknowns of the solve, written into (``accumulate``: added to) ``solution``; the largest
+        |change| and |solution| there (``kernels.scatter_add``)."""
         narrow(self.w, separator_solution)
-        w = self.z - self.h @ self.w
-        return self.factor.phase(333, w, self.x)
+        h = self.h
+        kernels.minus_product(self.z, h.data, h.indices, h.indptr, self.w, self.source, self.zero)
+        self.factor.substitute(333, self.source, self.x)
+        return kernels.scatter_add(solution, self.rows[0], self.x, accumulate)
+
+
+_NONE = np.zeros(0)
+_NO_INDICES = np.zeros(1, dtype=np.int32)
 
 
 class _Worker(threading.Thread):
@@ -179,6 +203,8 @@ class SplitPardiso:
         self._rows = [matrix[p] for p in self.parts]      # for residuals computed where they are used
         couplings = [matrix[p][:, separator].tocsc() for p in (left, right)]
         self.halves = self._both(lambda: _Half(blocks[0], single), lambda: _Half(blocks[1], single))
+        for half, unknowns, rows in zip(self.halves, self.parts, self._rows):
+            half.rows = (unknowns, rows)
         self.factor_nonzeros = sum(h.factor.factor_nonzeros for h in self.halves)
         self.separator_size = len(separator)
         self._schur = None
@@ -231,33 +257,44 @@ class SplitPardiso:
             library.MKL_Set_Num_Threads_Local(ctypes.c_int(previous))
 
     def solve(self, rhs: np.ndarray, guess: np.ndarray | None = None) -> np.ndarray:
-        rhs = np.asarray(rhs, dtype=np.float64)
+        rhs = np.ascontiguousarray(rhs, dtype=np.float64)
         if rhs.ndim != 1:
             return np.column_stack([self.solve(column) for column in rhs.T])
-        return self._solve(rhs)
+        solution = np.empty(self.shape[0])
+        self._solve(rhs, None, solution, accumulate=False)
+        return solution
 
     def solve_residual(self, rhs: np.ndarray, x: np.ndarray) -> np.ndarray:
         """The solve of rhs - A x, each half's residual computed on its own thread before its forward
-        substitution (``sim.linalg.MixedPrecision``'s corrections)."""
-        return self._solve(np.asarray(rhs, dtype=np.float64), x)
+        substitution."""
+        correction = np.empty(self.shape[0])
+        self._solve(np.ascontiguousarray(rhs, dtype=np.float64), np.ascontiguousarray(x, dtype=np.float64),
+                    correction, accumulate=False)
+        return correction
 
-    def _solve(self, rhs: np.ndarray, x: np.ndarray | None = None) -> np.ndarray:
+    def refine(self, rhs: np.ndarray, solution: np.ndarray) -> tuple[float, float]:
+        """One correction of ``sim.linalg.MixedPrecision`` in place: solution += S (rhs - A solution), each half
+        on its own thread from its residual to its share of the update. Returns the largest |correction| and
+        the largest |solution| after it (NaN when a value is not finite)."""
+        return self._solve(rhs, solution, solution, accumulate=True)
+
+    def _solve(self, rhs: np.ndarray, x: np.ndarray | None, out: np.ndarray, accumulate: bool):
+        """The solve of rhs (minus A x) written into (``accumulate``: added to) ``out``: the module docstring's
+        steps, every vector operation in ``sim.kernels`` on the thread of its half."""
         if self._schur is None:
             self._couple()
-        left, right, separator = self.parts
+        separator = self.parts[2]
         first, second = self.halves
-        rows = self._rows
-
-        def part(i, indices):              # rhs (minus A x) on these rows
-            return rhs[indices] if x is None else rhs[indices] - rows[i] @ x
-        g_first, g_second = self._both(lambda: first.forward(part(0, left)), lambda: second.forward(part(1, right)))
-        separator_rhs = part(2, separator) - g_first - g_second
+        g_first, g_second = self._both(lambda: first.forward(rhs, x), lambda: second.forward(rhs, x))
+        separator_rhs = (rhs[separator] if x is None else rhs[separator] - self._rows[2] @ x) - g_first - g_second
         separator_solution = self._schur @ separator_rhs
-        x_first, x_second = self._both(lambda: first.backward(separator_solution),
-                                       lambda: second.backward(separator_solution))
-        solution = np.empty(self.shape[0])
-        solution[left], solution[right], solution[separator] = x_first, x_second, separator_solution
-        return solution
+        extremes = self._both(lambda: first.backward(separator_solution, out, accumulate),
+                              lambda: second.backward(separator_solution, out, accumulate))
+        extremes += (kernels.scatter_add(out, separator, separator_solution, accumulate),)
+        sizes, scales = zip(*extremes)
+        if any(math.isnan(value) for value in sizes + scales):
+            return math.nan, math.nan
+        return max(sizes), max(scales)
 
     def release(self):
         if self._worker is not None:

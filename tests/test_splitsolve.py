@@ -39,6 +39,49 @@ def test_split_solve_equals_the_sequential_solve_to_round_off(fluid):
     assert np.array_equal(split.solve(rhs), solution)             # same input, same bits
 
 
+def test_refinement_in_place_equals_the_correction_added(fluid):
+    """``refine`` (residual to update on each half's thread, ``sim.kernels``) gives the bits of the correction
+    ``solve_residual`` returns added to the solution, and reports its largest |correction| and |solution|."""
+    from sim.splitsolve import SplitPardiso
+    matrix = fluid.constant_matrix()
+    rng = np.random.default_rng(3)
+    rhs, guess = rng.standard_normal((2, matrix.shape[0]))
+    for single in (False, True):
+        split = SplitPardiso(matrix, fluid.free_x, single=single)
+        expected = guess + split.solve_residual(rhs, guess)
+        solution = guess.copy()
+        size, scale = split.refine(rhs, solution)
+        assert np.array_equal(solution, expected)
+        assert size == np.abs(expected - guess).max() and scale == np.abs(expected).max()
+        solution[0] = np.inf                          # a blow-up reaches the caller's finiteness check as NaN
+        assert all(np.isnan(split.refine(rhs, solution)))
+
+
+def test_split_solve_vector_kernels_give_scipys_bits():
+    """The fused kernels sum in scipy's order: a residual, H^T y and z - H w bit for bit equal to scipy's."""
+    import scipy.sparse as sp
+
+    from sim import kernels
+    rng = np.random.default_rng(4)
+    a = sp.random(300, 400, density=0.05, format="csr", random_state=5)
+    rows = rng.permutation(500)[:300]
+    rhs, x = rng.standard_normal(500), rng.standard_normal(400)
+    out = np.empty(300)
+    kernels.gather_residual(rhs, rows, a.data, a.indices, a.indptr, x, out)
+    assert np.array_equal(out, rhs[rows] - a @ x)
+    h = sp.random(400, 30, density=0.2, format="csr", random_state=6, dtype=np.float32)
+    y, z = rng.standard_normal((2, 400)).astype(np.float32)
+    dinv = rng.uniform(1, 2, 400).astype(np.float32)
+    z_out, g = np.empty(400, np.float32), np.empty(30, np.float32)
+    h_t = h.T.tocsr()
+    kernels.transposed_products(y, dinv, z_out, h_t.data, h_t.indices, h_t.indptr, g, np.float32(0))
+    assert np.array_equal(g, h_t @ y) and np.array_equal(z_out, dinv * y)
+    w = rng.standard_normal(30).astype(np.float32)
+    minus = np.empty(400, np.float32)
+    kernels.minus_product(z, h.data, h.indices, h.indptr, w, minus, np.float32(0))
+    assert np.array_equal(minus, z - h @ w)
+
+
 SCRIPT = """
 import hashlib, numpy as np
 from sim.fluid import NavierStokes

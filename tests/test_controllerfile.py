@@ -44,3 +44,29 @@ def test_stream_runs_with_the_file_calibrate_wrote(tmp_path):
                            "--json", "--quiet"], capture_output=True, text=True, timeout=600)
     assert done.returncode == 0, done.stderr
     assert math.isclose(json.loads(done.stdout)["controller"]["lead_ms"], 0.28, rel_tol=1e-9)
+
+
+def test_an_interrupted_calibration_reports_what_it_measured_and_saves_nothing(monkeypatch, tmp_path, capsys):
+    """Ctrl-C in the pulse search: the delay and the pulses tried so far are printed, marked PARTIAL; exit 130;
+    no controller file (it needs every measurement)."""
+    from vcyto import calibrate
+    from vcyto.cli import main
+
+    def fake_search(plant, scenario, detector, delay, grid, required, progress=None, tried=None):
+        tried.append(calibrate.PulseBand(0.02e-3, None))
+        tried.append(calibrate.PulseBand(0.04e-3, (0.0, 10e-6)))
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(calibrate, "make_calibration_plant", lambda scenario, model: type(
+        "Plant", (), {"control_period": 10e-6, "reset": lambda self, *a, **k: None})())
+    monkeypatch.setattr(calibrate, "measure_delay", lambda plant, scenario, detector: calibrate.Delay(
+        {"I": 150e-6, "II": 151e-6}, {"I": 2e-6, "II": 3e-6}, {}))
+    monkeypatch.setattr(calibrate, "shortest_pulse", fake_search)
+    assert main(["calibrate", "--model", "rom", "--quiet", "--output", str(tmp_path)]) == 130
+    report = capsys.readouterr().out.splitlines()
+    assert report[0] == "detector to SAW window: class I 150.00 um, class II 151.00 um; timing error class I 2.0 us, " \
+                        "class II 3.0 us"
+    assert report[1:3] == ["pulse 0.020 ms: good leads none", "pulse 0.040 ms: good leads " +
+                           calibrate._band_text((0.0, 10e-6))]
+    assert report[-1].startswith("PARTIAL: interrupted after 0 calibration cells; nothing saved")
+    assert list(tmp_path.iterdir()) == []

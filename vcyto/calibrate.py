@@ -134,13 +134,15 @@ class Grid:
     resolution: float = 2.5e-6          # the envelope's edges are bisected to this
 
 
-def shortest_pulse(plant, scenario, detector, delay: Delay, grid: Grid, required: float, progress=None):
+def shortest_pulse(plant, scenario, detector, delay: Delay, grid: Grid, required: float, progress=None,
+                   tried: list | None = None):
     """The shortest pulse of ``grid.pulses`` whose band of good leads is at least ``required`` wide, and the
-    bands of every pulse tried (ascending); CalibrationError if none is."""
+    bands of every pulse tried (ascending; also appended to ``tried`` as they finish); CalibrationError if none
+    is."""
     targets = [c.name for c in scenario.cell_types if c.target]
     if not targets:
         raise CalibrationError("the scenario has no target cell type: mark one with target = true in [[cell_types]]")
-    tried = []
+    tried = [] if tried is None else tried
     for pulse_length in grid.pulses:
         leads = np.arange(-0.2e-3, pulse_length + 0.2e-3 + 1e-12, grid.lead_step)
         good = [lead for lead in leads if all(_sorted(plant, name, delay, pulse_length, lead, detector)
@@ -273,14 +275,39 @@ def calibrate(plant, scenario: Scenario, detector: DetectorSettings = DetectorSe
               pulse: tuple[float, float] | None = None, base: ControllerSettings = ControllerSettings(),
               progress=None) -> Calibration:
     """Measure the sort delay, the shortest reliable pulse (unless ``pulse`` = (length, lead) is given) and the
-    deflection envelope of every type on ``plant``; the controller settings (mode etc. from ``base``) they imply."""
+    deflection envelope of every type on ``plant``; the controller settings (mode etc. from ``base``) they imply.
+    An interrupt raises ``CalibrationInterrupted`` with what was measured before it."""
     plant = _Counted(plant)
+    finished, bands = [], []
+    try:
+        return _calibrate(plant, scenario, detector, grid, pulse, base, progress, finished, bands)
+    except KeyboardInterrupt:
+        lines = finished[:1] + [f"pulse {band.pulse * 1e3:.3f} ms: good leads {_band_text(band.band)}"
+                                for band in bands] + finished[1:]
+        raise CalibrationInterrupted(lines + [
+            f"PARTIAL: interrupted after {plant.resets} calibration cells; nothing saved (a controller file needs "
+            "every measurement)"]) from None
+
+
+class CalibrationInterrupted(KeyboardInterrupt):
+    """A calibration stopped by Ctrl-C or SIGTERM; ``lines``: what it had measured (a partial report)."""
+
+    def __init__(self, lines: list[str]):
+        super().__init__()
+        self.lines = lines
+
+
+def _calibrate(plant, scenario, detector, grid, pulse, base, progress, finished: list, tried: list) -> Calibration:
     delay = measure_delay(plant, scenario, detector)
+    finished.append("detector to SAW window: " + ", ".join(f"class {label} {distance * 1e6:.2f} um"
+                                                          for label, distance in delay.distance.items())
+                    + "; timing error " + ", ".join(f"class {label} {error * 1e6:.1f} us"
+                                                    for label, error in delay.timing_error.items()))
     period = plant.control_period
     timing_error = max(delay.timing_error.values()) + period      # pulse edges fall on the control period's grid
     if pulse is None:
         chosen, bands = shortest_pulse(plant, scenario, detector, delay, grid,
-                                       2 * timing_error + grid.lead_step, progress)
+                                       2 * timing_error + grid.lead_step, progress, tried)
         pulse_length, lead = chosen.pulse, 0.5 * (chosen.band[0] + chosen.band[1])
     else:
         (pulse_length, lead), bands = pulse, []
@@ -296,6 +323,9 @@ def calibrate(plant, scenario: Scenario, detector: DetectorSettings = DetectorSe
             progress.update(f"envelope of {cell_type.name} under a {pulse_length * 1e3:.3f} ms pulse")
         envelopes[cell_type.name], scans[cell_type.name] = envelope_of(plant, cell_type.name, delay, pulse_length,
                                                                        lead, detector, grid)
+        envelope = envelopes[cell_type.name]
+        finished.append(f"envelope of {cell_type.name} under a {pulse_length * 1e3:.3f} ms pulse: " + (
+            "never deflected" if envelope is None else f"{envelope[0] * 1e3:+.4f} to {envelope[1] * 1e3:+.4f} ms"))
     others = [envelopes[c.name] for c in scenario.cell_types if not c.target and envelopes[c.name]]
     envelope = (min(e[0] for e in others), max(e[1] for e in others)) if others else (0.0, 0.0)
     reference = delay.passages[next(c.name for c in scenario.cell_types if c.target), "off"].velocity

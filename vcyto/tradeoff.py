@@ -192,10 +192,22 @@ def compare(run: dict, reference: dict) -> dict:
 
 
 def tradeoff(scenario: Scenario, ladder=LADDER, scenes=SCENES, progress=None) -> dict:
-    """Every scene on every level; rows compared with the first level (the reference)."""
+    """Every scene on every level; rows compared with the first level (the reference). An interrupt (Ctrl-C,
+    SIGTERM) ends it with the rows finished so far, ``interrupted`` set."""
+    rows = []
+    try:
+        _measure(scenario, ladder, scenes, progress, rows)
+        interrupted = False
+    except KeyboardInterrupt:           # the rows finished so far are still results
+        interrupted = True
+    return {"reference": ladder[0].label, "rows": rows, "interrupted": interrupted,
+            "planned_rows": len(ladder) * len(scenes)}
+
+
+def _measure(scenario, ladder, scenes, progress, rows):
     note = progress.note if progress else (lambda message: None)
     flows = _Flows(scenario)
-    rows, references = [], {}
+    references = {}
     for level in ladder:
         started = time.perf_counter()
         note(f"{level.label}: set-up")
@@ -205,12 +217,11 @@ def tradeoff(scenario: Scenario, ladder=LADDER, scenes=SCENES, progress=None) ->
             note(f"{level.label}: {scene.name}")
             run = run_scene(plant, scene)
             references.setdefault(scene.name, run)
-            row = {"scene": scene.name, "level": level.label, "model": level.model, "mesh_h_um": level.mesh_h / UM,
-                   "dt_us": level.dt * 1e6, "setup_s": setup, "run_s": run["wall_s"],
-                   "outlets": ",".join(c["fate"] for _, c in sorted(run["cells"].items())),
-                   "failure": run["failure"], **compare(run, references[scene.name])}
-            rows.append(row)
-    return {"reference": ladder[0].label, "rows": rows}
+            outlets = ",".join(cell["fate"] for _, cell in sorted(run["cells"].items()))
+            rows.append({"scene": scene.name, "level": level.label, "model": level.model,
+                         "mesh_h_um": level.mesh_h / UM, "dt_us": level.dt * 1e6, "setup_s": setup,
+                         "run_s": run["wall_s"], "outlets": outlets, "failure": run["failure"],
+                         **compare(run, references[scene.name])})
 
 
 COLUMNS = ("scene", "level", "outlets", "outlets_agree", "path_max_um", "path_mean_um", "exit_error_us",
@@ -232,6 +243,9 @@ def table_lines(result: dict) -> list[str]:
         outlets = row["outlets"] + (f" (stopped: {row['failure']})" if row["failure"] else "")
         values = [row["scene"], row["level"], outlets, agree] + [_cell(row[c]) for c in COLUMNS[4:]]
         lines.append("| " + " | ".join(values) + " |")
+    if result.get("interrupted"):
+        lines += ["", f"PARTIAL: interrupted after {len(result['rows'])} of {result['planned_rows']} rows; the rows "
+                      "not listed did not run"]
     return lines
 
 
@@ -240,12 +254,16 @@ def save(result: dict, directory) -> dict:
     from pathlib import Path
 
     from .figures import pyplot, save_figure
+    from .outputs import write_into, write_whole
     directory = Path(directory)
-    (directory / "tradeoff.md").write_text("\n".join(table_lines(result)) + "\n")
-    with open(directory / "tradeoff.csv", "w", newline="") as handle:
-        writer = csv.DictWriter(handle, fieldnames=list(result["rows"][0]))
-        writer.writeheader()
-        writer.writerows(result["rows"])
+
+    def write_csv(temporary):
+        with open(temporary, "w", newline="") as handle:
+            writer = csv.DictWriter(handle, fieldnames=list(result["rows"][0]))
+            writer.writeheader()
+            writer.writerows(result["rows"])
+    write_into(directory / "tradeoff.md", "\n".join(table_lines(result)) + "\n")
+    write_whole(directory / "tradeoff.csv", write_csv)
     plt = pyplot()
     figure, axis = plt.subplots(figsize=(10, 4.8), constrained_layout=True)
     by_level = defaultdict(list)

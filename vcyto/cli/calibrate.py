@@ -12,11 +12,11 @@ import numpy as np
 from controller.sorter import MODES
 from sim import plants
 
-from .. import outputs, units
+from .. import outputs, runfiles, units
 from ..arguments import Number, Quantity
 from ..options import controller_settings, detector_settings, scenario_from, scenario_options
 from ..outputs import strict_json
-from .common import SMALL_FILES_BYTES, UsageError, emit, output_directory, output_options
+from .common import SMALL_FILES_BYTES, UsageError, emit, output_directory, output_options, signals_seen
 
 
 def add_command(commands):
@@ -86,24 +86,35 @@ def command_calibrate(args):
         result = calibrate.calibrate(plant, scenario, detector, grid, pulse, base, progress)
     except calibrate.CalibrationError as error:
         raise UsageError(str(error)) from None
+    except calibrate.CalibrationInterrupted as interrupted:
+        progress.close()
+        emit(args, {"interrupted": True, "measured": interrupted.lines}, interrupted.lines)
+        raise KeyboardInterrupt from None        # nothing is saved; the exit is an interrupt's (130)
     finally:
         progress.close()
     record = dict(result.as_dict(), model=args.model, saw_model=scenario.saw.model,
                   wall_time_s=time.perf_counter() - started, files={})
+    interrupted = False
     if output is not None:
-        run_id = outputs.reserve_run(output, ("toml", "json", "png"), None,
-                                     prefix=f"calibration-{args.model}")
-        stem = output / run_id
-        provenance = {"command": " ".join(sys.argv), "model": args.model, "saw_model": scenario.saw.model,
-                      "mesh_h_um": scenario.numerics.mesh_h * 1e6, "dt_us": scenario.numerics.dt * 1e6,
-                      "date": time.strftime("%Y-%m-%d %H:%M:%S")}
-        paths = {"controller": stem.with_suffix(".toml"), "summary": stem.with_suffix(".json"),
-                 "figure": stem.with_suffix(".png")}
-        outputs.write_into(paths["controller"], controller_toml(result.settings, provenance))
-        calibrate.save_figure(result, paths["figure"])
-        record["files"] = {kind: str(path) for kind, path in paths.items()}
-        outputs.write_into(paths["summary"], strict_json(record) + "\n")
+        # Ctrl-C or SIGTERM while the files are written waits for them: the calibration is finished, and a
+        # controller file without its record (or a record still saying "running") would mislead
+        with runfiles.interrupts_deferred(signals_seen) as saving:
+            run_id = outputs.reserve_run(output, ("toml", "json", "png"), None,
+                                         prefix=f"calibration-{args.model}")
+            stem = output / run_id
+            provenance = {"command": " ".join(sys.argv), "model": args.model, "saw_model": scenario.saw.model,
+                          "mesh_h_um": scenario.numerics.mesh_h * 1e6, "dt_us": scenario.numerics.dt * 1e6,
+                          "date": time.strftime("%Y-%m-%d %H:%M:%S")}
+            paths = {"controller": stem.with_suffix(".toml"), "summary": stem.with_suffix(".json"),
+                     "figure": stem.with_suffix(".png")}
+            outputs.write_into(paths["controller"], controller_toml(result.settings, provenance))
+            calibrate.save_figure(result, paths["figure"])
+            record["files"] = {kind: str(path) for kind, path in paths.items()}
+            outputs.write_into(paths["summary"], strict_json(record) + "\n")
+        interrupted = saving.pending
     emit(args, record, calibrate.report_lines(record))
+    if interrupted:
+        raise KeyboardInterrupt         # the files are whole and listed; the exit is an interrupt's (130)
 
 
 def _calibration_grid(args):

@@ -93,11 +93,12 @@ def emit(args, result: dict, lines: list[str]):
         print("\n".join(lines))
 
 
-def output_directory(path: str | None, option: str = "--output", min_free: float = MIN_FREE_BYTES) -> Path | None:
+def output_directory(path: str | None, option: str = "--output", min_free: float = MIN_FREE_BYTES,
+                     made: list | None = None) -> Path | None:
     """Create (if needed) and check the output directory before any work; a directory that cannot be created or
     written, or with less than ``min_free`` bytes free (recordings need room; tables and figures little), is bad
     input (``UsageError`` naming ``option``), refused before the run, and a directory created here is removed
-    again."""
+    again. ``made`` (a list) receives the directories created here, innermost first (``remove_if_empty``)."""
     if path is None or path == "":
         return None
     directory = Path(path)
@@ -115,10 +116,20 @@ def output_directory(path: str | None, option: str = "--output", min_free: float
             raise UsageError(f"{option}: only {free / 1e6:.0f} MB free in {path}: this command's files need at "
                              f"least {min_free / 1e6:.0f} MB; free some space or choose another {option}")
     except UsageError:
-        for made in created:            # empty: made just now
-            made.rmdir()
+        remove_if_empty(created)        # empty: made just now
         raise
+    if made is not None:
+        made.extend(created)
     return directory
+
+
+def remove_if_empty(directories) -> None:
+    """Remove each of ``directories`` (innermost first) that is empty: what a run that saved nothing created."""
+    for directory in directories:
+        try:
+            directory.rmdir()
+        except OSError:                 # not empty (or gone): keep it and everything outside it
+            return
 
 
 def positive_list(text: str, option: str, example: str, parse) -> list[float]:

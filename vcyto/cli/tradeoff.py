@@ -15,6 +15,7 @@ from .common import (
     output_options,
     plain_number,
     positive_list,
+    remove_if_empty,
 )
 
 
@@ -56,7 +57,8 @@ def command_tradeoff(args):
     from .. import tradeoff
     from ..progress import Progress
     scenario = scenario_from(args)
-    output = output_directory(args.output, min_free=SMALL_FILES_BYTES)
+    made = []
+    output = output_directory(args.output, min_free=SMALL_FILES_BYTES, made=made)
     progress = Progress(quiet=args.quiet or args.json)
     ladder, scenes = tradeoff.FAST_LADDER if args.fast else tradeoff.LADDER, tradeoff.SCENES
     base = next(level for level in ladder if level.model == "auto" and level.window is None)
@@ -77,6 +79,10 @@ def command_tradeoff(args):
     finally:
         progress.close()
     lines = tradeoff.table_lines(result)
+    if result["interrupted"]:           # the finished rows are printed, marked PARTIAL; no file claims a whole table
+        remove_if_empty(made)
+        emit(args, result, lines)
+        raise KeyboardInterrupt         # the exit is an interrupt's (130)
     if output is not None:
         if (output / "tradeoff.md").exists():              # a run never overwrites another's files
             output = outputs.unique_directory(output)

@@ -36,6 +36,7 @@ def test_malformed_toml_names_the_file_and_line(tmp_path):
     result = vcyto("flow", "--scenario", str(scenario))
     assert result.returncode == 2 and "Traceback" not in result.stderr
     assert "broken.toml" in result.stderr and "line 2" in result.stderr
+    assert result.stderr.startswith("vcyto: error: --scenario: ")      # the option, not the API's argument name
 
 
 def test_unwritable_png_is_refused_before_any_work(tmp_path):

@@ -78,16 +78,18 @@ _OVERRIDE_FORM = "an override must have the form dotted.path=value, e.g. numeric
 # --- public interface -------------------------------------------------------------------------
 
 
-def load_scenario(path: str | os.PathLike | None = None, overrides: Sequence[str] = ()) -> Scenario:
+def load_scenario(path: str | os.PathLike | None = None, overrides: Sequence[str] = (),
+                  field: str = "path") -> Scenario:
     """The scenario the TOML file at ``path`` describes (the defaults without one), with ``overrides`` applied.
 
-    Raises ``ScenarioError`` naming the full dotted field for every problem in the file or overrides.
+    Raises ``ScenarioError`` naming the full dotted field for every problem in the file or overrides, and
+    ``field`` (the command line's ``--scenario``) for a file that cannot be read as TOML.
     """
     if isinstance(overrides, str):
         raise TypeError("overrides must be a sequence of 'dotted.path=value' strings, not one string")
     tree = as_dict(Scenario())
     if path is not None:
-        _merge(tree, _read_document(path))
+        _merge(tree, _read_document(path, field))
     for override in overrides:
         try:
             _apply_override(tree, override)
@@ -154,23 +156,23 @@ def check_input_file(path: str | os.PathLike, what: str, field: str = "path", li
         raise ScenarioError(field, f"{what} '{name}' is {status.st_size:,} bytes; a {what} is at most {limit:,} bytes")
 
 
-def _read_document(path: str | os.PathLike) -> dict:
+def _read_document(path: str | os.PathLike, field: str = "path") -> dict:
     """The parsed contents of the TOML scenario file at ``path``."""
     name = os.fspath(path)
-    check_input_file(path, "scenario file")
+    check_input_file(path, "scenario file", field)
     try:
         with open(path, "rb") as file:
             return tomllib.load(file)
     except RecursionError:
-        raise ScenarioError("path", f"scenario file '{name}' nests tables or arrays too deeply") from None
+        raise ScenarioError(field, f"scenario file '{name}' nests tables or arrays too deeply") from None
     except FileNotFoundError:
-        raise ScenarioError("path", f"scenario file '{name}' does not exist; check the path") from None
+        raise ScenarioError(field, f"scenario file '{name}' does not exist; check the path") from None
     except OSError as error:
-        raise ScenarioError("path", f"cannot read scenario file '{name}': {error.strerror}") from None
+        raise ScenarioError(field, f"cannot read scenario file '{name}': {error.strerror}") from None
     except tomllib.TOMLDecodeError as error:
-        raise ScenarioError("path", f"scenario file '{name}' is not valid TOML: {_one_line(error)}") from None
+        raise ScenarioError(field, f"scenario file '{name}' is not valid TOML: {_one_line(error)}") from None
     except UnicodeDecodeError as error:
-        raise ScenarioError("path", f"scenario file '{name}' is not UTF-8 text: {_one_line(error)}") from None
+        raise ScenarioError(field, f"scenario file '{name}' is not UTF-8 text: {_one_line(error)}") from None
 
 
 def _merge(base: dict, update: dict) -> None:

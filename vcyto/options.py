@@ -61,7 +61,7 @@ def scenario_from(args, membrane: str | None = None):
         value = getattr(args, option, None)
         if value is not None:
             overrides.append(f"{field}={value}")
-    scenario = load_scenario(args.scenario, overrides)
+    scenario = load_scenario(args.scenario, overrides, field="--scenario")
     limits.check_mesh(scenario.channel.length, scenario.channel.height, scenario.numerics.mesh_h)
     return scenario
 

@@ -1,4 +1,5 @@
-"""vcyto sweep: spec parsing, one-line errors, local pool == Dask LocalCluster, resume after a kill, failed points."""
+"""vcyto sweep: spec parsing, one-line errors, local pool == Dask LocalCluster, resume after a kill, failed points,
+interrupts (SIGINT/SIGTERM to the main process alone), the record of the runs kept by a re-run."""
 
 import csv
 import json
@@ -6,14 +7,17 @@ import os
 import signal
 import subprocess
 import sys
+import threading
 import time
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
 
 import pytest
 
-from vcyto import sweep
+from vcyto import outputs, runfiles, sweep
 from vcyto.cli import main
 from vcyto.outputs import strict_json
-from vcyto.sweep.run import _chunks
+from vcyto.sweep.run import _chunks, report_lines
 
 # the cheap plant on a coarse mesh (1.5 s to build); a few cells per point so the metrics vary
 BASE = {"model": "streamline", "mesh_h": "5um"}
@@ -291,3 +295,172 @@ def test_the_progress_bar_counts_truncated_points_apart_from_failed_ones():
               "repaired_rows": 0, "stale_rows": 0, "highest": None, "files": {}, "rows": []}
     assert "raise max_time" not in report_lines(counts)[0]
     assert "raise max_time" in report_lines({**counts, "ok": 1, "truncated": 1})[0]
+
+
+# --- the record of the runs: a re-run that computes nothing keeps it ---------------------------------------
+
+
+def run_as_the_command_does(built, output, **options):
+    """``run_sweep`` on a thread, then ``sweep.json`` written as ``vcyto sweep`` writes it."""
+    with ThreadPoolExecutor(1) as pool:
+        result = sweep.run_sweep(built, output, pool, 1, simulator=fixed_result, **options)
+    outputs.write_into(output / sweep.SUMMARY, strict_json(result) + "\n")
+    return result
+
+
+def test_a_rerun_keeps_the_record_of_the_runs_that_computed_the_table(tmp_path):
+    built = sweep.parse_sweep({"base": BASE, "parameters": {"rate": [500, 1000, 2000]},
+                               "sweep": {"metrics": ["yield"]}})
+    first = run_as_the_command_does(built, tmp_path)
+    assert first["ran"] == 3 and not first["already_done"] and len(first["runs"]) == 1
+    assert first["wall_time_s"] == first["run_wall_time_s"] == first["runs"][0]["wall_time_s"] > 0
+
+    again = run_as_the_command_does(built, tmp_path)                   # nothing to do
+    assert again["ran"] == 0 and again["already_done"]
+    assert again["runs"] == json.loads(strict_json(first["runs"]))      # the record of the run that did the work
+    assert again["wall_time_s"] == pytest.approx(first["wall_time_s"])
+    assert "every point was already done: nothing ran" in report_lines(again)[0]
+    assert json.loads((tmp_path / sweep.SUMMARY).read_text())["wall_time_s"] == pytest.approx(first["wall_time_s"])
+
+    table = sweep.ResultTable(tmp_path / sweep.RESULTS, built.columns)   # a point lost: the next run completes it
+    table.rewrite(list(table.load().values())[:2])
+    completed = run_as_the_command_does(built, tmp_path)
+    assert completed["ran"] == 1 and completed["done_before"] == 2 and len(completed["runs"]) == 2
+    assert completed["wall_time_s"] == pytest.approx(first["wall_time_s"] + completed["run_wall_time_s"])
+    assert "over 2 runs in all" in report_lines(completed)[0]
+
+
+def test_a_sweep_json_of_an_older_vcyto_gives_its_one_run(tmp_path):
+    built = sweep.parse_sweep({"base": BASE, "parameters": {"rate": [500, 1000]}, "sweep": {"metrics": ["yield"]}})
+    run_as_the_command_does(built, tmp_path)
+    (tmp_path / sweep.SUMMARY).write_text(json.dumps({"ran": 2, "wall_time_s": 12.5, "executor": "2 local processes"}))
+    again = run_as_the_command_does(built, tmp_path)
+    assert again["runs"] == [{"ran": 2, "wall_time_s": 12.5, "executor": "2 local processes"}]
+    assert again["wall_time_s"] == 12.5 and "computed in 12.5 s over 1 run" in report_lines(again)[0]
+
+
+def test_a_finished_sweep_run_again_keeps_its_timing_in_sweep_json(tmp_path):
+    spec = write_spec(tmp_path / "done.toml", "[base]\nmodel = 'streamline'\nmesh_h = '5um'\ncells = 'RBC,melanoma'\n"
+                                               "[parameters]\nseed = [1, 2]\n[sweep]\nmetrics = ['yield']\n")
+    output = tmp_path / "out"
+    first = vcyto("sweep", spec, "--output", str(output), "--workers", "1")
+    assert first.returncode == 0, first.stderr
+    recorded = json.loads((output / "sweep.json").read_text())
+    assert recorded["ran"] == 2 and recorded["wall_time_s"] > 1            # a pool, a plant, two points
+    again = vcyto("sweep", spec, "--output", str(output), "--workers", "1")
+    assert again.returncode == 0, again.stderr
+    assert "all 2 points are already in the table: nothing to run" in again.stderr
+    assert "every point was already done: nothing ran (computed in" in again.stdout
+    kept = json.loads((output / "sweep.json").read_text())
+    assert kept["ran"] == 0 and kept["already_done"] and kept["run_wall_time_s"] < recorded["wall_time_s"]
+    assert kept["wall_time_s"] == recorded["wall_time_s"] and len(kept["runs"]) == 1
+    assert kept["runs"][0]["executor"] == recorded["executor"] == "1 local process"
+    assert recorded["runs"][0]["executor"] == "1 local process" and kept["executor"] == "1 local process"
+
+
+# --- interrupts: SIGINT/SIGTERM stop the sweep at once, rows whole ---------------------------------------------
+
+
+def slow_after_the_first(release):
+    """A closed loop stand-in: the seed-0 point at once, the others only once ``release`` is set (or 20 s)."""
+    def simulate(scenario, settings):
+        if settings.seed != 0:
+            release.wait(20)
+        return fixed_result(scenario, settings)
+    return simulate
+
+
+def test_an_interrupt_that_reaches_another_thread_stops_the_sweep_within_a_second(tmp_path):
+    """A signal the operating system hands to another thread than the waiting one (the main thread then only
+    runs the handler once it wakes) stopped the sweep when the next chunk finished, not at once."""
+    built = sweep.parse_sweep({"base": BASE, "parameters": {"seed": [0, 1, 2, 3]}, "sweep": {"metrics": ["yield"]}})
+    release, sent = threading.Event(), []
+    table = tmp_path / sweep.RESULTS
+
+    def interrupt_once_a_row_is_in():
+        while not (table.exists() and len(table.read_text().splitlines()) >= 2) and not release.is_set():
+            time.sleep(0.01)
+        sent.append(time.monotonic())
+        signal.pthread_kill(threading.get_ident(), signal.SIGINT)       # to this thread, not the main one
+
+    pool = ThreadPoolExecutor(2)
+    try:
+        threading.Thread(target=interrupt_once_a_row_is_in, daemon=True).start()
+        with runfiles.signals_as_interrupt({}), pytest.raises(KeyboardInterrupt):
+            sweep.run_sweep(built, tmp_path, pool, 2, chunk=1, simulator=slow_after_the_first(release))
+        stopped = time.monotonic()
+    finally:
+        release.set()
+        pool.shutdown(cancel_futures=True)
+    assert sent and stopped - sent[0] < 1.0
+    assert [row["seed"] for row in read_rows(table)] == ["0"]
+
+
+def test_an_interrupt_while_a_chunk_is_appended_waits_until_its_rows_are_in(tmp_path, monkeypatch):
+    """Rows finished are kept whole: an interrupt while a chunk's rows are written takes effect after them."""
+    from vcyto.sweep import table as table_module
+    built = sweep.parse_sweep({"base": BASE, "parameters": {"rate": [500, 1000, 2000]},
+                               "sweep": {"metrics": ["yield", "outlets"]}})
+    cell, calls = table_module._cell, []
+
+    def interrupted_cell(value):
+        calls.append(value)
+        if len(calls) == 2:                         # within the first row's cells
+            os.kill(os.getpid(), signal.SIGINT)
+        return cell(value)
+    monkeypatch.setattr(table_module, "_cell", interrupted_cell)
+    with ThreadPoolExecutor(1) as pool, runfiles.signals_as_interrupt({}), pytest.raises(KeyboardInterrupt):
+        sweep.run_sweep(built, tmp_path, pool, 1, chunk=3, simulator=fixed_result)
+    rows = read_rows(tmp_path / sweep.RESULTS)
+    assert [row["rate"] for row in rows] == ["500", "1000", "2000"]
+    assert all(row["status"] == "ok" and row["outlets"] == "lower=4 upper=2" for row in rows)
+
+
+def alive_in_session(session: int) -> list[str]:
+    """The processes of ``session`` still running (zombies left out): the sweep's workers, if any."""
+    alive = []
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            fields = stat.read_text().rsplit(")", 1)[1].split()
+        except OSError:
+            continue
+        if int(fields[3]) == session and fields[0] != "Z":
+            alive.append(stat.parent.name)
+    return alive
+
+
+INTERRUPTED_SPEC = KILLED_SPEC.replace("stop = 9", "stop = 39")
+
+
+@pytest.mark.parametrize("signum, status", [(signal.SIGINT, 130), (signal.SIGTERM, 143)])
+def test_a_signal_to_the_main_process_alone_stops_the_sweep_at_once_keeping_whole_rows(tmp_path, signum, status):
+    """As a job scheduler or `timeout` sends it: to the sweep's process, not to its workers' group."""
+    spec, output = write_spec(tmp_path / "interrupted.toml", INTERRUPTED_SPEC), tmp_path / "out"
+    table = output / "results.csv"
+    command = [sys.executable, "-m", "vcyto.cli", "sweep", spec, "--output", str(output), "--workers", "2",
+               "--chunk", "1"]
+    process = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                               start_new_session=True)
+    try:
+        deadline = time.monotonic() + 120
+        while time.monotonic() < deadline and (not table.exists() or len(table.read_text().splitlines()) < 2):
+            time.sleep(0.01)
+        sent = time.monotonic()
+        process.send_signal(signum)                  # the main process only
+        _, stderr = process.communicate(timeout=60)
+        took = time.monotonic() - sent
+        assert process.returncode == status, stderr
+        assert took < 5, f"{took:.1f} s from the signal to the exit"
+        gone = time.monotonic() + 3          # workers are joined before the exit, the resource tracker ends after
+        while alive_in_session(process.pid) and time.monotonic() < gone:
+            time.sleep(0.05)
+        assert alive_in_session(process.pid) == [], "workers outlived the sweep"
+    finally:
+        if alive_in_session(process.pid):
+            os.killpg(process.pid, signal.SIGKILL)
+        process.wait()
+    text = table.read_text()
+    rows = read_rows(table)
+    assert text.endswith("\n") and 1 <= len(rows) < 40
+    assert all(row["status"] == "ok" and None not in row.values() and row["vcyto"] for row in rows)
+    assert f"holds {len(rows)} of the 40 points ({len(rows)} finished in this run)" in stderr

@@ -60,7 +60,10 @@ def command_sweep(args):
         raise
     finally:
         progress.close()
-    result["executor"] = where
+    if result["ran"]:                   # this run computed points: its entry in the record names where
+        result["executor"] = result["runs"][-1]["executor"] = where
+    else:                               # nothing ran: the record keeps the executor of the run that computed them
+        result["executor"] = next((run["executor"] for run in reversed(result["runs"]) if "executor" in run), None)
     if result["ok"]:
         sweep.save_plot(output / sweep.FIGURE, spec, result["rows"])
         result["files"]["figure"] = str(output / sweep.FIGURE)

@@ -1,5 +1,6 @@
 """Where a sweep's points run: a local process pool (one thread per process), a Dask ``LocalCluster`` or a Dask
-scheduler at an address; Ctrl-C is left to the parent, which stops the workers."""
+scheduler at an address; Ctrl-C is left to the parent, which stops the workers (an interrupt, SIGTERM included,
+cancels the points not started and terminates the local workers, waiting ``STOP_WAIT_S`` before killing them)."""
 
 from __future__ import annotations
 
@@ -8,6 +9,7 @@ import logging
 import multiprocessing
 import os
 import signal
+import time
 from concurrent.futures import ProcessPoolExecutor
 
 from .model import SweepError, one_line
@@ -15,6 +17,7 @@ from .model import SweepError, one_line
 SCHEDULER_SCHEMES = ("tcp", "tls", "ucx", "ws", "wss")
 CONNECT_TIMEOUT_S = 10
 THREAD_VARIABLES = ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS", "NUMBA_NUM_THREADS")
+STOP_WAIT_S = 2.0               # how long terminated workers get to end before they are killed
 
 
 @contextlib.contextmanager
@@ -73,12 +76,24 @@ def _process_pool(workers: int):
     try:
         yield pool
     except BaseException:
-        pool.shutdown(wait=False)        # pending points fail with BrokenProcessPool once their workers are gone
-        for process in set(multiprocessing.active_children()) - before:
-            process.terminate()
+        pool.shutdown(wait=False, cancel_futures=True)     # nothing more starts
+        _stop(set(multiprocessing.active_children()) - before)
         raise
     else:
         pool.shutdown(wait=True)
+
+
+def _stop(processes):
+    """Terminate ``processes`` (a worker is mid-point: its chunk is lost, the finished ones are in the table), and
+    kill those still there after ``STOP_WAIT_S``: none outlives the sweep."""
+    for process in processes:
+        process.terminate()
+    deadline = time.monotonic() + STOP_WAIT_S
+    for process in processes:
+        process.join(max(0.0, deadline - time.monotonic()))
+        if process.is_alive():
+            process.kill()
+            process.join(STOP_WAIT_S)
 
 
 def check_scheduler(address: str) -> str:

@@ -1,19 +1,31 @@
 """Running a sweep: the points not yet in the table, in chunks sharing a plant, on any concurrent.futures
-executor; rows appended as chunks finish, a progress bar, and the summary."""
+executor; rows appended as chunks finish, a progress bar, and the summary (with the record of the runs that
+computed the table, carried over from the ``sweep.json`` of the earlier runs).
+
+Interrupts: the loop waits for chunks ``POLL_S`` at a time, so a SIGINT or SIGTERM takes effect within that
+even when the operating system hands the signal to another thread than the one waiting (the Python handler
+only runs on the main thread, once it wakes); no chunk is submitted after it, and a chunk's rows are appended
+whole (``runfiles.interrupts_deferred``), then the interrupt goes on. Stopping the workers is the executor's
+(``executors.executor``)."""
 
 from __future__ import annotations
 
+import json
 import math
+import signal
 import time
 from collections import OrderedDict
-from concurrent.futures import as_completed
+from concurrent.futures import FIRST_COMPLETED, wait
+from datetime import datetime, timezone
 from pathlib import Path
 
 from .model import Point, Sweep, float_or_nan, one_line
-from .table import RESULTS, ResultTable
+from .table import RESULTS, SUMMARY, ResultTable
 from .worker import evaluate
 
 FAILURES_SHOWN = 5
+POLL_S = 0.25                   # the longest the loop waits for a chunk before it looks at signals again
+CHUNKS_PER_SLOT = 2             # chunks submitted ahead per worker slot: one running, one queued
 
 
 def run_sweep(sweep: Sweep, output: Path, executor, slots: int = 1, progress=None, retry_failed: bool = False,
@@ -23,7 +35,8 @@ def run_sweep(sweep: Sweep, output: Path, executor, slots: int = 1, progress=Non
     share per worker. ``simulator(scenario, settings) -> run_stream result`` replaces the closed loop (tests).
     A row counts for a point when its id matches: same inputs and same code (vcyto version, schema); with
     ``keep_old_rows`` an ok row of the same inputs computed by other code counts too (the summary says how many)."""
-    started = time.perf_counter()
+    started, began = time.perf_counter(), datetime.now(timezone.utc).isoformat(timespec="seconds")
+    earlier = _earlier_runs(output / SUMMARY)
     table = ResultTable(output / RESULTS, sweep.columns)
     previous = table.load()
     if retry_failed and any(row["status"] != "ok" for row in previous.values()):
@@ -34,25 +47,86 @@ def run_sweep(sweep: Sweep, output: Path, executor, slots: int = 1, progress=Non
     rows.update(kept)
     todo = [point for point in sweep.points if point.id not in rows]
     tracker = _Tracker(len(sweep.points), len(sweep.points) - len(todo), progress)
-    futures = {executor.submit(evaluate, [(p.scenario, p.settings) for p in chunk_points], sweep.metrics, simulator):
-               chunk_points for chunk_points in _chunks(todo, slots, chunk)}
-    try:                                 # on Ctrl-C the executor's owner (``executor``) stops the workers
-        for future in as_completed(futures):
-            outcomes = zip(futures[future], _outcomes(future, futures))
-            finished = [_row(point, outcome, sweep.columns) for point, outcome in outcomes]
-            table.append(finished)
-            rows.update((row["point"], row) for row in finished)
-            tracker.finished(finished)
+    try:                                 # on an interrupt the executor's owner (``executor``) stops the workers
+        _run_chunks(executor, _chunks(todo, slots, chunk), max(1, slots) * CHUNKS_PER_SLOT, sweep, simulator,
+                    table, rows, tracker)
+    except KeyboardInterrupt:
+        tracker.close()
+        tracker.interrupted(output / RESULTS)
+        raise
     finally:
         tracker.close()
     order = {point.id: index for index, point in enumerate(sweep.points)}
     table.rewrite(sorted((row for key, row in rows.items() if key not in kept),
                          key=lambda row: order.get(row["point"], len(order))))
-    summary = _summary(sweep, output, {key: row for key, row in rows.items()}, len(todo), table.repaired,
-                       time.perf_counter() - started)
+    wall = time.perf_counter() - started
+    runs = earlier if len(todo) < len(sweep.points) else []    # rows from before: their runs count too
+    if todo:
+        runs = runs + [{"started": began, "ran": len(todo), "wall_time_s": wall, "workers": slots}]
+    summary = _summary(sweep, output, {key: row for key, row in rows.items()}, len(todo), table.repaired, wall,
+                       runs)
     summary["kept_old_rows"] = len(kept)
     summary["stale_rows"] -= len(kept)
     return summary
+
+
+def _run_chunks(executor, chunks: list[list[Point]], ahead: int, sweep: Sweep, simulator, table: ResultTable,
+                rows: dict, tracker: _Tracker):
+    """Run ``chunks`` on ``executor``, at most ``ahead`` submitted at a time, appending each chunk's rows as it
+    finishes. Waits ``POLL_S`` at a time: an interrupt stops the loop within that, and nothing more is
+    submitted."""
+    waiting = iter(chunks)
+    running: dict = {}
+    while True:
+        while len(running) < ahead and (piece := next(waiting, None)) is not None:
+            jobs = [(point.scenario, point.settings) for point in piece]
+            running[executor.submit(evaluate, jobs, sweep.metrics, simulator)] = piece
+        if not running:
+            return
+        finished_futures, _ = wait(running, timeout=POLL_S, return_when=FIRST_COMPLETED)
+        for future in finished_futures:
+            piece = running.pop(future)
+            outcomes = zip(piece, _outcomes(future, len(piece)))
+            _append_whole(table, [_row(point, outcome, sweep.columns) for point, outcome in outcomes], rows,
+                          tracker)
+
+
+def _append_whole(table: ResultTable, finished: list[dict], rows: dict, tracker: _Tracker):
+    """Append ``finished`` (a chunk's rows) to the table whole: a SIGINT or SIGTERM meanwhile waits until they
+    are written, then is raised again for the handler outside (the command line's: exit 130 or 143)."""
+    from .. import runfiles
+    seen: dict = {}
+    with runfiles.interrupts_deferred(seen) as appending:
+        table.append(finished)
+        rows.update((row["point"], row) for row in finished)
+        tracker.finished(finished)
+    if appending.pending:
+        signal.raise_signal(signal.Signals[seen["last"]])
+
+
+def _earlier_runs(path: Path) -> list[dict]:
+    """The runs recorded in the ``sweep.json`` at ``path`` (the earlier runs into the same directory): its
+    ``runs`` list, or, from a vcyto that wrote none, the one run it describes; [] without a readable one."""
+    try:
+        record = json.loads(path.read_text())
+    except (OSError, ValueError):
+        return []
+    if not isinstance(record, dict):
+        return []
+    runs = record.get("runs")
+    if isinstance(runs, list):
+        runs = [dict(run) for run in runs if isinstance(run, dict)]
+    elif isinstance(record.get("ran"), int) and record["ran"] > 0 and _seconds(record.get("wall_time_s")):
+        runs = [{"ran": record["ran"], "wall_time_s": record["wall_time_s"]}]
+    else:
+        return []
+    if runs and isinstance(record.get("ran"), int) and record["ran"] > 0 and isinstance(record.get("executor"), str):
+        runs[-1].setdefault("executor", record["executor"])    # the run that wrote it computed the last entry
+    return [run for run in runs if _seconds(run.get("wall_time_s"))]
+
+
+def _seconds(value) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value) and value >= 0
 
 
 def _old_rows(sweep: Sweep, previous: dict) -> dict:
@@ -76,12 +150,12 @@ def _chunks(points, slots: int, chunk: int) -> list[list[Point]]:
     return pieces
 
 
-def _outcomes(future, futures) -> list[dict]:
+def _outcomes(future, points: int) -> list[dict]:
     try:
         return future.result()
     except Exception as error:  # noqa: BLE001 - the worker died (out of memory, killed): the chunk failed
         message = one_line(f"the worker running this point died: {type(error).__name__}: {error}")
-        return [{"status": "failed", "error": message}] * len(futures[future])
+        return [{"status": "failed", "error": message}] * points
 
 
 def _row(point: Point, outcome: dict, columns: list[str]) -> dict:
@@ -98,8 +172,10 @@ class _Tracker:
 
     def __init__(self, total: int, done: int, progress):
         self.total, self.done, self.failed, self.truncated, self.progress = total, done, 0, 0, progress
-        self.started, self.initial = time.perf_counter(), done
-        if progress and done:
+        self.started, self.initial, self.closed = time.perf_counter(), done, False
+        if progress and done == total:
+            progress.note(f"all {total} points are already in the table: nothing to run")
+        elif progress and done:
             progress.note(f"{done} of {total} points already in the table; running the other {total - done}")
 
     def finished(self, rows):
@@ -127,13 +203,22 @@ class _Tracker:
                 f"{truncated}{elapsed:.0f} s" + (f", ~{left:.0f} s left" if math.isfinite(left) else ""))
 
     def close(self):
-        if self.progress:
+        if self.progress and not self.closed:
             self.progress.interval = 0.0
             self.progress.update(self.bar())
             self.progress.close()
+        self.closed = True
+
+    def interrupted(self, table: Path):
+        """Say what an interrupted run keeps: every row appended before the interrupt, each whole."""
+        if self.progress:
+            self.progress.note(f"interrupted: {table} holds {self.done} of the {self.total} points "
+                               f"({self.done - self.initial} finished in this run)")
 
 
-def _summary(sweep: Sweep, output: Path, rows: dict, ran: int, repaired: int, wall: float) -> dict:
+def _summary(sweep: Sweep, output: Path, rows: dict, ran: int, repaired: int, wall: float, runs: list) -> dict:
+    """The JSON-ready summary. ``wall_time_s`` is the wall time of the recorded ``runs`` that computed the table
+    (this one included if it computed a point; None if none is recorded); ``run_wall_time_s`` this run's."""
     current = [{**rows[point.id], **dict(point.values)} for point in sweep.points if point.id in rows]
     ok = [row for row in current if row["status"] == "ok"]
     scored = [row for row in ok if math.isfinite(float_or_nan(row.get(sweep.plot)))]
@@ -143,16 +228,25 @@ def _summary(sweep: Sweep, output: Path, rows: dict, ran: int, repaired: int, wa
             "ok": len(ok), "failed": sum(row["status"] == "failed" for row in current),
             "truncated": sum(row["status"] == "truncated" for row in current), "ran": ran,
             "done_before": len(sweep.points) - ran,
-            "repaired_rows": repaired, "stale_rows": len(rows) - len(current), "wall_time_s": wall,
-            "highest": best,
+            "already_done": ran == 0, "repaired_rows": repaired, "stale_rows": len(rows) - len(current),
+            "wall_time_s": sum(run["wall_time_s"] for run in runs) if runs else None, "run_wall_time_s": wall,
+            "runs": runs, "highest": best,
             "files": {"table": str(output / RESULTS)}, "rows": current}
 
 
 def report_lines(result: dict) -> list[str]:
     truncated = f"{result['truncated']} truncated" + (" (not results: raise max_time or drop it)"
                                                       if result["truncated"] else "")
-    lines = [f"{result['points']} points: {result['ok']} ok, {result['failed']} failed, {truncated} "
-             f"({result['ran']} run now, {result['done_before']} done before) in {result['wall_time_s']:.1f} s"]
+    counts = f"{result['points']} points: {result['ok']} ok, {result['failed']} failed, {truncated}"
+    total, runs = result["wall_time_s"], result.get("runs", [])
+    if result["ran"] == 0:
+        record = f" (computed in {total:.1f} s over {_runs(len(runs))})" if total is not None else \
+            " (the runs that computed them left no record)"
+        lines = [f"{counts}; every point was already done: nothing ran{record}"]
+    else:
+        run = result.get("run_wall_time_s", total)
+        earlier = f"; {total:.1f} s over {_runs(len(runs))} in all" if len(runs) > 1 else ""
+        lines = [f"{counts} ({result['ran']} run now, {result['done_before']} done before) in {run:.1f} s{earlier}"]
     if result["repaired_rows"]:
         lines.append(f"  {result['repaired_rows']} torn row(s) of an interrupted run dropped; those points ran again")
     if result.get("kept_old_rows"):
@@ -168,3 +262,7 @@ def report_lines(result: dict) -> list[str]:
         lines.append(f"  {row['status']}: {', '.join(f'{n}={row[n]}' for n in result['parameters'])}: {row['error']}")
     lines += [f"  {kind}: {path}" for kind, path in result["files"].items()]
     return lines
+
+
+def _runs(count: int) -> str:
+    return f"{count} run{'s' if count != 1 else ''}"

@@ -371,17 +371,16 @@ def _distinct_warnings(messages) -> list[str]:
 
 
 def run_cases(base: Scenario | None = None, fast: bool = True, names=None, progress=None) -> dict:
+    from .progress import rows_until_interrupted
     note = progress.note if progress else (lambda message: None)
-    rows = []
-    interrupted = False
-    try:
+
+    def measure(rows):
         for case in CASES:
             if names and case.name not in names:
                 continue
             note(f"case {case.name}: {case.title}")
             rows.append(run_case(case, base, fast))
-    except KeyboardInterrupt:           # the cases finished so far are still results
-        interrupted = True
+    rows, interrupted = rows_until_interrupted(measure)
     return {"variant": "fast" if fast else "full", "rows": rows, "passed": all(row["passed"] for row in rows),
             "interrupted": interrupted}
 

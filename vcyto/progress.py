@@ -48,3 +48,14 @@ class Progress:
 
     def __call__(self, message: str):
         self.note(message)
+
+
+def rows_until_interrupted(measure) -> tuple[list, bool]:
+    """``measure(rows)`` appends each row as it finishes; the rows, and whether an interrupt (Ctrl-C, or SIGTERM
+    turned into one) ended it early: the rows finished before it are still results (a table marked PARTIAL)."""
+    rows: list = []
+    try:
+        measure(rows)
+    except KeyboardInterrupt:
+        return rows, True
+    return rows, False

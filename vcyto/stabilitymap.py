@@ -8,16 +8,13 @@ from sim.fluid import NavierStokes
 from sim.scenario import UM, Scenario
 from sim.stability import actuation_for, paper_bound, stable_dt
 
+from .progress import rows_until_interrupted
+
 PAPER_DT = {"RBC": 2.5e-6, "melanoma": 25e-6}
 
 
 def stability_map(scenario: Scenario, cells, mesh_sizes, progress) -> dict:
-    rows = []
-    try:
-        _measure(scenario, cells, mesh_sizes, progress, rows)
-        interrupted = False
-    except KeyboardInterrupt:           # the rows finished so far are still results
-        interrupted = True
+    rows, interrupted = rows_until_interrupted(lambda rows: _measure(scenario, cells, mesh_sizes, progress, rows))
     return {"rows": rows, "interrupted": interrupted,
             "criterion": "health checks pass and membrane energy within 2x of a 2 us reference run over 2 ms (at "
                          "least 20 steps); bisection to 25 %"}

@@ -194,12 +194,8 @@ def compare(run: dict, reference: dict) -> dict:
 def tradeoff(scenario: Scenario, ladder=LADDER, scenes=SCENES, progress=None) -> dict:
     """Every scene on every level; rows compared with the first level (the reference). An interrupt (Ctrl-C,
     SIGTERM) ends it with the rows finished so far, ``interrupted`` set."""
-    rows = []
-    try:
-        _measure(scenario, ladder, scenes, progress, rows)
-        interrupted = False
-    except KeyboardInterrupt:           # the rows finished so far are still results
-        interrupted = True
+    from .progress import rows_until_interrupted
+    rows, interrupted = rows_until_interrupted(lambda rows: _measure(scenario, ladder, scenes, progress, rows))
     return {"reference": ladder[0].label, "rows": rows, "interrupted": interrupted,
             "planned_rows": len(ladder) * len(scenes)}
 

@@ -182,7 +182,18 @@ class _Worker(threading.Thread):
         self.tasks.put(task)
 
     def result(self):
-        ok, value = self.results.get()
+        """The running task's result (its exception raised here). An interrupt while waiting (Ctrl-C) waits on
+        until the task is done, then goes on: a result left in the queue would be taken as the next task's, and
+        the task may still be writing into its caller's arrays."""
+        interrupted = None
+        while True:
+            try:
+                ok, value = self.results.get()
+                break
+            except KeyboardInterrupt as error:
+                interrupted = error
+        if interrupted is not None:
+            raise interrupted
         if not ok:
             raise value
         return value
@@ -263,14 +274,6 @@ class SplitPardiso:
         solution = np.empty(self.shape[0])
         self._solve(rhs, None, solution, accumulate=False)
         return solution
-
-    def solve_residual(self, rhs: np.ndarray, x: np.ndarray) -> np.ndarray:
-        """The solve of rhs - A x, each half's residual computed on its own thread before its forward
-        substitution."""
-        correction = np.empty(self.shape[0])
-        self._solve(np.ascontiguousarray(rhs, dtype=np.float64), np.ascontiguousarray(x, dtype=np.float64),
-                    correction, accumulate=False)
-        return correction
 
     def refine(self, rhs: np.ndarray, solution: np.ndarray) -> tuple[float, float]:
         """One correction of ``sim.linalg.MixedPrecision`` in place: solution += S (rhs - A solution), each half

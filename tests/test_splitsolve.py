@@ -40,21 +40,50 @@ def test_split_solve_equals_the_sequential_solve_to_round_off(fluid):
 
 
 def test_refinement_in_place_equals_the_correction_added(fluid):
-    """``refine`` (residual to update on each half's thread, ``sim.kernels``) gives the bits of the correction
-    ``solve_residual`` returns added to the solution, and reports its largest |correction| and |solution|."""
+    """``refine`` (each half's residual rows, solve and update on its own thread, ``sim.kernels``) gives the
+    bits of the whole residual computed by scipy, solved, and added to the solution; it reports the largest
+    |correction| and |solution|, and NaN for a blow-up."""
     from sim.splitsolve import SplitPardiso
     matrix = fluid.constant_matrix()
     rng = np.random.default_rng(3)
     rhs, guess = rng.standard_normal((2, matrix.shape[0]))
     for single in (False, True):
         split = SplitPardiso(matrix, fluid.free_x, single=single)
-        expected = guess + split.solve_residual(rhs, guess)
+        correction = split.solve(rhs - matrix @ guess)
         solution = guess.copy()
         size, scale = split.refine(rhs, solution)
-        assert np.array_equal(solution, expected)
-        assert size == np.abs(expected - guess).max() and scale == np.abs(expected).max()
+        assert np.array_equal(solution, guess + correction)
+        assert size == np.abs(correction).max() and scale == np.abs(solution).max()
         solution[0] = np.inf                          # a blow-up reaches the caller's finiteness check as NaN
         assert all(np.isnan(split.refine(rhs, solution)))
+
+
+def test_an_interrupt_while_waiting_for_the_other_half_leaves_the_solver_in_step(fluid):
+    """Ctrl-C (a real SIGINT) while the main thread waits for the worker's half: the wait goes on until the
+    half is done, then the interrupt is raised; the next solve is not handed the interrupted one's result."""
+    import signal
+    import threading
+
+    from sim.splitsolve import SplitPardiso
+    split = SplitPardiso(fluid.constant_matrix(), fluid.free_x)
+    rhs = np.random.default_rng(5).standard_normal(split.shape[0])
+    expected = split.solve(rhs)
+    release = threading.Event()
+
+    def slow():
+        release.wait(10)
+        return "stale"
+
+    previous = signal.signal(signal.SIGINT, signal.default_int_handler)
+    try:
+        threading.Timer(0.2, lambda: signal.pthread_kill(threading.main_thread().ident, signal.SIGINT)).start()
+        threading.Timer(1.0, release.set).start()
+        with pytest.raises(KeyboardInterrupt):
+            split._both(lambda: None, slow)           # the main half is done at once: it waits for the worker
+    finally:
+        signal.signal(signal.SIGINT, previous)
+    assert release.is_set()                           # it waited for the worker's task before raising
+    assert np.array_equal(split.solve(rhs), expected)
 
 
 def test_split_solve_vector_kernels_give_scipys_bits():
@@ -66,9 +95,11 @@ def test_split_solve_vector_kernels_give_scipys_bits():
     a = sp.random(300, 400, density=0.05, format="csr", random_state=5)
     rows = rng.permutation(500)[:300]
     rhs, x = rng.standard_normal(500), rng.standard_normal(400)
-    out = np.empty(300)
+    out, out32 = np.empty(300), np.empty(300, np.float32)
     kernels.gather_residual(rhs, rows, a.data, a.indices, a.indptr, x, out)
     assert np.array_equal(out, rhs[rows] - a @ x)
+    kernels.gather_residual(1e30 * rhs, rows, a.data, a.indices, a.indptr, x, out32)   # rounded, inf past float32
+    assert np.array_equal(out32, (1e30 * rhs[rows] - a @ x).astype(np.float32))
     h = sp.random(400, 30, density=0.2, format="csr", random_state=6, dtype=np.float32)
     y, z = rng.standard_normal((2, 400)).astype(np.float32)
     dinv = rng.uniform(1, 2, 400).astype(np.float32)

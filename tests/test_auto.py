@@ -166,9 +166,14 @@ def test_tradeoff_fast_writes_table_csv_plot_and_auto_is_within_tolerance(tmp_pa
     assert auto_wall < reference_wall
 
 
-def test_an_interrupted_tradeoff_prints_its_finished_rows_as_partial_and_saves_nothing(monkeypatch, tmp_path, capsys):
-    """Ctrl-C during the third row: the two rows finished are printed, marked PARTIAL; exit 130; no file claims
-    a whole table, and the output directory this run created is removed again."""
+@pytest.mark.parametrize("signal_name, status", [("SIGINT", 130), ("SIGTERM", 143)])
+def test_an_interrupted_tradeoff_prints_its_finished_rows_as_partial_and_saves_nothing(signal_name, status,
+                                                                                      monkeypatch, tmp_path, capsys):
+    """Ctrl-C or SIGTERM during the third row: the two rows finished are printed, marked PARTIAL; exit 130 or
+    143; no file claims a whole table, and the output directory this run created is removed again."""
+    import os
+    import signal
+
     from vcyto import tradeoff
     from vcyto.cli import main
     calls = []
@@ -176,7 +181,7 @@ def test_an_interrupted_tradeoff_prints_its_finished_rows_as_partial_and_saves_n
     def fake_run(plant, scene):
         calls.append(scene.name)
         if len(calls) == 3:
-            raise KeyboardInterrupt
+            os.kill(os.getpid(), getattr(signal, signal_name))
         return {"wall_s": 0.5, "cells": {0: {"fate": "lower"}}, "failure": None}
 
     monkeypatch.setattr(tradeoff, "make_plant", lambda scenario, level, flows: None)
@@ -185,7 +190,7 @@ def test_an_interrupted_tradeoff_prints_its_finished_rows_as_partial_and_saves_n
         "cells": 1, "outlets_agree": 1, "path_max_um": 0.0, "path_mean_um": 0.0, "exit_error_us": 0.0,
         "area_loss_percent": 0.0})
     output = tmp_path / "new" / "tradeoff"
-    assert main(["tradeoff", "--fast", "--quiet", "--output", str(output)]) == 130
+    assert main(["tradeoff", "--fast", "--quiet", "--output", str(output)]) == status
     table = capsys.readouterr().out
     rows = [line for line in table.splitlines() if line.startswith("| ") and "lower" in line]
     assert len(rows) == 2 and all(name in rows[i] for i, name in enumerate(calls[:2]))

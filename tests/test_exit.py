@@ -177,3 +177,25 @@ def test_a_write_that_fails_half_way_keeps_the_old_contents_and_names_the_file(t
     assert sorted(p.name for p in tmp_path.iterdir()) == ["run.json"]
     write_into(summary, '{"status": "complete"}\n')
     assert json.loads(summary.read_text()) == {"status": "complete"}
+
+
+def test_a_signal_the_process_was_told_to_ignore_stays_ignored():
+    """A script's `vcyto ... &` starts with SIGINT ignored: the command's handlers leave it so (as every program
+    does there) and still turn SIGTERM into an interrupt."""
+    from vcyto import runfiles
+    previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    seen: dict = {}
+    try:
+        with runfiles.signals_as_interrupt(seen):
+            os.kill(os.getpid(), signal.SIGINT)
+            time.sleep(0.05)                          # ignored: nothing is raised
+            assert signal.getsignal(signal.SIGINT) is signal.SIG_IGN
+            try:
+                os.kill(os.getpid(), signal.SIGTERM)
+                time.sleep(1)
+                raise AssertionError("SIGTERM was not turned into an interrupt")
+            except KeyboardInterrupt:
+                assert seen["last"] == "SIGTERM"
+        assert signal.getsignal(signal.SIGINT) is signal.SIG_IGN
+    finally:
+        signal.signal(signal.SIGINT, previous)

@@ -190,6 +190,8 @@ class _SignalHandlers:
         self._previous = {}
         for number in (signal.SIGTERM, signal.SIGINT):
             try:
+                if signal.getsignal(number) is signal.SIG_IGN:     # told to ignore it (a script's `cmd &`): keep
+                    continue
                 self._previous[number] = signal.signal(number, self.handle)
             except ValueError:          # not the main thread
                 pass

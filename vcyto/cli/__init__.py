@@ -19,7 +19,7 @@ from sim.fluid import NumericalBlowUp
 from sim.linalg import SolverError
 from sim.scenario import ScenarioError
 
-from .. import units
+from .. import runfiles, units
 from ..arguments import Parser
 from ..cache import install_default as install_cache
 from ..stream import StreamStopped
@@ -60,7 +60,8 @@ def main(argv=None) -> int:
     args = parser.parse_args(argv)
     try:
         install_cache()
-        status = args.handler(args)
+        with runfiles.signals_as_interrupt(signals_seen):     # SIGTERM ends every command as Ctrl-C does
+            status = args.handler(args)
     except (ScenarioError, UsageError, units.QuantityError) as error:
         return _fail(error, EXIT_INPUT)
     except (NumericalBlowUp, SolverError) as error:

@@ -197,3 +197,28 @@ def test_an_interrupted_tradeoff_prints_its_finished_rows_as_partial_and_saves_n
     planned = len(tradeoff.FAST_LADDER) * len(tradeoff.SCENES)
     assert f"PARTIAL: interrupted after 2 of {planned} rows" in table
     assert not (tmp_path / "new").exists()
+
+
+def test_an_interrupt_while_tradeoff_saves_waits_for_its_files(monkeypatch, tmp_path, capsys):
+    """Ctrl-C after tradeoff.md is written and before the CSV: the save finishes, the files are listed, exit 130."""
+    import os
+    import signal
+
+    from vcyto import tradeoff
+    from vcyto.cli import main
+    monkeypatch.setattr(tradeoff, "make_plant", lambda scenario, level, flows: None)
+    monkeypatch.setattr(tradeoff, "run_scene", lambda plant, scene: {
+        "wall_s": 0.5, "cells": {0: {"fate": "lower"}}, "failure": None})
+    monkeypatch.setattr(tradeoff, "compare", lambda run, reference: {
+        "cells": 1, "outlets_agree": 1, "path_max_um": 0.1, "path_mean_um": 0.1, "exit_error_us": 0.0,
+        "area_loss_percent": 0.0})
+    real_write_whole = __import__("vcyto.outputs", fromlist=["write_whole"]).write_whole
+
+    def interrupted_write(path, write):
+        if path.name == "tradeoff.csv":
+            os.kill(os.getpid(), signal.SIGINT)
+        real_write_whole(path, write)
+    monkeypatch.setattr("vcyto.outputs.write_whole", interrupted_write)
+    assert main(["tradeoff", "--fast", "--quiet", "--output", str(tmp_path)]) == 130
+    assert {p.name for p in tmp_path.iterdir()} == {"tradeoff.md", "tradeoff.csv", "tradeoff.png"}
+    assert f"saved {tmp_path / 'tradeoff.md'}" in capsys.readouterr().out

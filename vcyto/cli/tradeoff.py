@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 
-from .. import outputs, units
+from .. import outputs, runfiles, units
 from ..options import scenario_from, scenario_options
 from .common import (
     SMALL_FILES_BYTES,
@@ -16,6 +16,7 @@ from .common import (
     plain_number,
     positive_list,
     remove_if_empty,
+    signals_seen,
 )
 
 
@@ -83,9 +84,15 @@ def command_tradeoff(args):
         remove_if_empty(made)
         emit(args, result, lines)
         raise KeyboardInterrupt         # the exit is an interrupt's (130)
+    interrupted = False
     if output is not None:
-        if (output / "tradeoff.md").exists():              # a run never overwrites another's files
-            output = outputs.unique_directory(output)
-        result["files"] = tradeoff.save(result, output)
+        # Ctrl-C or SIGTERM while the files are written waits for them: the table is finished
+        with runfiles.interrupts_deferred(signals_seen) as saving:
+            if (output / "tradeoff.md").exists():          # a run never overwrites another's files
+                output = outputs.unique_directory(output)
+            result["files"] = tradeoff.save(result, output)
+        interrupted = saving.pending
         lines.append(f"saved {', '.join(result['files'].values())}")
     emit(args, result, lines)
+    if interrupted:
+        raise KeyboardInterrupt         # the files are whole and listed; the exit is an interrupt's (130)

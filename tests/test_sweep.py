@@ -253,6 +253,49 @@ def test_a_point_that_raises_is_recorded_as_failed_and_the_others_finish(tmp_pat
     assert retried["ran"] == 1 and retried["failed"] == 1 and len(read_rows(tmp_path / "results.csv")) == 4
 
 
+def dies_at_rate_750(scenario, settings):
+    """A worker process that dies (out of memory, killed) at the rate-750 point; the stand-in loop elsewhere."""
+    if settings.arrivals.rate == 750:
+        os._exit(9)
+    return fixed_result(scenario, settings)
+
+
+def test_a_worker_that_dies_fails_the_points_it_takes_down_and_the_sweep_finishes(tmp_path):
+    """The pool is broken once a worker dies: the points it was running and those submitted after it become
+    failed rows ("the worker ... died"), the others are kept, and the sweep ends with its summary."""
+    rates = [250, 500, 750, 1000, 1250, 1500]
+    built = sweep.parse_sweep({"base": BASE, "parameters": {"rate": rates}, "sweep": {"metrics": ["yield"]}})
+    with sweep.executor(None, 1) as (pool, slots, _):
+        result = sweep.run_sweep(built, tmp_path, pool, slots, chunk=1, simulator=dies_at_rate_750)
+    rows = {float(row["rate"]): row for row in read_rows(tmp_path / "results.csv")}
+    assert sorted(rows) == rates and result["ok"] + result["failed"] == len(rates)
+    assert rows[250]["status"] == rows[500]["status"] == "ok" and rows[750]["status"] == "failed"
+    assert all("died" in row["error"] for row in rows.values() if row["status"] == "failed")
+
+
+class Interrupted:
+    """An executor that is interrupted (Ctrl-C) as soon as work is submitted."""
+
+    def submit(self, *call):
+        raise KeyboardInterrupt
+
+
+def test_a_record_whose_rows_are_gone_is_dropped_when_a_run_starts_even_if_it_is_interrupted(tmp_path):
+    """Run A records itself; its results.csv is removed; run B starts from no rows and is interrupted; run C
+    completes: the record holds C alone, never A's time for rows that no longer exist."""
+    built = sweep.parse_sweep({"base": BASE, "parameters": {"rate": [500, 1000]}, "sweep": {"metrics": ["yield"]}})
+    with sweep.executor(None, 1) as (pool, slots, _):
+        first = sweep.run_sweep(built, tmp_path, pool, slots, simulator=fixed_result)
+    (tmp_path / "sweep.json").write_text(strict_json(first))
+    (tmp_path / "results.csv").unlink()
+    with pytest.raises(KeyboardInterrupt):
+        sweep.run_sweep(built, tmp_path, Interrupted(), 1, simulator=fixed_result)
+    assert not (tmp_path / "sweep.json").exists()
+    with sweep.executor(None, 1) as (pool, slots, _):
+        third = sweep.run_sweep(built, tmp_path, pool, slots, simulator=fixed_result)
+    assert len(third["runs"]) == 1 and third["wall_time_s"] == third["run_wall_time_s"]
+
+
 def fixed_result(scenario, settings):
     """A closed loop stand-in: numbers that depend on the rate, an undefined purity (NaN), an outlet count."""
     rate = settings.arrivals.rate

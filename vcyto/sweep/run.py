@@ -15,7 +15,7 @@ import math
 import signal
 import time
 from collections import OrderedDict
-from concurrent.futures import FIRST_COMPLETED, wait
+from concurrent.futures import FIRST_COMPLETED, BrokenExecutor, Future, wait
 from datetime import datetime, timezone
 from pathlib import Path
 
@@ -46,6 +46,11 @@ def run_sweep(sweep: Sweep, output: Path, executor, slots: int = 1, progress=Non
     kept = _old_rows(sweep, previous) if keep_old_rows else {}
     rows.update(kept)
     todo = [point for point in sweep.points if point.id not in rows]
+    if sweep.points and len(todo) == len(sweep.points) and earlier:
+        # none of the recorded runs' rows is here (the table was removed, or another spec used the directory):
+        # their record goes now, so that a later run does not count them even if this one is interrupted
+        (output / SUMMARY).unlink(missing_ok=True)
+        earlier = []
     tracker = _Tracker(len(sweep.points), len(sweep.points) - len(todo), progress)
     try:                                 # on an interrupt the executor's owner (``executor``) stops the workers
         _run_chunks(executor, _chunks(todo, slots, chunk), max(1, slots) * CHUNKS_PER_SLOT, sweep, simulator,
@@ -60,7 +65,7 @@ def run_sweep(sweep: Sweep, output: Path, executor, slots: int = 1, progress=Non
     table.rewrite(sorted((row for key, row in rows.items() if key not in kept),
                          key=lambda row: order.get(row["point"], len(order))))
     wall = time.perf_counter() - started
-    runs = earlier if len(todo) < len(sweep.points) else []    # rows from before: their runs count too
+    runs = earlier                       # rows from before: their runs count too
     if todo:
         runs = runs + [{"started": began, "ran": len(todo), "wall_time_s": wall, "workers": slots}]
     summary = _summary(sweep, output, {key: row for key, row in rows.items()}, len(todo), table.repaired, wall,
@@ -80,7 +85,7 @@ def _run_chunks(executor, chunks: list[list[Point]], ahead: int, sweep: Sweep, s
     while True:
         while len(running) < ahead and (piece := next(waiting, None)) is not None:
             jobs = [(point.scenario, point.settings) for point in piece]
-            running[executor.submit(evaluate, jobs, sweep.metrics, simulator)] = piece
+            running[_submit(executor, evaluate, jobs, sweep.metrics, simulator)] = piece
         if not running:
             return
         finished_futures, _ = wait(running, timeout=POLL_S, return_when=FIRST_COMPLETED)
@@ -89,6 +94,18 @@ def _run_chunks(executor, chunks: list[list[Point]], ahead: int, sweep: Sweep, s
             outcomes = zip(piece, _outcomes(future, len(piece)))
             _append_whole(table, [_row(point, outcome, sweep.columns) for point, outcome in outcomes], rows,
                           tracker)
+
+
+def _submit(executor, *call) -> Future:
+    """``executor.submit(*call)``; an executor that can take no more work (a process pool whose worker died:
+    ``BrokenExecutor``) gives a future holding that error, so the chunk's points become failed rows as any
+    point whose worker died, and the sweep goes on to its summary."""
+    try:
+        return executor.submit(*call)
+    except BrokenExecutor as error:
+        failed: Future = Future()
+        failed.set_exception(error)
+        return failed
 
 
 def _append_whole(table: ResultTable, finished: list[dict], rows: dict, tracker: _Tracker):

@@ -226,6 +226,25 @@ class interrupts_deferred(_SignalHandlers):
         self.pending = True
 
 
+class signals_held(_SignalHandlers):
+    """Within the block SIGINT and SIGTERM wait; one that came is raised again right after it, for the handler
+    outside (the command line's KeyboardInterrupt). For what an exception must not cut: a queue's lock held
+    for ever, a chunk's rows half appended. On a thread other than the main one nothing changes."""
+
+    def __init__(self):
+        super().__init__({})
+        self.caught: list[int] = []
+
+    def handle(self, signum, frame):
+        self.caught.append(signum)
+
+    def __exit__(self, *exc):
+        super().__exit__(*exc)
+        for number in self.caught:
+            signal.raise_signal(number)
+        return False
+
+
 def stopped_summary(settings, reason: str) -> dict:
     """The summary of a run stopped before its loop began (no cell has moved)."""
     return {"status": "interrupted", "reason": reason, "cells": [], "statistics": {"cells": 0},

@@ -17,34 +17,14 @@ message, as with the sinks called inline; what changes is that their cost overla
 
 from __future__ import annotations
 
-import contextlib
 import dataclasses
 import queue
-import signal
 import threading
+
+from .runfiles import signals_held
 
 _STOP = object()
 _END = object()
-_DEFERRED = {signal.SIGINT, signal.SIGTERM}
-
-
-@contextlib.contextmanager
-def _signals_deferred():
-    """Hold SIGINT and SIGTERM (which the CLI turns into KeyboardInterrupt) while the loop's thread is inside the
-    queue: an exception raised between a lock's acquisition and its ``with`` block would leave the queue's lock
-    held for ever and the run hung at its close. A signal that comes meanwhile is raised again right after."""
-    if threading.current_thread() is not threading.main_thread():
-        yield
-        return
-    caught = []
-    previous = {number: signal.signal(number, lambda signum, frame: caught.append(signum)) for number in _DEFERRED}
-    try:
-        yield
-    finally:
-        for number, handler in previous.items():
-            signal.signal(number, handler)
-        for number in caught:
-            signal.raise_signal(number)
 
 
 class BackgroundSinks:
@@ -83,19 +63,19 @@ class BackgroundSinks:
             fields = lambda: payload                       # noqa: E731 - a snapshot of this step's field
         else:
             fields = None
-        with _signals_deferred():
+        with signals_held():
             self._queue.put(dataclasses.replace(record, fields=fields))
 
     def on_end(self, ending: dict):
         """The run's end (status, reason, the sort report's figures), after its last step."""
         self._raise_failure()
-        with _signals_deferred():
+        with signals_held():
             self._queue.put((_END, ending))
 
     def drain(self):
         """Wait until every queued step is written; re-raise a sink's failure."""
         if self._thread.is_alive():
-            with _signals_deferred():
+            with signals_held():
                 self._queue.put(_STOP)
             self._thread.join()
         self._raise_failure()

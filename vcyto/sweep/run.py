@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import json
 import math
-import signal
 import time
 from collections import OrderedDict
 from concurrent.futures import FIRST_COMPLETED, BrokenExecutor, Future, wait
@@ -111,14 +110,11 @@ def _submit(executor, *call) -> Future:
 def _append_whole(table: ResultTable, finished: list[dict], rows: dict, tracker: _Tracker):
     """Append ``finished`` (a chunk's rows) to the table whole: a SIGINT or SIGTERM meanwhile waits until they
     are written, then is raised again for the handler outside (the command line's: exit 130 or 143)."""
-    from .. import runfiles
-    seen: dict = {}
-    with runfiles.interrupts_deferred(seen) as appending:
+    from ..runfiles import signals_held
+    with signals_held():
         table.append(finished)
         rows.update((row["point"], row) for row in finished)
         tracker.finished(finished)
-    if appending.pending:
-        signal.raise_signal(signal.Signals[seen["last"]])
 
 
 def _earlier_runs(path: Path) -> list[dict]:

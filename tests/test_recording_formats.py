@@ -135,6 +135,9 @@ def test_rerun_mcap_importer_draws_membranes_flow_and_log(feib, sort, tmp_path):
                                str(run["dir"] / "run.mcap")], capture_output=True, text=True, timeout=300,
                               env={"RERUN_ANALYTICS": "0", "PATH": ""})
         assert done.returncode == 0, done.stderr
+        verified = subprocess.run([_rerun_cli(), "rrd", "verify", str(converted)], capture_output=True, text=True,
+                                  timeout=300, env={"RERUN_ANALYTICS": "0", "PATH": ""})
+        assert verified.returncode == 0, verified.stderr[-2000:]      # e.g. a pose without its position
         rows, _ = _components(converted)
         assert "Points3D:positions" in rows["/foxglove/membranes"]
         if name == "feib":

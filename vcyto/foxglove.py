@@ -52,6 +52,10 @@ def _binary(values_um):
     return (np.round(np.asarray(values_um, dtype=float) * 1024.0) / 1024.0).astype(np.float32)
 
 
+# a pose with every field set: Rerun's MCAP importer reads an absent position as a column it cannot decode
+_IDENTITY = Pose(position=Vector3(x=0.0, y=0.0, z=0.0), orientation={"w": 1.0})
+
+
 def membranes(unix_ns: int, cells) -> PointCloud:
     """Every cell's membrane points (or its centroid for point-like models) with its key, class id and colour.
 
@@ -70,7 +74,7 @@ def membranes(unix_ns: int, cells) -> PointCloud:
         data["key"] = np.repeat([key for key, _, _, _ in cells], counts)
         data["class"] = np.repeat([class_id for _, class_id, _, _ in cells], counts)
         data = data.tobytes()
-    return PointCloud(timestamp=stamp(unix_ns), frame_id=FRAME, pose=Pose(orientation={"w": 1.0}),
+    return PointCloud(timestamp=stamp(unix_ns), frame_id=FRAME, pose=_IDENTITY,
                       point_stride=POINT.itemsize, fields=POINT_FIELDS, data=data)
 
 
@@ -89,7 +93,7 @@ def _colour(rgb, alpha: float = 1.0) -> Color:
 
 def _line(points_um, rgb, thickness: float = 1.0, loop: bool = False) -> LinePrimitive:
     return LinePrimitive(type=LinePrimitive.LINE_LOOP if loop else LinePrimitive.LINE_STRIP, thickness=thickness,
-                         pose=Pose(orientation={"w": 1.0}), color=_colour(rgb),
+                         pose=_IDENTITY, color=_colour(rgb),
                          points=[Point3(x=float(x), y=float(y), z=0.0) for x, y in points_um])
 
 

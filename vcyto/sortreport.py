@@ -49,12 +49,14 @@ def summarise(sample, truth, events, controller, scenario, settings, partial: bo
     ``partial`` (a run interrupted, failed or cut short): the statistics count only the cells due by the time the
     run reached (admitted or turned away at the inlet by then); the sample's later cells never had their chance,
     and counting them (as "never injected", and in the yield's denominator) would understate every rate. Their
-    number is ``not_yet_due``; the per-cell records still list every admitted cell."""
+    number is ``not_yet_due`` (a cell injected counts, even when the plant injected it a step before its
+    arrival time); the per-cell records still list every admitted cell, those not yet due with outcome
+    ``not_injected``."""
     by_key = {cell.key: cell for cell in truth.cells}
     cells = [_cell_record(key, arrival, name, by_key.get(key), events.get(key), controller, scenario)
              for key, (arrival, name) in enumerate(sample.admitted)]
     rejected = [name for time, name in sample.rejected if not partial or time <= truth.time]
-    due = [c for c in cells if not partial or c["arrival_ms"] <= truth.time * 1e3]
+    due = [c for c in cells if not partial or c["arrival_ms"] <= truth.time * 1e3 or c["outlet"] != "not_injected"]
     stats = statistics_of(due, truth.time, rejected=rejected, scenario=scenario,
                           controller_settings=settings.controller)
     stats["not_yet_due"] = len(cells) - len(due) + len(sample.rejected) - len(rejected)
@@ -276,7 +278,10 @@ def report_lines(result: dict, table_limit: int = 200) -> list[str]:
                      f"{'exit (ms)':>9}  {'area kept (min-max)':<20} spacing / h")
         lines += [_cell_line(cell) for cell in cells]
     else:
-        lines.append(f"({len(cells)} cells: the table is in the JSON summary, --json, and the FCS file)")
+        due = result["statistics"].get("cells", len(cells))
+        counted = f", {due} of them due by the end and counted" if due != len(cells) else ""
+        lines.append(f"({len(cells)} cells admitted{counted}: the table is in the JSON summary, --json, and the FCS "
+                     "file)")
     lines += sort_report_lines(result)
     return lines
 
@@ -305,8 +310,9 @@ def sort_report_lines(result: dict) -> list[str]:
     throughput = stats["throughput_cells_per_s"]
     lines = [
         f"sort report ({result.get('controller_mode', '?')} mode): {stats['offered']} offered, "
-        f"{stats['rejected_at_inlet']} rejected at the inlet, {stats['events']} events, {stats['sorted']} sorted, "
-        f"{stats['aborts']} aborted",
+        f"{stats['rejected_at_inlet']} rejected at the inlet, {stats['events']} events, {stats['sorted']} sort "
+        f"decisions, {stats['aborts']} aborted",
+        _outcome_line(stats),
         f"purity {_percent(stats['purity'])} ({_percent(stats['purity_of_sorting'])} of the correctly detected), "
         f"yield {_percent(stats['yield'])}{expected}, abort rate "
         f"{_percent(stats['abort_rate'])}, co-deflected {stats['co_deflected']} (outside the envelope: "
@@ -336,6 +342,15 @@ def sort_report_lines(result: dict) -> list[str]:
 
 
 __all__ = ["summarise", "statistics_of", "yield_estimate", "report_lines", "true_class", "DEFAULT_OUTLET"]
+
+
+def _outcome_line(stats: dict) -> str:
+    """What became of the cells: every outcome class that occurred and every outlet, so cells lost to a wall or
+    targets whose pulse missed stand beside the decisions."""
+    outcomes = ", ".join(f"{name} {count}" for name, count in sorted(stats.get("outcomes", {}).items(),
+                                                                     key=lambda item: -item[1]) if count)
+    outlets = ", ".join(f"{name} {count}" for name, count in sorted(stats.get("outlets", {}).items()) if count)
+    return f"outcomes: {outcomes or 'none'}; outlets: {outlets or 'none'}"
 
 
 def _latency_line(latency_us: dict) -> str:

@@ -155,8 +155,8 @@ def _truncation(plant, settings, cap, drain_cap) -> str:
     waiting = truth.waiting
     inside = sum(cell.fate == "in_channel" for cell in truth.cells)
     if settings.max_time is not None and cap < drain_cap:
-        return (f"stopped at --max-time {settings.max_time * 1e3:g} ms as asked: {waiting} cells never injected, "
-                f"{inside} still in the channel")
+        return (f"stopped at --max-time {settings.max_time * 1e3:g} ms as asked: {inside} cells still in the "
+                f"channel; {waiting} admitted cells were not yet due (not counted)")
     return (f"{inside} cells still in the channel {settings.drain_time * 1e3:g} ms after the last arrival "
             "(stuck or too slow): their outcomes are unknown")
 

@@ -151,8 +151,15 @@ class SortController:
                     self._abort(other.event_id, event.time, f"type-II event {event.event_id} inside its envelope")
                 return
         on = arrival - self.settings.lead
-        self._pulses[event.event_id] = (on, on + self.settings.pulse)
-        self._decide(Decision(event.event_id, "sort", arrival, on, on + self.settings.pulse))
+        off = on + self.settings.pulse
+        if off <= event.time:                    # a lead longer than the delay and the pulse: nothing can be done
+            self._decide(Decision(event.event_id, "abort", arrival, reason="too late: its pulse would be over "
+                                                                           "before the decision (lead > delay)"))
+            return
+        late = f"pulse from the decision, {(event.time - on) * 1e3:.3f} ms late (lead > delay)" if on < event.time \
+            else ""
+        self._pulses[event.event_id] = (on, off)
+        self._decide(Decision(event.event_id, "sort", arrival, on, off, reason=late))
 
     def _pass(self, event, arrival):
         reason = ""

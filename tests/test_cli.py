@@ -222,3 +222,20 @@ def test_an_empty_case_list_is_refused_and_cache_takes_quiet():
     empty = vcyto("extremes", "--case", "")
     assert empty.returncode == 2 and empty.stderr.startswith("vcyto: error: --case: unknown case ''")
     assert vcyto("cache", "--quiet").returncode == 0
+
+
+def test_a_lead_beyond_the_delay_is_run_but_never_silently():
+    result = vcyto("stream", "--model", "rom", "--lead", "0.6", "--no-viewer", "--output", "", "--quiet", "--json")
+    assert result.returncode == 0, result.stderr
+    assert "vcyto: note: the lead 0.6 ms is not shorter than the sort delay 0.553 ms" in result.stderr
+    melanoma = next(cell for cell in json.loads(result.stdout)["cells"] if cell["type"] == "melanoma")
+    assert melanoma["decision"] == "sort" and "late (lead > delay)" in melanoma["reason"]
+
+
+@pytest.mark.parametrize("args, message", [
+    (["--cells", "RBC,melanoma", "--count", "10"], "--cells: lists the cells one by one"),
+    (["--count", "10", "--mix", "RBC:0.9,melanoma:0.1,RBC:0.5"], "--mix: RBC given more than once"),
+])
+def test_arrival_options_that_contradict_each_other_are_refused(args, message):
+    result = vcyto("stream", "--model", "rom", *args, "--no-viewer", "--output", "")
+    assert result.returncode == 2 and result.stderr.startswith(f"vcyto: error: {message}")

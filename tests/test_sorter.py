@@ -66,3 +66,16 @@ def test_bad_settings_are_refused():
         ControllerSettings(pulse=float("inf"))
     with pytest.raises(ValueError, match="mode must be one of"):
         ControllerSettings(mode="greedy")
+
+
+@pytest.mark.parametrize("lead, action, late", [(0.45e-3, "sort", ""), (0.6e-3, "sort", "0.100 ms late"),
+                                                (0.95e-3, "abort", "too late")])
+def test_a_lead_longer_than_the_delay_starts_the_pulse_late_or_aborts_it(lead, action, late):
+    """No pulse can start before its cell is detected: a lead beyond the delay (0.5 ms) starts it at the decision,
+    and beyond the delay plus the pulse (0.9 ms) the sort is aborted as too late, never a phantom sort."""
+    controller = SortController(ControllerSettings(**{**SETTINGS.__dict__, "lead": lead}))
+    controller.on_event(event(0, 1e-3, TYPE_II))
+    decision = controller.decision_for(0)
+    assert decision.action == action and late in decision.reason and bool(late) == bool(decision.reason)
+    if action == "sort":
+        assert controller.actuation(1e-3 + 1e-9) == (1.0 if late else 0.0)      # on from the decision when late

@@ -116,6 +116,10 @@ def parse_mix(text: str) -> tuple[tuple[str, float], ...]:
                              f"(got {text!r})") from None
     if any(weight < 0 for _, weight in pairs) or not sum(weight for _, weight in pairs) > 0:
         raise UsageError(f"--mix: weights must be >= 0 with a positive sum (got {text!r})")
+    names = [name for name, _ in pairs]
+    if repeated := sorted({name for name in names if names.count(name) > 1}):
+        raise UsageError(f"--mix: {', '.join(repeated)} given more than once; give each type once, its weight the "
+                         f"share of the sample (got {text!r})")
     return tuple(pairs)
 
 
@@ -176,6 +180,9 @@ def stream_settings(args, scenario):
 def arrivals_settings(args):
     """The ``Arrivals`` of the arrival options in ``args``; an error names the options it concerns."""
     from sim.arrivals import Arrivals
+    if args.cells is not None and (args.count or args.mix):
+        raise UsageError("--cells: lists the cells one by one, so it goes without --count and --mix; give either "
+                         "--cells RBC,melanoma or --count N --mix RBC:0.9,melanoma:0.1")
     cells = cell_list(args.cells) if args.cells is not None else (() if args.count else ("RBC", "melanoma"))
     if args.count and not cells and not args.mix:
         raise UsageError("--count: needs --mix, the types to draw the cells from, e.g. --count 100 "
@@ -234,6 +241,17 @@ def controller_settings(args):
     if args.no_controller:
         changes["enabled"] = False
     return replace(base, **changes)
+
+
+def late_pulse_note(settings) -> str | None:
+    """A note when the lead is not shorter than the sort delay: no pulse can start before its cell is detected,
+    so each starts late, at the decision (``controller.sorter``), or is aborted when it would already be over.
+    Such leads are accepted (a sweep over the lead shows where sorting fails), but never silently."""
+    if settings.lead < settings.delay:
+        return None
+    return (f"the lead {settings.lead * 1e3:g} ms is not shorter than the sort delay {settings.delay * 1e3:g} ms: a "
+            "pulse cannot start before its cell is detected, so each starts late, at the decision, and a sort "
+            "whose pulse would already be over is aborted ('too late'); use a lead below the delay to sort on time")
 
 
 def stream_run_options() -> argparse.ArgumentParser:

@@ -8,7 +8,14 @@ import sys
 
 from .. import outputs
 from ..arguments import Integer
-from ..options import scenario_from, scenario_options, stream_options, stream_settings, tolerance_options
+from ..options import (
+    late_pulse_note,
+    scenario_from,
+    scenario_options,
+    stream_options,
+    stream_settings,
+    tolerance_options,
+)
 from .common import (
     EXIT_NUMERICAL,
     EXIT_SIGINT,
@@ -72,6 +79,8 @@ def command_stream(args):
             outputs.check_name(args.name)
         except ValueError as error:
             raise UsageError(str(error)) from None
+    if note := late_pulse_note(settings.controller):
+        print(f"vcyto: note: {note}", file=sys.stderr)
     signals_seen.clear()
     view = runfiles.choose_view(args, output is not None, spawn_by_default=True, error=UsageError)
     files = None

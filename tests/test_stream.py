@@ -166,6 +166,11 @@ def test_fcs_export_round_trips(scenario, streamline_plant, tmp_path):
     assert np.allclose(events[:, 1], [c["fluorescence"] for c in detected], rtol=1e-6)
     assert list(events[:, 6]) == [1.0 if c["outlet"] == "upper" else 0.0 for c in detected]
     assert keywords["vcyto_note"] == "test" and keywords["vcyto_outlet_codes"].startswith("0=lower")
+    # a cell still in the channel when a partial run stopped is not coded as lost
+    inside = dict(result, cells=[dict(detected[0], outlet="in_channel")] + detected[1:])
+    _, events, keywords = read_fcs(write_fcs(tmp_path / "partial.fcs", inside, {}))
+    first = int(np.argmin(events[:, 0]))
+    assert events[first, 6] == 4.0 and "4=in_channel" in keywords["vcyto_outlet_codes"]
 
 
 def test_stream_command_writes_fcs_and_summary(tmp_path):

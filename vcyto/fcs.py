@@ -3,7 +3,7 @@
 One event per detected cell, channels ($PnN, with $PnS saying what and in which unit): Time (ms; $TIMESTEP
 0.001 s), FL1 (fluorescence, a.u.), FSC (forward scatter: the cell's area with noise, um^2), Velocity (mm/s),
 Class (1 = type I, 2 = type II), Decision (0 pass, 1 sort, 2 abort), Outlet (0 lower, 1 upper, 2 wall,
-3 lost). Every $PnR bounds its channel's values (a 1, 2 or 5 x 10^k at or above the largest), so a logicle or
+3 lost, 4 still in the channel when a partial run stopped). Every $PnR bounds its channel's values (a 1, 2 or 5 x 10^k at or above the largest), so a logicle or
 biexponential display spreads the events over the axis; $PnE is 0,0 (linear, float data). The run is described
 by $CYT, $DATE, $BTIM, $ETIM and VCYTO_* keywords (model, seed, codes, device, detector and controller settings).
 
@@ -27,10 +27,10 @@ from . import outputs
 CHANNELS = ("Time", "FL1", "FSC", "Velocity", "Class", "Decision", "Outlet")
 DESCRIPTIONS = ("time of detection (ms)", "fluorescence (a.u.)", "forward scatter, cell area (um^2)",
                 "velocity through the detection window (mm/s)", "detected class (1=I, 2=II)",
-                "decision (0=pass, 1=sort, 2=abort)", "outlet (0=lower, 1=upper, 2=wall, 3=lost)")
+                "decision (0=pass, 1=sort, 2=abort)", "outlet (0=lower, 1=upper, 2=wall, 3=lost, 4=in channel)")
 CLASS_CODES = {"I": 1, "II": 2}
 DECISION_CODES = {"pass": 0, "sort": 1, "abort": 2}
-OUTLET_CODES = {"lower": 0, "upper": 1, "wall": 2, "lost": 3}
+OUTLET_CODES = {"lower": 0, "upper": 1, "wall": 2, "lost": 3, "in_channel": 4}
 
 
 def event_table(result: dict) -> np.ndarray:
@@ -101,7 +101,7 @@ def write_fcs(path: Path, result: dict, metadata: dict | None = None, settings=N
                 "$ETIM": time.strftime("%H:%M:%S", time.localtime(ended)),
                 "VCYTO_MODEL": result["model"], "VCYTO_SEED": str(result["seed"]), "VCYTO_GATE_FL1": f"{gate!r}",
                 "VCYTO_CLASS_CODES": "1=I,2=II", "VCYTO_DECISION_CODES": "0=pass,1=sort,2=abort",
-                "VCYTO_OUTLET_CODES": "0=lower,1=upper,2=wall,3=lost"}
+                "VCYTO_OUTLET_CODES": "0=lower,1=upper,2=wall,3=lost,4=in_channel"}
     keywords.update(_settings_keywords(settings))
     keywords.update(_device_keywords(scenario))
     for index in range(len(CHANNELS)):

@@ -2,6 +2,7 @@
 end when the sample ends, user-defined target types, and the calibrated sort envelope."""
 
 import json
+import re
 import subprocess
 import sys
 
@@ -42,6 +43,11 @@ def test_the_yield_estimate_follows_the_modes_on_a_dense_stream(paper_scenario, 
         estimate = result["yield_estimate"]
         assert abs(result["statistics"]["yield"] - estimate["yield"]) < 3 * estimate["standard_error"], mode
         yields[mode] = result["statistics"]
+        # a reason names the other cell by its detector event and its cell key, and they are the same cell
+        event_of = {cell["key"]: cell["event_id"] for cell in result["cells"]}
+        named = [(int(n), int(k)) for cell in result["cells"] if cell["reason"]
+                 for n, k in re.findall(r"event (\d+) \(cell (\d+)\)", cell["reason"])]
+        assert (len(named) > 50) == (mode == "purity") and all(event_of[k] == n for n, k in named)
     assert yields["purity"]["aborts"] > 50 and yields["yield"]["aborts"] == 0
     assert yields["purity"]["purity"] > 0.98 > yields["yield"]["purity"]
     assert yields["yield"]["co_deflected"] > 0

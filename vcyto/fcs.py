@@ -1,11 +1,12 @@
 """FCS 3.1 export of a stream's detector events (flowio), readable and gateable by standard flow-cytometry tools.
 
-One event per detected cell, channels ($PnN, with $PnS saying what and in which unit): Time (ms; $TIMESTEP
-0.001 s), FL1 (fluorescence, a.u.), FSC (forward scatter: the cell's area with noise, um^2), Velocity (mm/s),
-Class (1 = type I, 2 = type II), Decision (0 pass, 1 sort, 2 abort), Outlet (0 lower, 1 upper, 2 wall,
-3 lost, 4 still in the channel when a partial run stopped). Every $PnR bounds its channel's values (a 1, 2 or 5 x 10^k at or above the largest), so a logicle or
-biexponential display spreads the events over the axis; $PnE is 0,0 (linear, float data). The run is described
-by $CYT, $DATE, $BTIM, $ETIM and VCYTO_* keywords (model, seed, codes, device, detector and controller settings).
+One event per detected cell, channels ($PnN, with $PnS saying what and in which unit): Time (ms; $TIMESTEP 0.001 s),
+FL1 (fluorescence, a.u.), FSC (forward scatter: the cell's area with noise, um^2), Velocity (mm/s), Class (1 = type
+I, 2 = type II), Decision (0 pass, 1 sort, 2 abort), Outlet (0 lower, 1 upper, 2 wall, 3 lost, 4 still in the
+channel when a partial run stopped). Every $PnR bounds its channel's values (a 1, 2 or 5 x 10^k at or above the
+largest), so a logicle or biexponential display spreads the events over the axis; $PnE is 0,0 (linear, float data).
+The run is described by $CYT, $DATE, $BTIM, $ETIM and VCYTO_* keywords (model, seed, codes, device, detector and
+controller settings).
 
 FL1 values are written as float32: where rounding to float32 would move a value across the classification gate,
 it is moved by one float32 step back to its side, so that the exported gate (``vcyto.gatingml``) applied to the

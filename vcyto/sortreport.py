@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import bisect
 import math
+import re
 import statistics
 
 import numpy as np
@@ -55,6 +56,7 @@ def summarise(sample, truth, events, controller, scenario, settings, partial: bo
     by_key = {cell.key: cell for cell in truth.cells}
     cells = [_cell_record(key, arrival, name, by_key.get(key), events.get(key), controller, scenario)
              for key, (arrival, name) in enumerate(sample.admitted)]
+    _name_cells_in_reasons(cells, {event.event_id: key for key, event in events.items()})
     rejected = [name for time, name in sample.rejected if not partial or time <= truth.time]
     due = [c for c in cells if not partial or c["arrival_ms"] <= truth.time * 1e3 or c["outlet"] != "not_injected"]
     stats = statistics_of(due, truth.time, rejected=rejected, scenario=scenario,
@@ -67,6 +69,19 @@ def summarise(sample, truth, events, controller, scenario, settings, partial: bo
             "controller_latency_us": _latency(controller.latencies)}
 
 
+_EVENT = re.compile(r"\bevent (\d+)")
+
+
+def _name_cells_in_reasons(cells, keys_by_event: dict) -> None:
+    """The controller knows detector events, numbered in detection order, not cells (numbered in arrival
+    order): each ``event N`` in a decision's reason gets its cell, ``event N (cell K)``; and each record its own
+    ``event_id``."""
+    for cell in cells:
+        if cell["reason"]:
+            cell["reason"] = _EVENT.sub(lambda found: f"{found.group(0)} (cell "
+                                                      f"{keys_by_event.get(int(found.group(1)), '?')})", cell["reason"])
+
+
 def _cell_record(key, arrival, name, cell, event, controller, scenario) -> dict:
     decision = controller.decision_for(event.event_id) if event else None
     if cell is None:
@@ -75,6 +90,7 @@ def _cell_record(key, arrival, name, cell, event, controller, scenario) -> dict:
         outlet = cell.fate
     record = {
         "key": key, "type": name, "true_class": true_class(scenario.cell_type(name)), "arrival_ms": arrival * 1e3,
+        "event_id": event.event_id if event else None,
         "detected_class": event.classification if event else None,
         "detection_time_ms": event.time * 1e3 if event else None,
         "fluorescence": event.fluorescence if event else None,

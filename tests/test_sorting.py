@@ -24,6 +24,9 @@ def test_purity_mode_at_1000_events_per_second_over_10000_events(paper_scenario,
     assert result["status"] == "complete" and stats["not_injected"] == 0 and stats["outlets"].get("lost", 0) == 0
     assert 9_000 < stats["events"] < 11_000
     assert abs(stats["events"] / (result["simulated_time_ms"] * 1e-3) - 1000) < 60
+    # the dead time (0.5 ms) exceeds the abort window's reach (0.25 ms): no abort can occur, and the report says so
+    assert not stats["coincidence_possible"] and stats["aborts"] == 0
+    assert "no coincidence can occur" in "\n".join(sort_report_lines(result))
     # no correctly detected type-I cell leaves upper unless it was predicted outside the widened envelope
     assert stats["co_deflected_unexpected"] == 0 and stats["co_deflected"] == 0
     upper = [c for c in result["cells"] if c["outlet"] == "upper"]
@@ -49,6 +52,7 @@ def test_the_yield_estimate_follows_the_modes_on_a_dense_stream(paper_scenario, 
                  for n, k in re.findall(r"event (\d+) \(cell (\d+)\)", cell["reason"])]
         assert (len(named) > 50) == (mode == "purity") and all(event_of[k] == n for n, k in named)
     assert yields["purity"]["aborts"] > 50 and yields["yield"]["aborts"] == 0
+    assert yields["purity"]["coincidence_possible"] and not yields["yield"]["coincidence_possible"]
     assert yields["purity"]["purity"] > 0.98 > yields["yield"]["purity"]
     assert yields["yield"]["co_deflected"] > 0
     # the envelope is measured for one pulse; a type-I cell between two pulses well apart can still be nudged

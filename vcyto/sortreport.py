@@ -63,6 +63,7 @@ def summarise(sample, truth, events, controller, scenario, settings, partial: bo
                           controller_settings=settings.controller)
     stats["not_yet_due"] = len(cells) - len(due) + len(sample.rejected) - len(rejected)
     estimate = yield_estimate(due, scenario, settings)
+    stats["coincidence_possible"] = _coincidence_possible(settings)
     return {"cells": cells, "statistics": stats, "yield_estimate": estimate,
             "simulated_time_ms": truth.time * 1e3, "model": settings.model, "seed": settings.seed,
             "controller_mode": settings.controller.mode, "controller": _controller_record(settings.controller),
@@ -70,6 +71,17 @@ def summarise(sample, truth, events, controller, scenario, settings, partial: bo
 
 
 _EVENT = re.compile(r"\bevent (\d+)")
+
+
+def _coincidence_possible(settings) -> bool:
+    """Whether the controller can ever abort: not in yield mode, nor when the inlet keeps cells further apart
+    (``min_spacing``, a dead time on arrival) than the abort window reaches (a 2 % margin for the cells'
+    different speeds)."""
+    controller = settings.controller
+    if controller.mode == "yield" or not controller.enabled:
+        return False
+    low, high = controller.window(margin=controller.mode != "enrichment")
+    return settings.arrivals.min_spacing < 1.02 * max(-low, high)
 
 
 def _name_cells_in_reasons(cells, keys_by_event: dict) -> None:
@@ -331,9 +343,9 @@ def sort_report_lines(result: dict) -> list[str]:
         _outcome_line(stats),
         f"purity {_percent(stats['purity'])} ({_percent(stats['purity_of_sorting'])} of the correctly detected), "
         f"yield {_percent(stats['yield'])}{expected}, abort rate "
-        f"{_percent(stats['abort_rate'])}, co-deflected {stats['co_deflected']} (outside the envelope: "
-        f"{stats['co_deflected_unexpected']}), misclassified {stats['misclassified']}, undetected "
-        f"{stats['undetected']}, never injected {stats['not_injected']}"
+        f"{_percent(stats['abort_rate'])}{_no_coincidence(stats, result)}, co-deflected {stats['co_deflected']} "
+        f"(outside the envelope: {stats['co_deflected_unexpected']}), misclassified {stats['misclassified']}, "
+        f"undetected {stats['undetected']}, never injected {stats['not_injected']}"
         + (f"; {stats['not_yet_due']} cells of the sample were not yet due when the run stopped (not counted)"
            if stats.get("not_yet_due") else ""),
         f"throughput {throughput:.0f} cells/s of simulated time" if throughput else "throughput n/a",
@@ -358,6 +370,14 @@ def sort_report_lines(result: dict) -> list[str]:
 
 
 __all__ = ["summarise", "statistics_of", "yield_estimate", "report_lines", "true_class", "DEFAULT_OUTLET"]
+
+
+def _no_coincidence(stats: dict, result: dict) -> str:
+    """Why a purity or single-cell run cannot abort, when it cannot."""
+    if stats.get("coincidence_possible", True) or result.get("controller_mode") == "yield":
+        return ""
+    return (" (no coincidence can occur: the inlet keeps cells further apart than the abort window reaches; "
+            "lower --min-spacing to see aborts)")
 
 
 def _outcome_line(stats: dict) -> str:

@@ -146,6 +146,19 @@ def test_calibration_on_rom_reproduces_the_shipped_controller(paper_scenario, ro
     assert result.as_dict()["look_ahead"]["covers_envelope"]
 
 
+def test_a_pulse_reliable_alone_but_not_after_another_pulse_is_not_reliable(paper_scenario, rom_plant):
+    """The rom calibration once chose 0.32 ms (lead 0.245 ms), which sorts a lone melanoma; a stream lost 39 of
+    84 melanomas sorted within ~1.6 ms after another to the divider. The search now asks for pulse trains too:
+    that pulse fails after another target's pulse 1 ms before, the shipped one (0.40 ms, 0.30 ms) never does."""
+    from vcyto.calibrate import _sorted, measure_delay
+    detector = DetectorSettings()
+    delay = measure_delay(rom_plant, paper_scenario, detector)
+    assert _sorted(rom_plant, "melanoma", delay, 0.32e-3, 0.245e-3, detector)
+    assert not _sorted(rom_plant, "melanoma", delay, 0.32e-3, 0.245e-3, detector, gaps=(1.0e-3,))
+    shipped = ControllerSettings()
+    assert _sorted(rom_plant, "melanoma", delay, shipped.pulse, shipped.lead, detector, gaps=Grid().preceding_gaps)
+
+
 def test_the_shortest_pulse_search_finds_a_band_of_good_leads(paper_scenario, rom_plant):
     grid = Grid(pulses=(0.1e-3, 0.2e-3, 0.3e-3, 0.4e-3), offset_step=0.05e-3, offset_range=0.5e-3, resolution=10e-6)
     result = calibrate(rom_plant, paper_scenario, grid=grid)

@@ -113,6 +113,9 @@ class Pardiso:
 
     ``symmetric=True`` factors the real symmetric indefinite matrix (LDL^T with Bunch-Kaufman pivoting
     and weighted matching), which halves the factor's size and so the memory traffic of a back-solve.
+    ``matching=False`` (symmetric only) leaves out the weighted matching and scaling: a smaller factor and a
+    quicker analysis, but PARDISO may then perturb a pivot it finds too small (``perturbed_pivots``), which
+    makes the factor that of a slightly different matrix (``sim.splitsolve`` moves such an unknown out).
     ``single=True`` factors and substitutes in single precision (``iparm[27] = 1``): half the bytes of
     factor, solutions to ~1e-6 relative; meant as the inner solver of ``MixedPrecision``. Inputs and
     outputs stay float64.
@@ -121,13 +124,14 @@ class Pardiso:
     _INT = ctypes.c_int32
 
     def __init__(self, matrix: sp.spmatrix, symmetric: bool = False, reproducible: bool = True,
-                 single: bool = False):
+                 single: bool = False, matching: bool = True):
         library = _mkl_runtime()
         if library is None:
             raise SolverError("MKL PARDISO is not available: install the 'mkl' package or use solver='superlu'")
         self._pardiso = library.pardiso
         self.symmetric = symmetric
         self.mtype = -2 if symmetric else 11
+        self.single = single
         self._dtype = np.float32 if single else np.float64
         stored = sp.triu(matrix, format="csr") if symmetric else sp.csr_matrix(matrix)
         stored.sum_duplicates()
@@ -143,8 +147,9 @@ class Pardiso:
         self.iparm[1] = 2      # METIS nested dissection ordering
         self.iparm[7] = 0      # no iterative refinement beyond what perturbed pivots require
         self.iparm[9] = 8 if symmetric else 13   # pivot perturbation 1e-8 / 1e-13
-        self.iparm[10] = 1     # scaling
-        self.iparm[12] = 1     # weighted matching
+        matched = int(matching or not symmetric)
+        self.iparm[10] = matched   # scaling (for a symmetric matrix it goes with the matching)
+        self.iparm[12] = matched   # weighted matching
         self.iparm[17] = -1    # report the number of non-zeros in the factor
         # forward/backward substitution: 1 = sequential, bit-for-bit reproducible (12 ms here);
         # 2 = parallel, 2x faster but its reductions make the last bits vary from run to run
@@ -153,6 +158,7 @@ class Pardiso:
         self.iparm[34] = 1     # zero-based indexing
         self._call(12, np.zeros(self.shape[0], dtype=self._dtype))
         self.factor_nonzeros = int(self.iparm[17])
+        self.perturbed_pivots = int(self.iparm[13])
 
     def _call(self, phase: int, rhs: np.ndarray, solution: np.ndarray | None = None) -> np.ndarray:
         solution = np.zeros_like(rhs) if solution is None else solution
@@ -222,6 +228,7 @@ class Pardiso:
         stored.sort_indices()
         self._data = np.ascontiguousarray(stored.data, dtype=self._dtype)
         self._call(22, np.zeros(self.shape[0], dtype=self._dtype))
+        self.perturbed_pivots = int(self.iparm[13])
         return self
 
     def release(self):

@@ -27,6 +27,17 @@ diagonal substitution per separator unknown) on the first solve, through ``sim.s
 can keep it between runs (the key names the matrix, the cut, MKL's version and a probe of both factors).
 PARDISO's partial substitutions with several right-hand sides give wrong columns after the first (measured
 with MKL 2026.2), hence one column at a time.
+
+Pivots: the halves are factored without PARDISO's weighted matching (and scaling), which gives a factor ~15 %
+smaller at the paper's mesh (4.20 M entries against 4.97 M) and so a back-solve streaming 15 % fewer bytes.
+Without matching PARDISO perturbs a pivot it finds too small, and the factor is then that of a slightly
+different matrix (the partial substitutions do no refinement: a single-precision split solve was 3 % off).
+At every mesh we tried, that is one pressure unknown per half, at a corner of the channel (its row holds two
+free velocities: the corner element's other velocity unknowns lie on the walls). ``_Half.search`` finds such
+an unknown from the residual of a solve (``_perturbed_unknown``), moves it into the separator (which may hold
+any unknowns: the cut stays a separator) and factors the rest again; a half still perturbed after
+``MAX_MOVES`` moves is factored as it is, with matching, as before. The moved unknowns are kept through
+``sim.store`` (a warm start factors each half once).
 """
 
 from __future__ import annotations
@@ -45,6 +56,7 @@ from .linalg import Pardiso, SolverError, _aligned_empty, _mkl_runtime, mkl_vers
 from .store import digest, reuse
 
 MIN_UNKNOWNS = 20_000        # below this a plain sequential PARDISO solve is as fast
+MAX_MOVES = 4                # unknowns with perturbed pivots moved out of a half before it falls back to matching
 
 
 def separator_split(matrix: sp.csr_matrix, x: np.ndarray, band=(0.35, 0.65)):
@@ -71,17 +83,39 @@ def _one_mkl_thread():
     library.MKL_Set_Num_Threads_Local(ctypes.c_int(1))
 
 
+def _perturbed_unknown(block: sp.csr_matrix, factor: Pardiso) -> int:
+    """The unknown of ``block`` whose pivot PARDISO perturbed in ``factor`` (unmatched, released or not).
+
+    A factor exact for A + d e_k e_k^T solves to x with residual b - A x = d x_k e_k: zero but at k. A single-
+    precision factor's residual also shows the unknowns k was pivoted with, as large (measured: two velocities
+    beside the pressure unknown that double precision names), so k is read from a double-precision
+    factorisation of the block; only if that one is unperturbed, from ``factor`` itself (factored again)."""
+    double = Pardiso(block, symmetric=True, reproducible=True, matching=False)
+    try:
+        if double.perturbed_pivots == 0:
+            double.release()
+            double = Pardiso(block, symmetric=True, reproducible=True, single=factor.single,
+                             matching=False)
+        probe = np.random.default_rng(18).uniform(1.0, 2.0, block.shape[0])
+        solution = double.phase(333, double.phase(332, double.phase(331, probe)))
+        return int(np.argmax(np.abs(probe - block @ solution)))
+    finally:
+        double.release()
+
+
 class _Half:
     """One side of the cut: its sequential factorisation and H = D^{-1} F C."""
 
-    def __init__(self, block: sp.csr_matrix, single: bool = False):
+    def __init__(self, factor: Pardiso, single: bool = False, moved=(), matched: bool = False):
         _one_mkl_thread()
-        self.factor = Pardiso(block, symmetric=True, reproducible=True, single=single)
+        self.factor = factor
+        self.moved = np.array(moved, dtype=np.int64)   # unknowns moved to the separator (``search``)
+        self.matched = matched                         # factored with PARDISO's weighted matching
         self._agreement = 1e-6 if single else 1e-13
         # the substitutions' vectors and H in the factor's precision: no conversions between the phases, and
         # half the bytes for H's products in single precision
         self.dtype = np.float32 if single else np.float64
-        n = block.shape[0]
+        n = factor.shape[0]
         # fixed aligned buffers handed to PARDISO directly (its results can depend on the alignment)
         self.source, self.y, self.z, self.x = (_aligned_empty(n, dtype=self.dtype) for _ in range(4))
         self.zero = self.dtype(0)
@@ -89,6 +123,29 @@ class _Half:
         self.w = self.g = None         # the separator's solution and H^T y, in the factor's precision
         self.rows = None               # (this half's unknowns, A's rows of them in CSR): set by SplitPardiso
         self.dinv = self._diagonal(n)
+
+    @classmethod
+    def factored(cls, matrix: sp.csr_matrix, unknowns: np.ndarray, single: bool, matched: bool, moved=()):
+        """The half of ``unknowns`` (rows and columns of ``matrix``) factored as it is."""
+        _one_mkl_thread()
+        factor = Pardiso(matrix[unknowns][:, unknowns].tocsr(), symmetric=True, reproducible=True, single=single,
+                         matching=matched)
+        return cls(factor, single, moved, matched)
+
+    @classmethod
+    def search(cls, matrix: sp.csr_matrix, unknowns: np.ndarray, single: bool):
+        """The half of ``unknowns`` factored without weighted matching, its pivots unperturbed: an unknown whose
+        pivot PARDISO perturbs is moved to the separator and the rest factored again (at most ``MAX_MOVES``
+        times; then the half as it is, with matching). Module docstring, "Pivots"."""
+        moved = []
+        for _ in range(MAX_MOVES + 1):
+            keep = np.setdiff1d(unknowns, moved) if moved else unknowns
+            half = cls.factored(matrix, keep, single, matched=False, moved=moved)
+            if half.factor.perturbed_pivots == 0:
+                return half
+            half.factor.release()
+            moved.append(int(keep[_perturbed_unknown(matrix[keep][:, keep].tocsr(), half.factor)]))
+        return cls.factored(matrix, unknowns, single, matched=True)
 
     def _diagonal(self, n: int) -> np.ndarray | None:
         """PARDISO's diagonal substitution (phase 332) as a vector when it is one (1x1 pivots: checked on two
@@ -207,13 +264,11 @@ class SplitPardiso:
         self.single = single
         self.shape = matrix.shape
         self.symmetric = True
-        self.parts = separator_split(matrix, np.asarray(x, dtype=float))
-        left, right, separator = self.parts
         self._worker = _Worker()
-        blocks = [matrix[p][:, p].tocsr() for p in (left, right)]
+        self.halves, self.parts = self._factored_halves(matrix, separator_split(matrix, np.asarray(x, dtype=float)))
+        left, right, separator = self.parts
         self._rows = [matrix[p] for p in self.parts]      # for residuals computed where they are used
         couplings = [matrix[p][:, separator].tocsc() for p in (left, right)]
-        self.halves = self._both(lambda: _Half(blocks[0], single), lambda: _Half(blocks[1], single))
         for half, unknowns, rows in zip(self.halves, self.parts, self._rows):
             half.rows = (unknowns, rows)
         # the calling thread, which also runs the Python between the phases, takes the half with the smaller
@@ -225,6 +280,27 @@ class SplitPardiso:
         self.separator_size = len(separator)
         self._schur = None
         self._pending = (matrix, couplings)      # the coupling is computed on the first solve (``_couple``)
+
+    def _factored_halves(self, matrix: sp.csr_matrix, cut):
+        """Both halves factored (``_Half.search``, each on its own thread) and the parts with their moved unknowns
+        in the separator. Which unknowns move is kept through ``sim.store``: a later run factors each half once."""
+        left, right, separator = cut
+        key = {"layout": 1, "matrix": digest(matrix.data, matrix.indices, matrix.indptr), "cut": digest(*cut),
+               "mkl": mkl_version(), "single": self.single, "max_moves": MAX_MOVES}
+        searched = []
+
+        def search():
+            searched.extend(self._both(lambda: _Half.search(matrix, left, self.single),
+                                       lambda: _Half.search(matrix, right, self.single)))
+            return {"moved": np.concatenate([h.moved for h in searched]),
+                    "matched": np.array([h.matched for h in searched])}
+        stored = reuse("split-pivots", key, search)
+        moved, matched = np.asarray(stored["moved"], dtype=np.int64), stored["matched"]
+        parts = (np.setdiff1d(left, moved), np.setdiff1d(right, moved), np.union1d(separator, moved))
+        halves = tuple(searched) or self._both(
+            lambda: _Half.factored(matrix, parts[0], self.single, bool(matched[0]), np.intersect1d(left, moved)),
+            lambda: _Half.factored(matrix, parts[1], self.single, bool(matched[1]), np.intersect1d(right, moved)))
+        return halves, parts
 
     def _couple(self):
         """H of each half and the separator's Schur complement: from the store (sim.store) or computed."""

@@ -67,6 +67,8 @@ def test_bench_fluid_reports_every_treatment_and_the_ratio():
     if report["linear_solver"] == "pardiso":        # the mixed-precision default against both fastest solves
         assert report["fastest_backsolve_ms"] > 0 and report["fastest_single_backsolve_ms"] > 0
         assert report["double_backsolve_ms"] > 0 and report["corrections_per_step"] >= 1
+        assert report["default_factor_nonzeros"] > 0 and report["fastest_factor_nonzeros"] > 0
+        assert "M factor entries" in report["default_solver"] and "M factor entries" in report["fastest_backsolve"]
 
 
 def test_bench_rejects_too_few_repeats():

@@ -39,6 +39,78 @@ def test_split_solve_equals_the_sequential_solve_to_round_off(fluid):
     assert np.array_equal(split.solve(rhs), solution)             # same input, same bits
 
 
+def test_halves_without_matching_move_their_perturbed_unknowns_to_the_separator(fluid):
+    """Without weighted matching (a smaller factor) PARDISO perturbs the pivot of a pressure unknown at a channel
+    corner (two free velocities in its row); the split moves such an unknown into the separator and factors the
+    rest again: no perturbed pivot is left, the factor is smaller than the matched one, the solve is exact."""
+    from sim.splitsolve import SplitPardiso
+    matrix = fluid.constant_matrix().tocsr()
+    split = SplitPardiso(matrix, fluid.free_x)
+    left, right, separator = split.parts
+    moved = np.concatenate([half.moved for half in split.halves])
+    assert len(moved) >= 1 and np.isin(moved, separator).all()
+    assert abs(matrix[left][:, right]).sum() == 0
+    for half, unknowns in zip(split.halves, (left, right)):
+        assert half.factor.perturbed_pivots == 0 and not half.matched
+        with_moved = np.union1d(unknowns, half.moved)
+        block = matrix[with_moved][:, with_moved]
+        kept_in = Pardiso(block, symmetric=True, matching=False)      # the moved unknowns left in: perturbed
+        matched = Pardiso(block, symmetric=True)
+        assert kept_in.perturbed_pivots >= 1
+        assert half.factor.factor_nonzeros < matched.factor_nonzeros
+        kept_in.release()
+        matched.release()
+    rhs = np.random.default_rng(7).standard_normal(matrix.shape[0])
+    assert np.linalg.norm(matrix @ split.solve(rhs) - rhs) <= 1e-13 * np.linalg.norm(rhs)
+
+
+def test_a_half_that_stays_perturbed_falls_back_to_matching(fluid, monkeypatch):
+    import sim.splitsolve as splitsolve
+    monkeypatch.setattr(splitsolve, "MAX_MOVES", 0)
+    matrix = fluid.constant_matrix()
+    split = splitsolve.SplitPardiso(matrix, fluid.free_x)
+    assert all(half.matched and len(half.moved) == 0 for half in split.halves)
+    assert all(half.factor.perturbed_pivots == 0 for half in split.halves)
+    rhs = np.random.default_rng(8).standard_normal(matrix.shape[0])
+    assert np.linalg.norm(matrix @ split.solve(rhs) - rhs) <= 1e-13 * np.linalg.norm(rhs)
+
+
+def test_the_moved_unknowns_are_kept_by_the_store_and_reused(fluid, monkeypatch):
+    """A second split of the same matrix with the store installed factors each half once, with the stored
+    unknowns moved (no search), and solves to the same bits."""
+    import sim.splitsolve as splitsolve
+    from sim import store
+
+    class Memory:
+        def __init__(self):
+            self.entries, self.built = {}, []
+
+        def fetch(self, kind, key, build):
+            name = (kind, repr(sorted(key.items())))
+            if name not in self.entries:
+                self.built.append(kind)
+                self.entries[name] = build()
+            return self.entries[name]
+    memory = Memory()
+    previous = store.install(memory)
+    try:
+        matrix = fluid.constant_matrix()
+        rhs = np.random.default_rng(9).standard_normal(matrix.shape[0])
+        first = splitsolve.SplitPardiso(matrix, fluid.free_x, single=True)
+        expected = first.solve(rhs)
+        assert memory.built.count("split-pivots") == 1
+
+        def no_search(*args):
+            raise AssertionError("searched again")
+        monkeypatch.setattr(splitsolve._Half, "search", classmethod(no_search))
+        second = splitsolve.SplitPardiso(matrix, fluid.free_x, single=True)
+        assert memory.built.count("split-pivots") == 1
+        assert [h.moved.tolist() for h in second.halves] == [h.moved.tolist() for h in first.halves]
+        assert np.array_equal(second.solve(rhs), expected)
+    finally:
+        store.install(previous)
+
+
 def test_refinement_in_place_equals_the_correction_added(fluid):
     """``refine`` (each half's residual rows, solve and update on its own thread, ``sim.kernels``) gives the
     bits of the whole residual computed by scipy, solved, and added to the solution; it reports the largest

@@ -62,6 +62,7 @@ def _bench_fluid(scenario: Scenario, repeats: int, progress, rounds: int) -> dic
     result["steady_solve_s"] = time.perf_counter() - started
     rhs = np.random.default_rng(0).standard_normal(len(base.free))
     result["default_solver"] = _describe(base._constant.factor)
+    result["default_factor_nonzeros"] = base._constant.factor.factor_nonzeros
     started = time.perf_counter()
     state = base.step(start)                # warm-up: numba compilation, MKL thread start, the split coupling
     result["first_step_s"] = time.perf_counter() - started
@@ -89,6 +90,7 @@ def _bench_fluid(scenario: Scenario, repeats: int, progress, rounds: int) -> dic
     result["backsolve_ms"] = median("default")
     result["fastest_backsolve_ms"] = median(best)
     result["fastest_backsolve"] = getattr(fastest.get(best), "label", "the default")
+    result["fastest_factor_nonzeros"] = getattr(fastest.get(best), "factor_nonzeros", result["default_factor_nonzeros"])
     if "fastest_single" in fastest:
         result["fastest_single_backsolve_ms"] = median("fastest_single")
         result["fastest_single_backsolve"] = fastest["fastest_single"].label
@@ -163,8 +165,9 @@ def _fastest_backsolves(base: NavierStokes) -> dict:
     for name, single, label in (("fastest", False, "PARDISO, parallel substitution (not reproducible)"),
                                 ("fastest_single", True, "PARDISO, parallel substitution in single precision "
                                                          "(not reproducible; ~1e-6 relative)")):
-        solves[name] = _labelled(Pardiso(base.constant_matrix(), symmetric=True, reproducible=False,
-                                         single=single).solve, label)
+        factor = Pardiso(base.constant_matrix(), symmetric=True, reproducible=False, single=single)
+        solves[name] = _labelled(factor.solve, label[:-1] + "; " + _factor_size(factor).strip(" ()") + ")")
+        solves[name].factor_nonzeros = factor.factor_nonzeros
     return solves
 
 
@@ -187,9 +190,26 @@ def _labelled(function, label):
 
 def _describe(factor) -> str:
     inner = getattr(factor, "inner", None)
+    text = type(factor if inner is None else inner).__name__ + _factor_size(factor if inner is None else inner)
     if inner is not None:
-        return f"{type(inner).__name__} in single precision, refined in double ({type(factor).__name__})"
-    return type(factor).__name__
+        return f"{text} in single precision, refined in double ({type(factor).__name__})"
+    return text
+
+
+def _factor_size(factor) -> str:
+    """' (N M factor entries...)': the bytes a back-solve streams; for the split solve how its halves were factored."""
+    size = getattr(factor, "factor_nonzeros", None)
+    if size is None:
+        return ""
+    halves = getattr(factor, "halves", ())
+    detail = ""
+    if halves:
+        matched = sum(half.matched for half in halves)
+        moved = sum(len(half.moved) for half in halves)
+        detail = (f"; halves {'without' if not matched else 'with' if matched == len(halves) else 'partly with'}"
+                  f" weighted matching, {moved} unknown{'s' * (moved != 1)} with perturbed pivots moved to the"
+                  f" separator")
+    return f" ({size / 1e6:.2f} M factor entries{detail})"
 
 
 def report_lines(result: dict) -> list[str]:

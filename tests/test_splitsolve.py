@@ -159,28 +159,30 @@ def test_an_interrupt_while_waiting_for_the_other_half_leaves_the_solver_in_step
 
 
 def test_split_solve_vector_kernels_give_scipys_bits():
-    """The fused kernels sum in scipy's order: a residual, H^T y and z - H w bit for bit equal to scipy's."""
+    """The fused kernels sum in scipy's order: a residual, H^T y and z - H w bit for bit equal to scipy's (rows of
+    uneven lengths, some empty, counts not a multiple of the four rows the kernels run side by side)."""
     import scipy.sparse as sp
 
     from sim import kernels
     rng = np.random.default_rng(4)
-    a = sp.random(300, 400, density=0.05, format="csr", random_state=5)
-    rows = rng.permutation(500)[:300]
+    a = sp.random(301, 400, density=0.05, format="csr", random_state=5)
+    rows = rng.permutation(500)[:301]
     rhs, x = rng.standard_normal(500), rng.standard_normal(400)
-    out, out32 = np.empty(300), np.empty(300, np.float32)
+    out, out32 = np.empty(301), np.empty(301, np.float32)
     kernels.gather_residual(rhs, rows, a.data, a.indices, a.indptr, x, out)
     assert np.array_equal(out, rhs[rows] - a @ x)
     kernels.gather_residual(1e30 * rhs, rows, a.data, a.indices, a.indptr, x, out32)   # rounded, inf past float32
     assert np.array_equal(out32, (1e30 * rhs[rows] - a @ x).astype(np.float32))
-    h = sp.random(400, 30, density=0.2, format="csr", random_state=6, dtype=np.float32)
-    y, z = rng.standard_normal((2, 400)).astype(np.float32)
-    dinv = rng.uniform(1, 2, 400).astype(np.float32)
-    z_out, g = np.empty(400, np.float32), np.empty(30, np.float32)
+    h = sp.random(403, 31, density=0.02, format="csr", random_state=6, dtype=np.float32)
+    y, z = rng.standard_normal((2, 403)).astype(np.float32)
+    dinv = rng.uniform(1, 2, 403).astype(np.float32)
+    z_out, g = np.empty(403, np.float32), np.empty(31, np.float32)
     h_t = h.T.tocsr()
     kernels.transposed_products(y, dinv, z_out, h_t.data, h_t.indices, h_t.indptr, g, np.float32(0))
     assert np.array_equal(g, h_t @ y) and np.array_equal(z_out, dinv * y)
-    w = rng.standard_normal(30).astype(np.float32)
-    minus = np.empty(400, np.float32)
+    w = rng.standard_normal(31).astype(np.float32)
+    minus = np.empty(403, np.float32)
+    assert np.diff(h.indptr).min() == 0 and len(set(np.diff(h.indptr))) > 3       # empty and uneven rows
     kernels.minus_product(z, h.data, h.indices, h.indptr, w, minus, np.float32(0))
     assert np.array_equal(minus, z - h @ w)
 

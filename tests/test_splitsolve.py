@@ -107,6 +107,13 @@ def test_the_moved_unknowns_are_kept_by_the_store_and_reused(fluid, monkeypatch)
         assert memory.built.count("split-pivots") == 1
         assert [h.moved.tolist() for h in second.halves] == [h.moved.tolist() for h in first.halves]
         assert np.array_equal(second.solve(rhs), expected)
+        monkeypatch.undo()
+        for name, entry in memory.entries.items():          # a stored choice that leaves a pivot perturbed
+            if name[0] == "split-pivots":
+                memory.entries[name] = {"moved": np.zeros(0, dtype=np.int64), "matched": entry["matched"]}
+        third = splitsolve.SplitPardiso(matrix, fluid.free_x, single=True)
+        assert all(h.factor.perturbed_pivots == 0 for h in third.halves)       # found again, not used as stored
+        assert np.array_equal(third.solve(rhs), expected)
     finally:
         store.install(previous)
 

@@ -104,6 +104,9 @@ class TaylorHood:
         centre = np.array([[1 / 3], [1 / 3]])
         self.inverse_jacobians = np.ascontiguousarray(mapping.invDF(centre)[:, :, :, 0].transpose(2, 0, 1))
         self.determinants = np.ascontiguousarray(mapping.detDF(centre)[:, 0])
+        # the momentum kernel's layout (``kernels._element_momentum``): a00, a01, a10, a11 as rows, and |det J|
+        self.jacobian_rows = np.ascontiguousarray(self.inverse_jacobians.reshape(-1, 4).T)
+        self.areas = np.abs(self.determinants)
         self.element_dofs = np.ascontiguousarray(self.velocity_basis.element_dofs.astype(np.int64))
         self._identity_positions = np.arange(2 * self.N, dtype=np.int64).reshape(2, self.N)
         self._scratch = None
@@ -113,7 +116,7 @@ class TaylorHood:
         """Add (m v - k (v . grad) v, phi_i) to ``out[positions[c, i]]`` (numba kernel, see ``kernels``)."""
         if self._scratch is None:
             self._scratch = np.empty((self.element_dofs.shape[1], 2, 6))
-        kernels.momentum_load(self.element_dofs, self.inverse_jacobians, self.determinants, self.q_phi, self.q_dphi,
+        kernels.momentum_load(self.element_dofs, self.jacobian_rows, self.areas, self.q_phi, self.q_dphi,
                               self.q_weights, velocity, mass_coefficient, convection_coefficient, positions, out,
                               self._scratch)
         return out

@@ -22,8 +22,10 @@ is scaled inside the saddle-point matrix so both blocks have comparable entries;
 from __future__ import annotations
 
 import logging
+import sys
 import time as clock
 from dataclasses import dataclass, field
+from functools import lru_cache
 
 import numpy as np
 import scipy.sparse as sp
@@ -35,8 +37,17 @@ from .drive import lagged
 from .linalg import factorize, mkl_version, resolved_solver_name
 from .mesh import channel_mesh
 from .scenario import Scenario
-from .store import digest, reuse
+from .store import digest, module_digest, reuse
 from .taylorhood import TaylorHood, mass_form
+
+
+@lru_cache(maxsize=1)
+def solver_code_digest() -> str:
+    """The code that computes a flow (this module, the kernels, the assembly, the linear solvers), as a key part
+    of the flows stored through ``sim.store``: a changed kernel or solver, whose bits differ, misses instead of
+    giving a warm run other bits than a cold one."""
+    from . import kernels, linalg, splitsolve, taylorhood
+    return module_digest(sys.modules[__name__], kernels, linalg, splitsolve, taylorhood)
 
 log = logging.getLogger(__name__)
 
@@ -377,7 +388,8 @@ class NavierStokes:
                       ("mesh_h", "linear_solver", "nonlinear_tolerance", "max_nonlinear_iterations", "reproducible")}
             key = {"channel": repr(scene.channel), "fluid": repr(scene.fluid), "saw": repr(scene.saw),
                    "numerics": repr(newton), "actuation": float(actuation), "solver": self.solver_name,
-                   "mkl": mkl_version(), "nodes": digest(self.space.nodes), "inflow": digest(self.inflow, self.jet)}
+                   "mkl": mkl_version(), "nodes": digest(self.space.nodes), "inflow": digest(self.inflow, self.jet),
+                   "code": solver_code_digest()}
             result = reuse("steady-flow", key, solve)
         else:
             result = solve()

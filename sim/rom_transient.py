@@ -22,13 +22,15 @@ them), at ``TRANSIENT_DT``; its results go through ``sim.store`` (cached by the 
 from __future__ import annotations
 
 import math
+import sys
 import time as clock
 
 import numpy as np
 
-from .fluid import NavierStokes
+from .fluid import NavierStokes, solver_code_digest
+from .linalg import mkl_version
 from .scenario import Scenario, ScenarioError
-from .store import reuse
+from .store import module_digest, reuse
 from .transfer import PointLocator
 
 TRANSIENT_LAGS = (0.0, 30e-6, 150e-6)     # s: the jump, a fast and a slow viscous mode
@@ -99,7 +101,8 @@ def sampled_modes(scenario: Scenario, spacing: float, sample, lags=TRANSIENT_LAG
     key = {"channel": repr(scenario.channel), "fluid": repr(scenario.fluid), "saw": repr(scenario.saw),
            "cell_types": repr([(c.name, c.semi_axes) for c in scenario.cell_types]), "spacing": float(spacing),
            "mesh_h": float(numerics.mesh_h), "dt": float(numerics.dt), "numerics": repr(numerics),
-           "lags": [float(tau) for tau in lags], "duration": float(duration)}
+           "lags": [float(tau) for tau in lags], "duration": float(duration), "mkl": mkl_version(),
+           "code": solver_code_digest() + module_digest(sys.modules[__name__])}
     return reuse("rom-transient", key, build)
 
 

@@ -138,14 +138,15 @@ class _Half:
         pivot PARDISO perturbs is moved to the separator and the rest factored again (at most ``MAX_MOVES``
         times; then the half as it is, with matching). Module docstring, "Pivots"."""
         moved = []
-        for _ in range(MAX_MOVES + 1):
+        while True:
             keep = np.setdiff1d(unknowns, moved) if moved else unknowns
             half = cls.factored(matrix, keep, single, matched=False, moved=moved)
             if half.factor.perturbed_pivots == 0:
                 return half
             half.factor.release()
+            if len(moved) == MAX_MOVES:
+                return cls.factored(matrix, unknowns, single, matched=True)
             moved.append(int(keep[_perturbed_unknown(matrix[keep][:, keep].tocsr(), half.factor)]))
-        return cls.factored(matrix, unknowns, single, matched=True)
 
     def _diagonal(self, n: int) -> np.ndarray | None:
         """PARDISO's diagonal substitution (phase 332) as a vector when it is one (1x1 pivots: checked on two
@@ -231,9 +232,14 @@ class _Worker(threading.Thread):
         _one_mkl_thread()
         while (task := self.tasks.get()) is not None:
             try:
-                self.results.put((True, task()))
+                outcome = (True, task())
             except Exception as error:  # handed back to the caller's thread
-                self.results.put((False, error))
+                outcome = (False, error)
+            # hold nothing while waiting: a task's closure (or its result) kept here would keep its solver, and so
+            # this thread and the solver's factors, alive after the caller dropped it
+            task = None
+            self.results.put(outcome)
+            outcome = None
 
     def submit(self, task):
         self.tasks.put(task)
@@ -288,31 +294,39 @@ class SplitPardiso:
         """Both halves factored (``_Half.search``, each on its own thread) and the parts with their moved unknowns
         in the separator. Which unknowns move is kept through ``sim.store``: a later run factors each half once."""
         left, right, separator = cut
+        single = self.single
         if self.matching:
-            return self._both(lambda: _Half.factored(matrix, left, self.single, True),
-                              lambda: _Half.factored(matrix, right, self.single, True)), cut
+            return self._both(lambda: _Half.factored(matrix, left, single, True),
+                              lambda: _Half.factored(matrix, right, single, True)), cut
         key = {"layout": 1, "matrix": digest(matrix.data, matrix.indices, matrix.indptr), "cut": digest(*cut),
-               "mkl": mkl_version(), "single": self.single, "max_moves": MAX_MOVES}
+               "mkl": mkl_version(), "single": single, "max_moves": MAX_MOVES}
         searched = []
 
         def search():
-            searched.extend(self._both(lambda: _Half.search(matrix, left, self.single),
-                                       lambda: _Half.search(matrix, right, self.single)))
+            searched[:] = self._both(lambda: _Half.search(matrix, left, single),
+                                     lambda: _Half.search(matrix, right, single))
             return {"moved": np.concatenate([h.moved for h in searched]),
                     "matched": np.array([h.matched for h in searched])}
-        stored = reuse("split-pivots", key, search)
-        moved, matched = np.asarray(stored["moved"], dtype=np.int64), stored["matched"]
-        parts = (np.setdiff1d(left, moved), np.setdiff1d(right, moved), np.union1d(separator, moved))
-        halves = tuple(searched) or self._both(
-            lambda: _Half.factored(matrix, parts[0], self.single, bool(matched[0]), np.intersect1d(left, moved)),
-            lambda: _Half.factored(matrix, parts[1], self.single, bool(matched[1]), np.intersect1d(right, moved)))
-        if any(half.factor.perturbed_pivots for half in halves):    # a stored choice that no longer holds: search
+
+        def factored(stored):
+            moved, matched = np.asarray(stored["moved"], dtype=np.int64), stored["matched"]
+            parts = (np.setdiff1d(left, moved), np.setdiff1d(right, moved), np.union1d(separator, moved))
+            halves = tuple(searched) or self._both(
+                lambda: _Half.factored(matrix, parts[0], single, bool(matched[0]), np.intersect1d(left, moved)),
+                lambda: _Half.factored(matrix, parts[1], single, bool(matched[1]), np.intersect1d(right, moved)))
+            return halves, parts
+
+        halves, parts = factored(reuse("split-pivots", key, search))
+        # a stored choice that does not hold for this factorisation (PARDISO's is deterministic for the key's
+        # matrix and MKL version, so this is a safety net): search again, kept under a key of its own; should
+        # that one not hold either, search here and keep nothing
+        for again in (lambda: reuse("split-pivots", {**key, "searched_again": True}, search), search):
+            if not any(half.factor.perturbed_pivots and not half.matched for half in halves):
+                break
             for half in halves:
                 half.factor.release()
             searched.clear()
-            search()
-            halves, moved = tuple(searched), np.concatenate([h.moved for h in searched])
-            parts = (np.setdiff1d(left, moved), np.setdiff1d(right, moved), np.union1d(separator, moved))
+            halves, parts = factored(again())
         return halves, parts
 
     def _couple(self):

@@ -50,8 +50,32 @@ def digest(*arrays: np.ndarray) -> str:
 
 def code_digest(*functions) -> str:
     """A SHA-256 of functions' bytecode, constants and names (nested code objects by their own bytecode): a key
-    part naming the code that computes a stored result, so an edited function misses instead of reusing."""
+    part naming the code that computes a stored result, so an edited function misses instead of reusing.
+    Numba's compiled functions are named by their Python source's code (``py_func``)."""
+    def constant(c):
+        if hasattr(c, "co_code"):
+            return shape(c)
+        if isinstance(c, frozenset):          # ``x in {"a", "b"}``: its repr's order changes with string hashing
+            return ("frozenset", tuple(sorted(repr(item) for item in c)))
+        return c
+
     def shape(code):
-        consts = tuple(shape(c) if hasattr(c, "co_code") else c for c in code.co_consts)
-        return (code.co_code, consts, code.co_names)
-    return hashlib.sha256(repr([shape(f.__code__) for f in functions]).encode()).hexdigest()
+        return (code.co_code, tuple(constant(c) for c in code.co_consts), code.co_names)
+    return hashlib.sha256(repr([shape(getattr(f, "py_func", f).__code__) for f in functions]).encode()).hexdigest()
+
+
+def module_digest(*modules) -> str:
+    """``code_digest`` of every function, numba kernel and method defined in ``modules`` (in name order): a key part
+    for a stored result computed through them, so editing any of them (a kernel whose bits change, a solver) makes
+    the stored result miss instead of giving a warm run other bits than a cold one."""
+    functions = []
+    for module in modules:
+        for name, value in sorted(vars(module).items()):
+            if getattr(value, "__module__", None) != module.__name__:
+                continue
+            if isinstance(value, type):
+                functions += [getattr(member, "__func__", member) for _, member in sorted(vars(value).items())
+                              if hasattr(getattr(member, "__func__", member), "__code__")]
+            elif hasattr(getattr(value, "py_func", value), "__code__"):
+                functions.append(value)
+    return code_digest(*functions)

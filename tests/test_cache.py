@@ -3,6 +3,7 @@ a corrupted entry is rebuilt, concurrent writers leave a valid entry. Every test
 
 import dataclasses
 import multiprocessing
+import os
 from pathlib import Path
 
 import numpy as np
@@ -52,6 +53,31 @@ def test_a_changed_scenario_field_misses(cache):
     assert not np.allclose(first.velocity, other.velocity)
     NavierStokes(scenario()).steady(0.0)
     assert cache.hits == 3
+
+
+def test_changed_solver_code_misses_and_a_module_digest_is_stable_across_processes(cache, monkeypatch):
+    """A stored flow names the code that computed it (``sim.fluid.solver_code_digest``): a changed kernel or
+    solver, whose bits differ, misses instead of giving a warm run a cold run's old bits (found by a reviewer:
+    a cache written before the round-6 kernel was reused); the digest is the same in another process (string
+    hashing differs between processes)."""
+    import subprocess
+    import sys
+
+    import sim.fluid as fluid_module
+    NavierStokes(scenario()).steady(0.0)
+    misses = cache.misses
+    NavierStokes(scenario()).steady(0.0)
+    assert cache.misses == misses
+    monkeypatch.setattr(fluid_module, "solver_code_digest", lambda: "edited")
+    NavierStokes(scenario()).steady(0.0)
+    assert cache.misses == misses + 1
+    monkeypatch.undo()
+    script = ("import sim.fluid, sim.store\ndef f(x):\n    return x in {'alpha', 'beta', 'gamma', 'delta'}\n"
+              "print(sim.fluid.solver_code_digest(), sim.store.code_digest(f))")
+    digests = {subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, check=True,
+                              env={**os.environ, "PYTHONHASHSEED": seed},
+                              cwd=Path(__file__).resolve().parents[1]).stdout.strip() for seed in ("1", "2", "3")}
+    assert len(digests) == 1 and digests.pop().split()[0] == fluid_module.solver_code_digest()
 
 
 def builder(calls):

@@ -111,6 +111,8 @@ def _bench_fluid(scenario: Scenario, repeats: int, progress, rounds: int) -> dic
     result["imex_over_fastest_backsolve_rounds"] = [round(r["step"] / r[best], 3) for r in timed]
     if hasattr(factor, "corrections"):          # mixed precision: refinement corrections per step
         result["corrections_per_step"] = (factor.corrections - counted[1]) / max(1, factor.solves - counted[0])
+    for solve in (*fastest.values(), matched):
+        getattr(solve, "release", lambda: None)()          # their factors: memory the next timings do not need
     result["steps_ms"] = {"imex": median("step")}
     for treatment, count in STEPS.items():
         if treatment == "imex":
@@ -176,6 +178,7 @@ def _fastest_backsolves(base: NavierStokes) -> dict:
         factor = Pardiso(base.constant_matrix(), symmetric=True, reproducible=False, single=single)
         solves[name] = _labelled(factor.solve, label[:-1] + "; " + _factor_size(factor).strip(" ()") + ")")
         solves[name].factor_nonzeros = factor.factor_nonzeros
+        solves[name].release = factor.release
     return solves
 
 
@@ -198,7 +201,9 @@ def _matched_default(base: NavierStokes):
         return None
     twin = SplitPardiso(base.constant_matrix(), base.free_x, single=inner.single, matching=True)
     twin.solve(np.zeros(twin.shape[0]))         # its coupling
-    return _labelled(twin.solve, f"{_describe(twin)}{' in single precision' if inner.single else ''}")
+    solve = _labelled(twin.solve, f"{_describe(twin)}{' in single precision' if inner.single else ''}")
+    solve.release = twin.release
+    return solve
 
 
 def _labelled(function, label):

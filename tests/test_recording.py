@@ -65,6 +65,25 @@ def test_round_trip_one_message_per_step_monotonic_times_and_outcomes(plant, tmp
     assert metadata[0].name == "run" and metadata[0].metadata["seed"] == "0"
 
 
+def test_the_logs_decision_lines_name_each_events_cell(plant, tmp_path):
+    """A decision line of the MCAP log names its detector event's cell, ``event N (cell K): ...``, as the summary's
+    reasons do; N and K agree with the /detector/event messages (found by a user trial: event numbers only)."""
+    import re
+
+    from mcap_protobuf.decoder import DecoderFactory
+    path = tmp_path / "run.mcap"
+    record(plant, path, cells=("melanoma", "RBC", "melanoma", "RBC"))
+    cells_of = {data["event_id"]: data["key"] for topic, _, data in messages(path) if topic == "/detector/event"}
+    decode, lines = DecoderFactory(), []
+    with open(path, "rb") as handle:
+        for schema, channel, message in make_reader(handle).iter_messages(topics=["/foxglove/log"]):
+            lines.append(decode.decoder_for(channel.message_encoding, schema)(message.data).message)
+    decisions = [re.match(r"event (\d+) \(cell (\d+)\): (pass|sort|abort)", line) for line in lines
+                 if line.startswith("event ")]
+    assert len(decisions) == len(cells_of) == 4 and all(decisions)
+    assert all(cells_of[int(found.group(1))] == int(found.group(2)) for found in decisions)
+
+
 def test_same_seed_same_messages_apart_from_wall_clock(plant, tmp_path):
     record(plant, tmp_path / "a.mcap", seed=4)
     record(plant, tmp_path / "b.mcap", seed=4)

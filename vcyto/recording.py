@@ -49,6 +49,7 @@ from . import foxglove
 from .classes import CLASS_COLOURS, CLASS_IDS, CellClasses
 from .outputs import plain
 from .schemas import SCHEMAS
+from .sortreport import name_cells
 
 PER_STEP = ("/loop/step", "/cells")
 FORMAT = "2"                  # 1: JSON channels only, membranes in /cells; 2: Foxglove channels beside them
@@ -121,6 +122,7 @@ class McapRecorder:
         self._classes = CellClasses(scenario)
         self._paths: dict[int, list] = {}        # the cells in the channel: their centroid paths (um)
         self._reported: set[int] = set()         # cells that left, while ``truth`` still lists them
+        self._keys_by_event: dict[int, int] = {}  # detector events' cells, for the log's decision lines
         outlines = device_outlines(scenario, detection_window)
         self._write_proto("/foxglove/scene", 0.0, foxglove.device(self.origin_ns, outlines))
         self._writer.flush()
@@ -165,7 +167,7 @@ class McapRecorder:
             self._write("/controller/decision", now, {key: getattr(decision, key)
                                                       for key in SCHEMAS["/controller/decision"]["properties"]})
             reason = f" ({decision.reason})" if decision.reason else ""
-            self._log(now, f"event {decision.event_id}: {decision.action}{reason}",
+            self._log(now, name_cells(f"event {decision.event_id}: {decision.action}{reason}", self._keys_by_event),
                       "WARN" if decision.action == "abort" else "INFO")
         for cell in left:
             self._outcome(now, cell)
@@ -195,6 +197,7 @@ class McapRecorder:
         self._write_proto("/foxglove/membranes", now, foxglove.membranes(self._stamp(now), rows))
 
     def _event(self, event, cell):
+        self._keys_by_event[event.event_id] = event.key
         values = {key: getattr(event, key) for key in SCHEMAS["/detector/event"]["properties"]}
         self._write("/detector/event", event.time, values)
         text = (f"cell {event.key}: detected type {event.classification} (fluorescence {event.fluorescence:.2f}, "

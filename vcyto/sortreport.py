@@ -84,14 +84,18 @@ def _coincidence_possible(settings) -> bool:
     return settings.arrivals.min_spacing < 1.02 * max(-low, high)
 
 
+def name_cells(text: str, keys_by_event: dict) -> str:
+    """``text`` with each ``event N`` followed by its cell, ``event N (cell K)`` (``?`` for an event not in
+    ``keys_by_event``): the controller knows detector events, numbered in detection order, not cells (numbered
+    in arrival order)."""
+    return _EVENT.sub(lambda found: f"{found.group(0)} (cell {keys_by_event.get(int(found.group(1)), '?')})", text)
+
+
 def _name_cells_in_reasons(cells, keys_by_event: dict) -> None:
-    """The controller knows detector events, numbered in detection order, not cells (numbered in arrival
-    order): each ``event N`` in a decision's reason gets its cell, ``event N (cell K)``; and each record its own
-    ``event_id``."""
+    """Each decision's reason names its cells (``name_cells``); each record carries its own ``event_id``."""
     for cell in cells:
         if cell["reason"]:
-            cell["reason"] = _EVENT.sub(lambda found: f"{found.group(0)} (cell "
-                                                      f"{keys_by_event.get(int(found.group(1)), '?')})", cell["reason"])
+            cell["reason"] = name_cells(cell["reason"], keys_by_event)
 
 
 def _cell_record(key, arrival, name, cell, event, controller, scenario) -> dict:

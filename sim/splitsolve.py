@@ -106,9 +106,10 @@ def _perturbed_unknown(block: sp.csr_matrix, factor: Pardiso) -> int:
 class _Half:
     """One side of the cut: its sequential factorisation and H = D^{-1} F C."""
 
-    def __init__(self, factor: Pardiso, single: bool = False, moved=(), matched: bool = False):
+    def __init__(self, factor: Pardiso, moved=(), matched: bool = False):
         _one_mkl_thread()
         self.factor = factor
+        single = factor.single
         self.moved = np.array(moved, dtype=np.int64)   # unknowns moved to the separator (``search``)
         self.matched = matched                         # factored with PARDISO's weighted matching
         self._agreement = 1e-6 if single else 1e-13
@@ -125,12 +126,13 @@ class _Half:
         self.dinv = self._diagonal(n)
 
     @classmethod
-    def factored(cls, matrix: sp.csr_matrix, unknowns: np.ndarray, single: bool, matched: bool, moved=()):
-        """The half of ``unknowns`` (rows and columns of ``matrix``) factored as it is."""
+    def factored(cls, matrix: sp.csr_matrix, unknowns: np.ndarray, single: bool, matched: bool, moved=(),
+                 block: sp.csr_matrix | None = None):
+        """The half of ``unknowns`` (rows and columns of ``matrix``; ``block``: those, if already taken out)
+        factored as it is."""
         _one_mkl_thread()
-        factor = Pardiso(matrix[unknowns][:, unknowns].tocsr(), symmetric=True, reproducible=True, single=single,
-                         matching=matched)
-        return cls(factor, single, moved, matched)
+        block = matrix[unknowns][:, unknowns].tocsr() if block is None else block
+        return cls(Pardiso(block, symmetric=True, reproducible=True, single=single, matching=matched), moved, matched)
 
     @classmethod
     def search(cls, matrix: sp.csr_matrix, unknowns: np.ndarray, single: bool):
@@ -140,13 +142,14 @@ class _Half:
         moved = []
         while True:
             keep = np.setdiff1d(unknowns, moved) if moved else unknowns
-            half = cls.factored(matrix, keep, single, matched=False, moved=moved)
+            block = matrix[keep][:, keep].tocsr()
+            half = cls.factored(matrix, keep, single, matched=False, moved=moved, block=block)
             if half.factor.perturbed_pivots == 0:
                 return half
             half.factor.release()
             if len(moved) == MAX_MOVES:
                 return cls.factored(matrix, unknowns, single, matched=True)
-            moved.append(int(keep[_perturbed_unknown(matrix[keep][:, keep].tocsr(), half.factor)]))
+            moved.append(int(keep[_perturbed_unknown(block, half.factor)]))
 
     def _diagonal(self, n: int) -> np.ndarray | None:
         """PARDISO's diagonal substitution (phase 332) as a vector when it is one (1x1 pivots: checked on two

@@ -1,7 +1,11 @@
 """Time steps chosen by a tolerance: each FE-IB step takes dt from the levels dt0, 2 dt0, 4 dt0, 8 dt0.
 
-``numerics.tolerance`` is a centroid path error per transit (m). The membrane update of a step,
-X' = X + dt v^{m+1}(X), is first order; its local error is estimated from what the step computes anyway:
+``numerics.tolerance`` is a centroid path error per transit (m), against fixed steps of dt0 in the same time
+scheme. With the second-order scheme (bdf2, the default with a tolerance) the local error of a cell's area
+centroid is estimated by Milne's device: the difference between the centroid after the step and the parabola
+through its last three values, times 2/11 (``_ratio_bdf2``); its rate per distance grows like dt^2. With the
+paper's first-order step (``time_scheme = "euler"``) the membrane update X' = X + dt v^{m+1}(X) is first
+order; its local error is estimated from what the step computes anyway:
 
     e = dt / 2 | mean_r ( [v^{m+1}(X_r) - v^m(X_r)] - [v^{m+1}(X_r + dt v^{m+1}(X_r)) - v^{m+1}(X_r)] ) |,
 
@@ -10,11 +14,13 @@ its change along their motion), averaged over a cell's points inside the channel
 centroid, whose path the tolerance is about; the largest over the cells in the channel. Local errors add up along a
 path, so a step is within budget when e <= SAFETY * tolerance * (distance the cell moved) / channel length:
 a transit then accumulates at most about SAFETY * tolerance. The tolerance is stated against the finest
-level (the reference dt0): since e / distance grows like dt, a ratio q measured at dt_k predicts
-q (2^j - 1) / 2^k for level j against the finest one; the next step takes the coarsest level (at most one
-up) where that is <= 1 (no step is repeated). A new cell, or a change of the IDT drive (the flow jumps
-before any estimate has seen it), starts from the finest level; with no cell in the channel the coarsest
-level is used.
+level (the reference dt0): since e / distance grows like dt^p (p the order), a ratio q measured at dt_k
+predicts q (2^(p j) - 1) / 2^(p k) for level j against the finest one; the next step takes the coarsest level
+(at most one up) where that is <= 1 (no step is repeated). A new cell, or a change of the IDT drive (the flow
+jumps before any estimate has seen it), starts from the finest level; with no cell in the channel the
+coarsest level is used. A step never ends after a redistribution of a cell's points that the trend of its
+spacing predicts (``_before_redistribution``): that event changes the membrane's forces at once, and only the
+finest level puts it where the reference puts it.
 
 Never above the stability limit of the cells in the channel: STABLE_FRACTION times the paper's bound (33)
 with C_cell = 1 (``sim.stability.paper_bound``). The measured limits are 4.2x (melanoma, 3.33 um mesh) and
@@ -30,6 +36,7 @@ import numpy as np
 
 from .fluid import NavierStokes
 from .health import STABLE_FRACTION, paper_bound
+from .membrane import polygon_centroid
 
 LEVELS = 4
 SAFETY = 0.3
@@ -51,13 +58,18 @@ class AdaptiveSteps:
         self.ratio = float("nan")
         self.history: list[tuple[float, float]] = []          # (time, dt) whenever dt changes
         self.steps = [0] * LEVELS
+        self.order = 2 if numerics.scheme == "bdf2" else 1
+        self._tracks: dict[int, list] = {}                    # bdf2: the last three (time, area centroid) per cell
+        self._spacings: dict[int, list] = {}                  # the last two spacing extremes per cell
 
     # ------------------------------------------------------------------ levels
     def fluid(self, level: int) -> NavierStokes:
         """The fluid solver of ``level`` (factored on first use, on the plant's mesh; timings shared)."""
         if level not in self._fluids:
             base = self.plant.fluid
-            fluid = NavierStokes(self.plant.scenario.with_numerics(dt=self.levels[level], tolerance=0.0), base.space)
+            numerics = self.plant.scenario.numerics
+            fluid = NavierStokes(self.plant.scenario.with_numerics(dt=self.levels[level], tolerance=0.0,
+                                                                   time_scheme=numerics.scheme), base.space)
             base.timings.factor += fluid.timings.factor
             fluid.timings = base.timings
             self._fluids[level] = fluid
@@ -78,25 +90,70 @@ class AdaptiveSteps:
         (the flow jumps: no estimate has seen it yet); capped by stability and ``until``."""
         ids = {cell.id for cell in active}
         switched = actuation is not None and self._actuation is not None and actuation != self._actuation
-        level = LEVELS - 1 if not active else (0 if ids - self._known or switched else self.level)
+        if active and (ids - self._known or switched):
+            self.level = 0           # and it stays there until an estimate lets it up (bdf2: after three steps)
+        level = LEVELS - 1 if not active else self.level
         self._known, self._actuation = ids, actuation
-        level = min(level, self.stable_level(active))
+        level = min(level, self.stable_level(active), self._before_redistribution(active, state.time))
         if until is not None:
             room = until - state.time
             while level > 0 and self.levels[level] > room + 1e-6 * self.levels[0]:
                 level -= 1
         return level
 
+    def _before_redistribution(self, active, time: float) -> int:
+        """The coarsest level whose step ends before any cell's point spacing is predicted to leave the band
+        (``numerics.spacing_band``: the redistribution it triggers changes the membrane's forces at once, so
+        its time must be the finest level's, as in the reference; a step that ends later would move it by up
+        to that step). The prediction follows the line through the spacings' last two values, over 1.5 steps."""
+        numerics = self.plant.scenario.numerics
+        if not numerics.redistribute:
+            return LEVELS - 1
+        low, high = numerics.spacing_band
+        level = LEVELS - 1
+        for cell in active:
+            trend = self._spacings.get(cell.id)
+            if trend is None or len(trend) < 2:
+                continue
+            (t0, low0, high0, _), (t1, low1, high1, _) = trend
+            for k in range(level, 0, -1):
+                ahead = 1.5 * self.levels[k] / (t1 - t0)
+                if low1 + (low1 - low0) * ahead >= low and high1 + (high1 - high0) * ahead <= high:
+                    break
+                level = k - 1
+        return level
+
+    def _track_spacing(self, cells, time: float):
+        """The last two (time, spacing min, max, redistributions) of each cell in the channel (a redistribution
+        starts its trend again)."""
+        tracks = {}
+        for cell in cells:
+            if not cell.in_channel:
+                continue
+            measures = cell.measures
+            entry = (time, measures.spacing_min, measures.spacing_max, cell.membrane.redistributions)
+            trend = [e for e in self._spacings.get(cell.id, []) if e[3] == entry[3]]
+            tracks[cell.id] = (trend + [entry])[-2:]
+        self._spacings = tracks
+
     # ------------------------------------------------------------------ the step
     def step(self, state, actuation: float, until: float | None):
         active = [cell for cell in state.cells if cell.in_channel]
         level = self.choose(state, active, until, actuation)
         dt = self.levels[level]
-        samples = [self._sample(state.flow.velocity, cell.membrane.points) for cell in active]
-        new = self.plant.fixed_step(state, actuation, self.fluid(level))
-        if active:
-            self.ratio = max(self._ratio(sample, new.flow.velocity, dt) for sample in samples)
+        if self.order == 2:
+            new = self.plant.fixed_step(state, actuation, self.fluid(level))
+            ids = {cell.id for cell in active}
+            ratios = [self._ratio_bdf2(cell, new.time) for cell in new.cells if cell.id in ids]
+        else:
+            samples = [self._sample(state.flow.velocity, cell.membrane.points) for cell in active]
+            new = self.plant.fixed_step(state, actuation, self.fluid(level))
+            ratios = [self._ratio(sample, new.flow.velocity, dt) for sample in samples]
+        ratios = [ratio for ratio in ratios if ratio is not None]
+        if ratios:
+            self.ratio = max(ratios)
             self.level = self._next_level(level, self.ratio)
+        self._track_spacing(new.cells, new.time)
         if not self.history or self.history[-1][1] != dt:
             self.history.append((state.time, dt))
         self.steps[level] += 1
@@ -109,9 +166,41 @@ class AdaptiveSteps:
         level j against the finest level (the reference the tolerance is stated against)."""
         if not math.isfinite(ratio):
             return 0
-        rate = ratio / 2 ** level
-        fitting = [j for j in range(min(LEVELS - 1, level + 1) + 1) if rate * (2 ** j - 1) <= 1]
+        growth = 2 ** self.order         # the error rate per distance grows like dt^order
+        rate = ratio / growth ** level
+        fitting = [j for j in range(min(LEVELS - 1, level + 1) + 1) if rate * (growth ** j - 1) <= 1]
         return max(fitting)
+
+    def _ratio_bdf2(self, cell, time: float) -> float:
+        """bdf2: the local error of a cell's centroid over its budget for the step (Milne's device).
+
+        The area centroid is extrapolated to the new time by the parabola through its last three values; for
+        equal steps BDF2's local error is -2/9 dt^3 c^(3) and the parabola's dt^3 c^(3), so the error is 2/11 of
+        their difference. A cell gives no estimate (None: the level stays; a new cell starts at the finest) until
+        it has three earlier centroids; a redistribution of its points moves its polygon's centroid a little at
+        once, so its track then starts again. A cell that has left, or is partly through an outlet, is left out
+        (0)."""
+        track = self._tracks.setdefault(cell.id, [])
+        if not cell.in_channel or (cell.membrane.points[:, 0] >= self.plant.scenario.channel.length).any():
+            del self._tracks[cell.id]
+            return 0.0
+        centroid = polygon_centroid(cell.membrane.points)
+        redistributions = cell.membrane.redistributions
+        if track and track[-1][2] != redistributions:
+            track.clear()
+        ratio = None
+        if len(track) == 3:
+            (t0, c0, _), (t1, c1, _), (t2, c2, _) = track
+            weights = [((time - ta) * (time - tb)) / ((t - ta) * (t - tb))
+                       for t, ta, tb in ((t0, t1, t2), (t1, t0, t2), (t2, t0, t1))]
+            predicted = weights[0] * c0 + weights[1] * c1 + weights[2] * c2
+            error = 2 / 11 * float(np.linalg.norm(centroid - predicted))
+            distance = float(np.linalg.norm(centroid - c2))
+            budget = SAFETY * self.tolerance * distance / self.plant.scenario.channel.length
+            ratio = error / budget if budget > 0 else (0.0 if error == 0 else math.inf)
+        track.append((time, centroid, redistributions))
+        del track[:-3]
+        return ratio
 
     def _sample(self, velocity, points):
         """The points inside the channel, located, and the old velocity there."""

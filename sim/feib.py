@@ -22,7 +22,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from .fluid import Flow, NavierStokes
+from .fluid import Flow, NavierStokes, value_back
 from .geometry import MESH_INSET, clip_to_channel, injection_point
 from .health import HealthLimits, check_cells, under_resolved
 from .membrane import Membrane
@@ -78,6 +78,7 @@ class Cell:
     exit_y: float = float("nan")
     born: float = 0.0
     measures: Measures = Measures()
+    history: tuple = ()     # bdf2: the points at the flow's history times (the latest first; fewer if born since)
 
     @property
     def in_channel(self) -> bool:
@@ -139,19 +140,31 @@ class ImmersedBoundary:
         return self.fixed_step(state, actuation)
 
     def fixed_step(self, state: State, actuation: float = 0.0, fluid: NavierStokes | None = None) -> State:
-        """One step of ``fluid``'s dt (default: this plant's fluid, dt = ``numerics.dt``)."""
+        """One step of ``fluid``'s dt (default: this plant's fluid, dt = ``numerics.dt``) in its time scheme.
+
+        euler (the paper's): the force at X^m, X^{m+1} = X^m + dt v^{m+1}(X^m). bdf2: the force at
+        X* = 2 X^m - X^{m-1}, X^{m+1} = (4 X^m - X^{m-1}) / 3 + 2 dt / 3 v^{m+1}(X*), X^{m-1} the points at
+        t - dt from the cell's history (``sim.fluid.value_back``; a redistribution carries the history to the new
+        points' spline parameters); a new cell takes X* = X^m and the Euler update."""
         fluid = fluid or self.fluid
         dt = fluid.scenario.numerics.dt
+        bdf2 = fluid.scenario.numerics.scheme == "bdf2"
         started = clock.perf_counter()
         active = [cell for cell in state.cells if cell.in_channel]
-        load, located = self.membrane_load(active)
+        before = [self._before(cell, state.flow, dt) if bdf2 else None for cell in active]
+        at = [cell.membrane.points if old is None else 2 * cell.membrane.points - old
+              for cell, old in zip(active, before)]
+        load, located = self.membrane_load(active, at)
         fluid_started = clock.perf_counter()
         flow = fluid.step(state.flow, actuation, load if active else None)
         membrane_started = clock.perf_counter()
         moved = {}
-        for cell, (elements, reference) in zip(active, located):
+        for cell, old, (elements, reference) in zip(active, before, located):
             velocity = self.locator.interpolate_located(flow.velocity, elements, reference)
-            moved[cell.id] = settle(cell, cell.membrane.points + dt * velocity, flow.time, self.scenario, dt)
+            points = cell.membrane.points
+            new = points + dt * velocity if old is None else (4 * points - old) / 3 + (2 * dt / 3) * velocity
+            moved[cell.id] = settle(cell, new, flow.time, self.scenario, dt,
+                                    ((points,) + cell.history[:1]) if bdf2 else ())
         cells = tuple(moved.get(cell.id, cell) for cell in state.cells)
         health_started = clock.perf_counter()
         check_cells([moved[cell.id] for cell in active], self.limits, state.step + 1, flow.time)
@@ -162,16 +175,25 @@ class ImmersedBoundary:
         self.timings.steps += 1
         return State(flow, cells, state.step + 1)
 
-    def membrane_load(self, cells):
+    @staticmethod
+    def _before(cell: Cell, flow: Flow, dt: float) -> np.ndarray | None:
+        """bdf2: the cell's points at t - dt (None when it has no history)."""
+        history = cell.history[:len(flow.history)]
+        return value_back(flow.time, cell.membrane.points, [t for t, _ in flow.history[:len(history)]], history,
+                          flow.time - dt)
+
+    def membrane_load(self, cells, at=None):
         """The P2 load (2, N) of the membrane forces of ``cells`` and where each cell's points lie in the mesh
-        (element, reference coordinates; points through an outlet located just inside it, with no force)."""
+        (element, reference coordinates; points through an outlet located just inside it, with no force);
+        ``at``: a list of points per cell to evaluate the forces and locations at (default: the membranes')."""
         load = np.zeros((2, self.fluid.space.N))
         located = []
-        for cell in cells:
-            points = cell.membrane.points
+        for index, cell in enumerate(cells):
+            points = cell.membrane.points if at is None else at[index]
+            membrane = cell.membrane if at is None else cell.membrane.with_points(points)
             elements, reference = self.locator.locate(self._inside(points))
             inside = points[:, 0] < self.scenario.channel.length
-            forces = membrane_forces(cell.membrane, self.scenario.numerics) * inside[:, None]
+            forces = membrane_forces(membrane, self.scenario.numerics) * inside[:, None]
             self.locator.spread_located(forces, elements, reference, load)
             located.append((elements, reference))
         return load, located
@@ -196,34 +218,37 @@ def new_cell(scenario: Scenario, cell_type: CellType, cell_id: int, time: float,
     return Cell(cell_id, membrane, born=time, measures=Measures.of(membrane, numerics.mesh_h))
 
 
-def reshape(membrane: Membrane, numerics) -> tuple[Membrane, float]:
-    """The redistribution of points and the area constraint's projection, as ``numerics`` asks; and the
-    relative area the projection restored (redistribution included)."""
+def reshape(membrane: Membrane, numerics, history: tuple = ()) -> tuple[Membrane, float, tuple]:
+    """The redistribution of points and the area constraint's projection, as ``numerics`` asks; the
+    relative area the projection restored (redistribution included); ``history`` (earlier points, bdf2's)
+    carried to the redistributed points' spline parameters."""
     if numerics.redistribute:
         spacing = membrane.spacing() / numerics.mesh_h
         low, high = numerics.spacing_band
         if spacing.min() < low or spacing.max() > high:
-            membrane = membrane.resampled(numerics.membrane_spacing * numerics.mesh_h)
+            membrane, history = membrane.resampled_carrying(numerics.membrane_spacing * numerics.mesh_h, history)
     corrected = 0.0
     if "projection" in numerics.area_constraint:
         corrected = abs(membrane.area() / membrane.initial_area - 1)
         membrane = membrane.with_area(membrane.initial_area)
-    return membrane, corrected
+    return membrane, corrected, history
 
 
-def settle(cell: Cell, points: np.ndarray, time: float, scenario: Scenario, dt: float | None = None) -> Cell:
+def settle(cell: Cell, points: np.ndarray, time: float, scenario: Scenario, dt: float | None = None,
+           history: tuple = ()) -> Cell:
     """The cell with its new points (reshaped while wholly inside, with its measures) after a step of ``dt``
-    (default ``numerics.dt``); its fate once its centroid crosses x = length (the outlet at the crossing ordinate)."""
+    (default ``numerics.dt``); its fate once its centroid crosses x = length (the outlet at the crossing ordinate).
+    ``history``: earlier points, the latest first, kept as the cell's (bdf2; carried along a redistribution)."""
     dt = scenario.numerics.dt if dt is None else dt
     membrane = cell.membrane.with_points(points)
     measures = cell.measures
     length = scenario.channel.length
     if (points[:, 0] < length).all():
-        membrane, corrected = reshape(membrane, scenario.numerics)
+        membrane, corrected, history = reshape(membrane, scenario.numerics, history)
         measures = Measures.of(membrane, scenario.numerics.mesh_h, measures, corrected)
     before, after = cell.membrane.centroid(), membrane.centroid()
     if after[0] < length:
-        return replace(cell, membrane=membrane, measures=measures)
+        return replace(cell, membrane=membrane, measures=measures, history=history)
     weight = (length - before[0]) / (after[0] - before[0])
     exit_y = before[1] + weight * (after[1] - before[1])
     exit_time = time - dt * (1 - weight)

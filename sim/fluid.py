@@ -65,6 +65,29 @@ class Flow:
     pressure: np.ndarray
     streaming_level: float = 0.0
     iterations: int = 0
+    history: tuple = ()     # bdf2: (time, velocity) of the last two earlier steps, the latest first (() at a start)
+
+
+def value_back(time: float, value: np.ndarray, times, values, target: float) -> np.ndarray | None:
+    """bdf2's history: the value at ``target`` (one step back) from the value at ``time`` and the earlier
+    ``values`` at ``times`` (the latest first): an earlier value where its time is the target (equal steps, or
+    one level up after two equal steps), else the parabola through the three (the line through two) there;
+    None without history."""
+    if not len(values):
+        return None
+    for known, earlier in zip(times, values):
+        if abs(known - target) <= 1e-9 * abs(time - target):
+            return earlier
+    nodes = [time, *times]
+    points = [value, *values]
+    result = 0.0
+    for i, (node, point) in enumerate(zip(nodes, points)):
+        weight = 1.0
+        for j, other in enumerate(nodes):
+            if j != i:
+                weight *= (target - other) / (node - other)
+        result = result + weight * point
+    return result
 
 
 @dataclass
@@ -161,7 +184,8 @@ class NavierStokes:
     def _constant_system(self):
         space, fluid, numerics = self.space, self.scenario.fluid, self.scenario.numerics
         self.stiffness = fluid.viscosity * space.laplace
-        self.mass_coefficient = fluid.density / numerics.dt
+        # backward Euler: rho/dt M; BDF2: rho (3 v^{m+1} - 4 v^m + v^{m-1}) / (2 dt), so 3 rho / (2 dt) M
+        self.mass_coefficient = fluid.density / numerics.dt * (1.5 if numerics.scheme == "bdf2" else 1.0)
         bx, by = space.divergence
         a = self.mass_coefficient * space.mass + self.stiffness
         self.pressure_scale = abs(a).max() / max(abs(bx).max(), abs(by).max())
@@ -249,17 +273,31 @@ class NavierStokes:
                                   "the time step is too large for this flow; reduce numerics.dt")
 
     def step(self, state: Flow, actuation: float = 0.0, load: np.ndarray | None = None) -> Flow:
-        """Advance one backward-Euler step of size ``numerics.dt`` from ``state``."""
+        """Advance one step of size ``numerics.dt`` from ``state``: backward Euler, or BDF2 (``numerics.scheme``).
+
+        BDF2 takes rho (3 v^{m+1} - 4 v^m + v^{m-1}) / (2 dt) for the time derivative and the convection of
+        2 v^m - v^{m-1} (imex); v^{m-1} is the velocity at t - dt from ``state.history`` (``value_back``); a
+        state without history (a start) takes v^{m-1} = v^m."""
         numerics, density = self.scenario.numerics, self.scenario.fluid.density
-        new_time = state.time + numerics.dt
+        dt = numerics.dt
+        new_time = state.time + dt
         treatment = numerics.convection
         started = clock.perf_counter()
-        level = self.streaming_level(state.streaming_level, actuation, numerics.dt)
+        level = self.streaming_level(state.streaming_level, actuation, dt)
         if level:
             load = level * self.streaming_unit_load if load is None else load + level * self.streaming_unit_load
         rhs = self._free_rhs(load)
         explicit = density if treatment == "imex" else 0.0
-        self.space.momentum_load(state.velocity, self.mass_coefficient, explicit, self.positions, rhs)
+        bdf2 = numerics.scheme == "bdf2"
+        before = value_back(state.time, state.velocity, [t for t, _ in state.history],
+                            [v for _, v in state.history], state.time - dt) if bdf2 else None
+        if before is not None:
+            self.space.momentum_load((4 * state.velocity - before) / 3, self.mass_coefficient, 0.0, self.positions,
+                                     rhs)
+            if explicit:
+                self.space.momentum_load(2 * state.velocity - before, 0.0, explicit, self.positions, rhs)
+        else:
+            self.space.momentum_load(state.velocity, self.mass_coefficient, explicit, self.positions, rhs)
         self.timings.load += clock.perf_counter() - started
         jet = self.jet_weight(new_time, actuation)
         iterations = 1
@@ -272,6 +310,9 @@ class NavierStokes:
             velocity, pressure, iterations = self._implicit(state, rhs, jet, new_time)
         self._check(velocity, new_time, treatment)
         self.timings.steps += 1
+        if bdf2:
+            history = ((state.time, state.velocity),) + state.history[:1]
+            return Flow(new_time, velocity, pressure, level, iterations, history)
         return Flow(new_time, velocity, pressure, level, iterations)
 
     def _linearised(self, velocity, newton, with_mass):

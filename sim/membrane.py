@@ -219,17 +219,24 @@ class Membrane:
         cannot follow it and its arc lengths differ from the old ones: then the resampling is repeated on
         the new spline (at most ``passes`` times) until every spacing is within 10 % of the mean.
         """
+        return self.resampled_carrying(spacing, (), minimum_points, passes)[0]
+
+    def resampled_carrying(self, spacing: float, carried: tuple = (), minimum_points: int = 16,
+                           passes: int = 4) -> tuple["Membrane", tuple]:
+        """``resampled``, and each of ``carried`` (point arrays matching this membrane's, such as its points at
+        earlier steps) taken to the same spline parameters: its spline at the parameters of the new points."""
         membrane = self
         for _ in range(passes):
-            membrane = membrane._resampled_once(spacing, minimum_points)
+            membrane, whole, fraction = membrane._resampled_once(spacing, minimum_points)
+            carried = tuple(spline_at(points, whole, fraction) for points in carried)
             lengths = membrane.spacing()
             if lengths.max() < 1.1 * lengths.mean() and lengths.min() > 0.9 * lengths.mean():
                 break
         membrane.initial_area = self.initial_area
         membrane.redistributions = self.redistributions + 1
-        return membrane
+        return membrane, carried
 
-    def _resampled_once(self, spacing: float, minimum_points: int) -> "Membrane":
+    def _resampled_once(self, spacing: float, minimum_points: int):
         samples = 32
         interval = np.repeat(np.arange(self.count), samples)
         t = np.tile(np.arange(samples) / samples, self.count)
@@ -240,7 +247,8 @@ class Membrane:
         parameter = np.interp(np.arange(count) * arc[-1] / count, arc, np.arange(len(arc)) / samples)
         parameter = np.minimum(parameter, self.count - 1e-12)
         whole = np.floor(parameter).astype(int)
-        return Membrane(spline_at(self.points, whole, parameter - whole), self.cell_type, self.reference_length)
+        fraction = parameter - whole
+        return Membrane(spline_at(self.points, whole, fraction), self.cell_type, self.reference_length), whole, fraction
 
 
 def polygon_perimeter(points: np.ndarray) -> float:

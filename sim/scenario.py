@@ -24,6 +24,7 @@ PROFILE_READINGS = ("paper", "peak")
 INITIAL_FLOWS = ("steady", "rest")
 LINEAR_SOLVERS = ("auto", "pardiso", "superlu")
 PRECISIONS = ("mixed", "double")
+TIME_SCHEMES = ("auto", "euler", "bdf2")
 AREA_CONSTRAINTS = ("none", "pressure", "projection", "pressure+projection")
 # the two membrane methods a user picks between (``--membrane``): field values each one sets
 MEMBRANE_METHODS = {
@@ -256,6 +257,13 @@ class Numerics:
     error estimate on the membrane positions, for at most that centroid path error per transit
     (``sim.adaptive``); 0 keeps the fixed step dt.
 
+    ``time_scheme`` is the FE-IB step's time discretisation: ``euler`` (the paper's first-order step:
+    backward Euler for the fluid, the membrane force at the old positions, the membrane moved by the new
+    velocity), ``bdf2`` (second order: BDF2 for the fluid and the membrane, the force at the positions
+    extrapolated to the new time, the convection extrapolated; docs/numerics.md, "A second-order step") or
+    ``auto`` (the default: ``bdf2`` with a ``tolerance``, ``euler`` with fixed steps; ``bdf2`` needs the
+    convection treatment imex or stokes).
+
     ``max_stretch`` is the operational meaning of the paper's Remark 2.4 ("membranes torn apart"): a
     membrane whose length exceeds ``max_stretch`` times its resting length L is torn apart and the health
     checks stop the run saying the flow is too fast for it. The paper's energy has no rupture law, so
@@ -280,6 +288,7 @@ class Numerics:
     spacing_band: tuple[float, float] = (0.3, 0.7)
     max_stretch: float = 20.0
     tolerance: float = 0.0
+    time_scheme: str = "auto"
 
     def __post_init__(self):
         _positive(self, "mesh_h", "dt", "nonlinear_tolerance", "membrane_spacing", "max_area_change")
@@ -303,10 +312,22 @@ class Numerics:
         _choice(self, "linear_solver", LINEAR_SOLVERS)
         _choice(self, "precision", PRECISIONS)
         _choice(self, "initial_flow", INITIAL_FLOWS)
+        _choice(self, "time_scheme", TIME_SCHEMES)
+        if self.scheme == "bdf2" and self.convection not in ("imex", "stokes"):
+            raise ScenarioError("time_scheme", f"bdf2 needs the convection treatment imex or stokes (got convection "
+                                               f"{self.convection!r}); use time_scheme = \"euler\" with it")
         if not isinstance(self.reproducible, bool):
             raise ScenarioError("reproducible", f"must be true or false (got {self.reproducible!r})")
         if not (isinstance(self.max_nonlinear_iterations, int) and self.max_nonlinear_iterations >= 1):
             raise ScenarioError("max_nonlinear_iterations", "must be an integer >= 1")
+
+    @property
+    def scheme(self) -> str:
+        """The time scheme the FE-IB step uses: ``time_scheme``, with ``auto`` resolved (bdf2 with a tolerance and
+        a constant matrix, i.e. convection imex or stokes; euler otherwise)."""
+        if self.time_scheme != "auto":
+            return self.time_scheme
+        return "bdf2" if self.tolerance > 0 and self.convection in ("imex", "stokes") else "euler"
 
 
 @dataclass(frozen=True)

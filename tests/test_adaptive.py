@@ -1,8 +1,10 @@
 """Time steps chosen by a tolerance (sim/adaptive.py, --tolerance): the level rules, and the done-means of
 issue 18: Scenario I, II and the default stream keep their outlets and stay within the tolerance of the
-dt = 2.5 us reference paths (centroid distance at the adaptive run's times, as the tradeoff measures it)."""
+dt = 2.5 us reference paths in the same time scheme (bdf2; centroid distance at the adaptive run's times, as
+the tradeoff measures it)."""
 
 import math
+from dataclasses import replace
 from types import SimpleNamespace
 
 import numpy as np
@@ -45,7 +47,7 @@ def test_levels_new_cells_empty_channel_and_the_stability_cap():
 
 
 def test_next_level_against_the_finest_level():
-    steps = steps_of(Scenario().with_numerics(tolerance=1e-6))
+    steps = steps_of(Scenario().with_numerics(tolerance=1e-6, time_scheme="euler"))   # error rate ~ dt
     assert steps._next_level(0, 0.9) == 1          # level 1 predicted at 0.9 of the budget: one up
     assert steps._next_level(0, 3.0) == 0          # the melanoma at 1 um: stays at dt
     assert steps._next_level(1, 0.2) == 2          # at most one up per step
@@ -53,8 +55,49 @@ def test_next_level_against_the_finest_level():
     assert steps._next_level(3, math.inf) == 0
 
 
+def test_next_level_of_the_second_order_scheme():
+    steps = steps_of(Scenario().with_numerics(tolerance=1e-6))           # auto: bdf2, error rate ~ dt^2
+    assert steps.order == 2
+    assert steps._next_level(0, 0.33) == 1         # level 1 predicted at 0.33 (4 - 1) = 0.99 of the budget
+    assert steps._next_level(0, 0.34) == 0         # 1.02: stays
+    assert steps._next_level(1, 0.26) == 2         # level 2: 0.26 / 4 (16 - 1) = 0.98
+    assert steps._next_level(1, 0.27) == 1         # 1.01; level 1 itself: 0.27 / 4 x 3 = 0.2
+    assert steps._next_level(2, 1.1) == 1          # level 2: 1.1 / 16 x 15 > 1; level 1: 1.1 / 16 x 3 <= 1
+    assert steps._next_level(2, 6.0) == 0          # level 1: 6 / 16 x 3 = 1.125 > 1
+
+
+def test_no_coarse_step_across_a_predicted_redistribution():
+    """A redistribution changes a membrane's forces at once: the step that ends after it must be the finest
+    level's, so the event keeps the reference's time. The spacing's trend predicts it (over 1.5 steps)."""
+    scenario = Scenario().with_numerics(tolerance=1e-6)                  # band 0.3-0.7 h; levels 2.5-20 us
+    steps = steps_of(scenario)
+    rbc = cell("RBC", 1, scenario)
+    state = SimpleNamespace(time=10e-6)
+    steps._known = {1}
+    h = scenario.numerics.mesh_h
+    # the band's top (0.7) is reached (0.1 - gain) / gain x 10 us after the last value; level k looks
+    # 1.5 x 2^k x 2.5 us = 3.75, 7.5, 15, 30 us ahead
+    for gain, expected in ((0.0, 3), (0.001, 3), (0.03, 2), (0.05, 1), (0.08, 0)):   # spacing max per 10 us
+        steps.level = 3
+        steps._spacings = {1: [(0.0, 0.45, 0.60, 0), (10e-6, 0.45, 0.60 + gain, 0)]}
+        assert steps.choose(state, [rbc], None) == expected, gain
+    steps.level = 3                                  # the bottom (0.3): 0.35 falling 0.03 per 10 us, 16.7 us
+    steps._spacings = {1: [(0.0, 0.38, 0.5, 0), (10e-6, 0.35, 0.5, 0)]}
+    assert steps.choose(state, [rbc], None) == 2
+    steps._spacings = {}                             # a trend needs two values, of the same redistribution
+    steps._track_spacing([rbc], 0.0)
+    assert steps._spacings[1] == [(0.0, rbc.measures.spacing_min, rbc.measures.spacing_max, 0)]
+    steps._track_spacing([rbc], 10e-6)
+    assert len(steps._spacings[1]) == 2
+    steps._track_spacing([replace(rbc, membrane=rbc.membrane.resampled(0.5 * h))], 20e-6)
+    assert len(steps._spacings[1]) == 1 and steps._spacings[1][0][3] == 1
+    steps.level = 3
+    assert steps.choose(state, [rbc], None) == 3                # no trend: no limit
+
+
 def paper_pair(number, mesh_h, tolerance):
-    base = Scenario().with_numerics(mesh_h=mesh_h, dt=2.5e-6).with_membrane("paper")
+    """The reference: fixed steps of 2.5 us in the tolerance run's time scheme (bdf2)."""
+    base = Scenario().with_numerics(mesh_h=mesh_h, dt=2.5e-6, time_scheme="bdf2").with_membrane("paper")
     runs = [run_paper(number, paper_scenario(number, base.with_numerics(tolerance=t), dt_given=True))
             for t in (0.0, tolerance)]
     reference, adaptive = runs
@@ -105,7 +148,7 @@ def test_default_stream_within_tolerance():
     results = []
     for tolerance in (0.0, 1e-6):
         sink = PathSink()
-        scenario = Scenario().with_numerics(tolerance=tolerance)
+        scenario = Scenario().with_numerics(tolerance=tolerance, time_scheme="bdf2")
         result = run_stream(scenario, StreamSettings(Arrivals(cells=("RBC", "melanoma"))), sinks=[sink])
         results.append((result, {k: np.array(v) for k, v in sink.paths.items()}))
     (reference, ref_paths), (adaptive, paths) = results

@@ -14,7 +14,7 @@ import argparse
 
 from controller.sorter import MODES, ControllerSettings
 from sim import plants
-from sim.scenario import CONVECTIONS, LINEAR_SOLVERS, MEMBRANE_METHODS, SAW_MODELS, ScenarioError
+from sim.scenario import CONVECTIONS, LINEAR_SOLVERS, MEMBRANE_METHODS, SAW_MODELS, TIME_SCHEMES, ScenarioError
 
 from . import arguments as limits
 from . import units
@@ -42,6 +42,9 @@ def scenario_options(parser: argparse.ArgumentParser):
     group.add_argument("--dt", metavar="TIME",
                        help="time step (default 2.5us; vcyto paper: the paper's step for the scenario)")
     group.add_argument("--convection", choices=CONVECTIONS, help="convection treatment (default imex)")
+    group.add_argument("--time-scheme", choices=TIME_SCHEMES,
+                       help="FE-IB time discretisation: euler (the paper's first-order step), bdf2 (second order; "
+                            "docs/numerics.md) or auto (the default: bdf2 with --tolerance, euler otherwise)")
     group.add_argument("--saw-model", choices=SAW_MODELS, help="SAW model (default paper)")
     group.add_argument("--solver", choices=LINEAR_SOLVERS, help="linear solver (default auto)")
     group.add_argument("--membrane", choices=tuple(MEMBRANE_METHODS),
@@ -57,7 +60,8 @@ def scenario_from(args, membrane: str | None = None):
         if method else []
     overrides += list(args.overrides) + tolerance_override(args)
     for option, field in (("mesh_h", "numerics.mesh_h"), ("dt", "numerics.dt"), ("convection", "numerics.convection"),
-                          ("saw_model", "saw.model"), ("solver", "numerics.linear_solver")):
+                          ("time_scheme", "numerics.time_scheme"), ("saw_model", "saw.model"),
+                          ("solver", "numerics.linear_solver")):
         value = getattr(args, option, None)
         if value is not None:
             overrides.append(f"{field}={value}")
@@ -71,8 +75,9 @@ def tolerance_options(parser: argparse.ArgumentParser):
     group.add_argument("--tolerance", metavar="LENGTH",
                        help="pick each FE-IB step from dt, 2dt, 4dt, 8dt (dt = --dt, default 2.5us) by an error "
                             "estimate on the membranes, for at most this centroid path error per transit against "
-                            "fixed steps of dt, e.g. 1um (a bare number is in m; at most 50um); never above the "
-                            "cells' stability limit (default: fixed dt)")
+                            "fixed steps of dt in the same time scheme (bdf2 unless --time-scheme says otherwise), "
+                            "e.g. 1um (a bare number is in m; at most 50um); never above the cells' stability limit "
+                            "(default: fixed dt)")
 
 
 def length_value(text: str, field: str = "value") -> float:

@@ -69,6 +69,7 @@ class Level:
     coupling: float | None = None      # auto: its coupling factor (None: sim.auto's default)
     stiff: float | None = None         # auto: its stiff-cell capillary number (None: sim.auto's default; 0: off)
     tolerance: float | None = None     # feib: dt picked per step from dt..8 dt for this path error (sim.adaptive)
+    scheme: str = "auto"               # feib: numerics.time_scheme (auto: bdf2 with a tolerance, euler otherwise)
 
     @property
     def window_mesh_h(self) -> float:
@@ -84,6 +85,9 @@ class Level:
             text += f" window h={self.window_mesh_h / UM:.3g}um"
         text += f" coupling={self.coupling:g}" if self.coupling is not None else ""
         text += f" tolerance={self.tolerance / UM:g}um" if self.tolerance is not None else ""
+        if self.model == "feib" and (self.scheme != "auto" or self.tolerance is not None):
+            numerics = Scenario().with_numerics(tolerance=self.tolerance or 0.0, time_scheme=self.scheme).numerics
+            text += " " + numerics.scheme
         return text + (f" stiff Ca<{self.stiff:g}" if self.stiff is not None else "")
 
 
@@ -91,7 +95,9 @@ PAPER_H = 10 * UM / 3
 LADDER = (
     Level("feib", PAPER_H, 2.5e-6),                   # the reference: the paper's resolution and step
     Level("feib", PAPER_H, 10e-6),
-    Level("feib", PAPER_H, 2.5e-6, tolerance=1e-6),   # dt from 2.5-20 us by the error estimate
+    Level("feib", PAPER_H, 2.5e-6, scheme="bdf2"),    # the second-order step at the reference's dt
+    Level("feib", PAPER_H, 10e-6, scheme="bdf2"),
+    Level("feib", PAPER_H, 2.5e-6, tolerance=1e-6),   # dt from 2.5-20 us by the error estimate (bdf2)
     Level("feib", PAPER_H, 2.5e-6, tolerance=3e-6),
     Level("feib", 2 * PAPER_H, 10e-6),
     Level("oneway", PAPER_H, 2.5e-6),
@@ -132,7 +138,7 @@ def make_plant(scenario: Scenario, level: Level, flows: _Flows):
     numerics = {"mesh_h": level.mesh_h} if level.model == "rom" else {"mesh_h": level.mesh_h, "dt": level.dt}
     scenario = scenario.with_numerics(**numerics)
     if level.model == "feib":
-        return plants.build("feib", scenario.with_numerics(tolerance=level.tolerance or 0.0))
+        return plants.build("feib", scenario.with_numerics(tolerance=level.tolerance or 0.0, time_scheme=level.scheme))
     if level.model == "auto":
         rule = {name: value for name, value in (("coupling", level.coupling), ("stiff_capillary", level.stiff))
                 if value is not None}

@@ -39,7 +39,7 @@ from .health import STABLE_FRACTION, paper_bound
 from .membrane import polygon_centroid
 
 LEVELS = 4
-SAFETY = 0.3
+SAFETY = {1: 0.3, 2: 0.6}     # the share of the tolerance a transit's local errors may add up to, by the order
 
 
 class AdaptiveSteps:
@@ -152,23 +152,27 @@ class AdaptiveSteps:
         ratios = [ratio for ratio in ratios if ratio is not None]
         if ratios:
             self.ratio = max(ratios)
-            self.level = self._next_level(level, self.ratio)
+            self.level = self._next_level(level, self.ratio, ceiling=max(level + 1, self.level))
         self._track_spacing(new.cells, new.time)
         if not self.history or self.history[-1][1] != dt:
             self.history.append((state.time, dt))
         self.steps[level] += 1
         return new
 
-    def _next_level(self, level: int, ratio: float) -> int:
-        """The coarsest level (at most one up) whose error relative to the finest level's is within budget.
+    def _next_level(self, level: int, ratio: float, ceiling: int | None = None) -> int:
+        """The coarsest level up to ``ceiling`` (default: one above ``level``, the level the step took) whose
+        error relative to the finest level's is within budget. A step held below the estimate's level (by a
+        predicted redistribution, the end of a control period or the stability cap) may go back to it at once.
 
-        The error rate grows like dt: ``ratio`` measured at dt_k = 2^k dt0 predicts ratio / 2^k (2^j - 1) for
-        level j against the finest level (the reference the tolerance is stated against)."""
+        The error rate grows like dt^p: ``ratio`` measured at dt_k = 2^k dt0 predicts
+        ratio / 2^(p k) (2^(p j) - 1) for level j against the finest level (the reference the tolerance is
+        stated against)."""
         if not math.isfinite(ratio):
             return 0
+        ceiling = min(LEVELS - 1, level + 1 if ceiling is None else ceiling)
         growth = 2 ** self.order         # the error rate per distance grows like dt^order
         rate = ratio / growth ** level
-        fitting = [j for j in range(min(LEVELS - 1, level + 1) + 1) if rate * (growth ** j - 1) <= 1]
+        fitting = [j for j in range(ceiling + 1) if rate * (growth ** j - 1) <= 1]
         return max(fitting)
 
     def _ratio_bdf2(self, cell, time: float) -> float:
@@ -196,7 +200,7 @@ class AdaptiveSteps:
             predicted = weights[0] * c0 + weights[1] * c1 + weights[2] * c2
             error = 2 / 11 * float(np.linalg.norm(centroid - predicted))
             distance = float(np.linalg.norm(centroid - c2))
-            budget = SAFETY * self.tolerance * distance / self.plant.scenario.channel.length
+            budget = SAFETY[self.order] * self.tolerance * distance / self.plant.scenario.channel.length
             ratio = error / budget if budget > 0 else (0.0 if error == 0 else math.inf)
         track.append((time, centroid, redistributions))
         del track[:-3]
@@ -226,7 +230,7 @@ class AdaptiveSteps:
             - new[inside]
         error = 0.5 * dt * float(np.linalg.norm(((new - old) - along).mean(axis=0)))
         distance = dt * float(np.linalg.norm(new, axis=1).mean())
-        budget = SAFETY * self.tolerance * distance / self.plant.scenario.channel.length
+        budget = SAFETY[self.order] * self.tolerance * distance / self.plant.scenario.channel.length
         return error / budget if budget > 0 else (0.0 if error == 0 else math.inf)
 
     # ------------------------------------------------------------------ reporting

@@ -138,7 +138,8 @@ def make_plant(scenario: Scenario, level: Level, flows: _Flows):
     numerics = {"mesh_h": level.mesh_h} if level.model == "rom" else {"mesh_h": level.mesh_h, "dt": level.dt}
     scenario = scenario.with_numerics(**numerics)
     if level.model == "feib":
-        return plants.build("feib", scenario.with_numerics(tolerance=level.tolerance or 0.0, time_scheme=level.scheme))
+        scheme = scenario.numerics.time_scheme if level.scheme == "auto" else level.scheme
+        return plants.build("feib", scenario.with_numerics(tolerance=level.tolerance or 0.0, time_scheme=scheme))
     if level.model == "auto":
         rule = {name: value for name, value in (("coupling", level.coupling), ("stiff_capillary", level.stiff))
                 if value is not None}

@@ -100,3 +100,13 @@ def test_bad_time_schemes_are_one_line_errors(arguments, message):
     result = subprocess.run([sys.executable, "-m", "vcyto.cli", *arguments], capture_output=True, text=True)
     assert result.returncode == 2, result.stderr
     assert message in result.stderr and result.stderr.count("\n") == 1 and "Traceback" not in result.stderr
+
+
+def test_the_tradeoff_ladder_names_the_time_scheme():
+    from vcyto.tradeoff import LADDER, Level, tradeoff
+    assert Level("feib", 10 * UM / 3, 2.5e-6, tolerance=1e-6).label.endswith("tolerance=1um bdf2")
+    assert Level("feib", 10 * UM / 3, 2.5e-6).label == "feib h=3.33um dt=2.5us"           # auto, fixed: euler
+    assert [level.label for level in LADDER].count("feib h=3.33um dt=10us bdf2") == 1
+    # --time-scheme given: every feib level whose own scheme is auto takes it, and says so
+    result = tradeoff(Scenario().with_numerics(time_scheme="bdf2"), ladder=LADDER[:2], scenes=())
+    assert result["reference"] == "feib h=3.33um dt=2.5us bdf2" and result["rows"] == []

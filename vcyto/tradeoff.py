@@ -13,7 +13,7 @@ import csv
 import math
 import time
 from collections import defaultdict
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -138,8 +138,7 @@ def make_plant(scenario: Scenario, level: Level, flows: _Flows):
     numerics = {"mesh_h": level.mesh_h} if level.model == "rom" else {"mesh_h": level.mesh_h, "dt": level.dt}
     scenario = scenario.with_numerics(**numerics)
     if level.model == "feib":
-        scheme = scenario.numerics.time_scheme if level.scheme == "auto" else level.scheme
-        return plants.build("feib", scenario.with_numerics(tolerance=level.tolerance or 0.0, time_scheme=scheme))
+        return plants.build("feib", scenario.with_numerics(tolerance=level.tolerance or 0.0, time_scheme=level.scheme))
     if level.model == "auto":
         rule = {name: value for name, value in (("coupling", level.coupling), ("stiff_capillary", level.stiff))
                 if value is not None}
@@ -200,8 +199,12 @@ def compare(run: dict, reference: dict) -> dict:
 
 def tradeoff(scenario: Scenario, ladder=LADDER, scenes=SCENES, progress=None) -> dict:
     """Every scene on every level; rows compared with the first level (the reference). An interrupt (Ctrl-C,
-    SIGTERM) ends it with the rows finished so far, ``interrupted`` set."""
+    SIGTERM) ends it with the rows finished so far, ``interrupted`` set. A time scheme given in ``scenario``
+    (``--time-scheme``) is every feib level's whose own is ``auto``, and their labels name it."""
     from .progress import rows_until_interrupted
+    if scenario.numerics.time_scheme != "auto":
+        ladder = tuple(replace(level, scheme=scenario.numerics.time_scheme)
+                       if level.model == "feib" and level.scheme == "auto" else level for level in ladder)
     rows, interrupted = rows_until_interrupted(lambda rows: _measure(scenario, ladder, scenes, progress, rows))
     return {"reference": ladder[0].label, "rows": rows, "interrupted": interrupted,
             "planned_rows": len(ladder) * len(scenes)}

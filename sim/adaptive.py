@@ -240,6 +240,7 @@ class AdaptiveSteps:
         share = [0.0] * LEVELS
         for (start, dt), (stop, _) in zip(changes[:-1], changes[1:]):
             share[self.levels.index(dt)] += stop - start
-        return {"tolerance_um": self.tolerance * 1e6, "levels_us": [dt * 1e6 for dt in self.levels],
+        return {"tolerance_um": self.tolerance * 1e6, "scheme": self.plant.scenario.numerics.scheme,
+                "levels_us": [dt * 1e6 for dt in self.levels],
                 "steps": list(self.steps), "time_ms": [t * 1e3 for t in share],
                 "changes": [(round(t * 1e3, 6), dt * 1e6) for t, dt in self.history]}

@@ -111,7 +111,8 @@ class FeibPlant:
     def time_steps(self) -> dict:
         """The dt used: fixed, or per level with the changes over time (``sim.adaptive``)."""
         if self.ib.adaptive is None:
-            return {"dt_us": self.scenario.numerics.dt * 1e6, "steps": self.ib.timings.steps}
+            return {"dt_us": self.scenario.numerics.dt * 1e6, "steps": self.ib.timings.steps,
+                    "scheme": self.scenario.numerics.scheme}
         return self.ib.adaptive.summary(self.state.time)
 
     def adopt(self, state: State, injected: int):

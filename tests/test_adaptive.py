@@ -115,6 +115,7 @@ def test_paper_scenarios_within_tolerance_on_the_coarse_mesh(number):
     assert gap <= 1e-6
     assert adaptive["steps"] < reference["steps"]            # coarser levels were taken (a melanoma in the jet: few)
     summary = adaptive["time_steps"]
+    assert summary["scheme"] == "bdf2" and adaptive["time_scheme"] == reference["time_scheme"] == "bdf2"
     assert sum(summary["steps"]) == adaptive["steps"] and summary["steps"][1] > 0
     assert math.isclose(sum(summary["time_ms"]), adaptive["_times"][-1] * 1e3, rel_tol=1e-9)
 

@@ -110,3 +110,17 @@ def test_the_tradeoff_ladder_names_the_time_scheme():
     # --time-scheme given: every feib level whose own scheme is auto takes it, and says so
     result = tradeoff(Scenario().with_numerics(time_scheme="bdf2"), ladder=LADDER[:2], scenes=())
     assert result["reference"] == "feib h=3.33um dt=2.5us bdf2" and result["rows"] == []
+
+
+def test_the_paper_run_reports_its_time_scheme(tmp_path):
+    import json
+    runs = {}
+    for scheme in ("bdf2", "auto"):
+        result = subprocess.run([sys.executable, "-m", "vcyto.cli", "paper", "2", "--no-png", "--json", "--quiet",
+                                 "--mesh-h", "10um", "--membrane", "conserving", "--time-scheme", scheme],
+                                capture_output=True, text=True,
+                                cwd=tmp_path)
+        assert result.returncode == 0, result.stderr
+        runs[scheme] = json.loads(result.stdout)
+    assert runs["bdf2"]["time_scheme"] == "bdf2" and runs["auto"]["time_scheme"] == "euler"
+    assert runs["bdf2"]["cells"][0]["outlet"] == runs["auto"]["cells"][0]["outlet"] == "upper"

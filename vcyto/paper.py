@@ -86,6 +86,7 @@ def run_paper(number: int, scenario: Scenario, max_time: float = 20e-3, progress
         "mesh_h_um": scenario.numerics.mesh_h / UM,
         "dofs": plant.fluid.space.dofs,
         "convection": scenario.numerics.convection,
+        "time_scheme": scenario.numerics.scheme,
         "saw_model": scenario.saw.model,
         "steps": state.step,
         "wall_time_s": {
@@ -144,7 +145,9 @@ def time_step_line(summary: dict | None) -> list[str]:
         return []
     parts = ", ".join(f"{dt:g} us: {steps} steps, {ms:.3f} ms" for dt, steps, ms
                       in zip(summary["levels_us"], summary["steps"], summary["time_ms"]) if steps)
-    return [f"  time steps for a {summary['tolerance_um']:g} um tolerance: {parts}; {len(summary['changes'])} changes"]
+    scheme = f" ({summary['scheme']})" if summary.get("scheme") else ""
+    return [f"  time steps for a {summary['tolerance_um']:g} um tolerance{scheme}: {parts}; "
+            f"{len(summary['changes'])} changes"]
 
 
 def report_lines(result: dict) -> list[str]:
@@ -152,8 +155,8 @@ def report_lines(result: dict) -> list[str]:
     wall = result["wall_time_s"]
     return [
         f"paper scenario {result['scenario']}: {cell['type']}, {result['method']}",
-        f"  mesh h = {result['mesh_h_um']:.3g} um ({result['dofs']:,} DOFs), dt = {result['dt_us']:g} us, "
-        f"convection {result['convection']}, SAW model {result['saw_model']}",
+        f"  mesh h = {result['mesh_h_um']:.3g} um ({result['dofs']:,} DOFs), dt = {result['dt_us']:g} us "
+        f"({result['time_scheme']}), convection {result['convection']}, SAW model {result['saw_model']}",
         f"  outlet: {cell['outlet']} (paper: {result['paper_outlet']}), exit at t = {cell['exit_time_ms']:.3f} ms, "
         f"y = {cell['exit_y_um']:.1f} um, after {result['steps']} steps",
         f"  enclosed area at exit: {100 * cell['area_ratio_final']:.2f} % of the initial area "

@@ -23,7 +23,8 @@ spacing predicts (``_before_redistribution``): that event changes the membrane's
 finest level puts it where the reference puts it.
 
 Never above the stability limit of the cells in the channel: STABLE_FRACTION times the paper's bound (33)
-with C_cell = 1 (``sim.stability.paper_bound``). The measured limits are 4.2x (melanoma, 3.33 um mesh) and
+(STABLE_FRACTION_BDF2 = 2 with bdf2, whose limit for the melanoma at the paper's mesh lies between 2.25x and
+2.6x) with C_cell = 1 (``sim.stability.paper_bound``). The measured limits are 4.2x (melanoma, 3.33 um mesh) and
 >= 5.6x (6.67 um) that bound, >= 100 us for the RBC (docs/results.md, "Stability"); 3.4x stays below all of them.
 Each level's fluid matrix is factored once, when first needed, on the same mesh.
 """
@@ -35,7 +36,7 @@ import math
 import numpy as np
 
 from .fluid import NavierStokes
-from .health import STABLE_FRACTION, paper_bound
+from .health import paper_bound, stable_fraction
 from .membrane import polygon_centroid
 
 LEVELS = 4
@@ -76,12 +77,13 @@ class AdaptiveSteps:
         return self._fluids[level]
 
     def stable_level(self, cells) -> int:
-        """The coarsest level within STABLE_FRACTION of every present cell type's stability bound."""
+        """The coarsest level within ``stable_fraction`` of every present cell type's stability bound."""
         limit = math.inf
         for cell in cells:
             cell_type = cell.membrane.cell_type
             if cell_type.name not in self._limits:
-                self._limits[cell_type.name] = STABLE_FRACTION * paper_bound(cell_type, self.plant.scenario)
+                self._limits[cell_type.name] = stable_fraction(self.plant.scenario) * paper_bound(
+                    cell_type, self.plant.scenario)
             limit = min(limit, self._limits[cell_type.name])
         return max([0] + [k for k, dt in enumerate(self.levels) if dt <= limit])
 
@@ -149,10 +151,12 @@ class AdaptiveSteps:
             samples = [self._sample(state.flow.velocity, cell.membrane.points) for cell in active]
             new = self.plant.fixed_step(state, actuation, self.fluid(level))
             ratios = [self._ratio(sample, new.flow.velocity, dt) for sample in samples]
-        ratios = [ratio for ratio in ratios if ratio is not None]
-        if ratios:
-            self.ratio = max(ratios)
-            self.level = self._next_level(level, self.ratio, ceiling=max(level + 1, self.level))
+        known = [ratio for ratio in ratios if ratio is not None]
+        if known:
+            self.ratio = max(known)
+            next_level = self._next_level(level, self.ratio, ceiling=max(level + 1, self.level))
+            # a cell without an estimate (new, or just redistributed) holds the level: no step up for it
+            self.level = next_level if len(known) == len(ratios) else min(next_level, self.level)
         self._track_spacing(new.cells, new.time)
         if not self.history or self.history[-1][1] != dt:
             self.history.append((state.time, dt))
@@ -180,14 +184,18 @@ class AdaptiveSteps:
 
         The area centroid is extrapolated to the new time by the parabola through its last three values; for
         equal steps BDF2's local error is -2/9 dt^3 c^(3) and the parabola's dt^3 c^(3), so the error is 2/11 of
-        their difference. A cell gives no estimate (None: the level stays; a new cell starts at the finest) until
-        it has three earlier centroids; a redistribution of its points moves its polygon's centroid a little at
-        once, so its track then starts again. A cell that has left, or is partly through an outlet, is left out
-        (0)."""
+        their difference (for unequal steps, of the parabola's error at the step's nodes, see ``_milne``). A cell
+        gives no estimate (None: the level goes no higher; a new cell starts at the finest) until it has three
+        earlier centroids; a redistribution of its points moves its polygon's centroid a little at once, so its
+        track then starts again. A cell that has left is left out (0); one partly through an outlet gives no
+        estimate (its exit is still to be settled)."""
         track = self._tracks.setdefault(cell.id, [])
-        if not cell.in_channel or (cell.membrane.points[:, 0] >= self.plant.scenario.channel.length).any():
+        if not cell.in_channel:
             del self._tracks[cell.id]
             return 0.0
+        if (cell.membrane.points[:, 0] >= self.plant.scenario.channel.length).any():
+            track.clear()
+            return None
         centroid = polygon_centroid(cell.membrane.points)
         redistributions = cell.membrane.redistributions
         if track and track[-1][2] != redistributions:
@@ -198,7 +206,7 @@ class AdaptiveSteps:
             weights = [((time - ta) * (time - tb)) / ((t - ta) * (t - tb))
                        for t, ta, tb in ((t0, t1, t2), (t1, t0, t2), (t2, t0, t1))]
             predicted = weights[0] * c0 + weights[1] * c1 + weights[2] * c2
-            error = 2 / 11 * float(np.linalg.norm(centroid - predicted))
+            error = _milne(time, t0, t1, t2) * float(np.linalg.norm(centroid - predicted))
             distance = float(np.linalg.norm(centroid - c2))
             budget = SAFETY[self.order] * self.tolerance * distance / self.plant.scenario.channel.length
             ratio = error / budget if budget > 0 else (0.0 if error == 0 else math.inf)
@@ -233,6 +241,11 @@ class AdaptiveSteps:
         budget = SAFETY[self.order] * self.tolerance * distance / self.plant.scenario.channel.length
         return error / budget if budget > 0 else (0.0 if error == 0 else math.inf)
 
+    def reset(self):
+        """Forget every cell, the IDT drive and the level (a new run on the same plant: ``FeibPlant.reset``)."""
+        self._known, self._actuation, self._tracks, self._spacings = set(), None, {}, {}
+        self.level, self.ratio, self.history, self.steps = LEVELS - 1, float("nan"), [], [0] * LEVELS
+
     # ------------------------------------------------------------------ reporting
     def summary(self, end_time: float) -> dict:
         """The dt used over time: steps and simulated time per level, and the changes (time, dt)."""
@@ -244,3 +257,13 @@ class AdaptiveSteps:
                 "levels_us": [dt * 1e6 for dt in self.levels],
                 "steps": list(self.steps), "time_ms": [t * 1e3 for t in share],
                 "changes": [(round(t * 1e3, 6), dt * 1e6) for t, dt in self.history]}
+
+
+def _milne(time: float, t0: float, t1: float, t2: float) -> float:
+    """BDF2's local error over the difference between its step and the parabola through (t0, t1, t2) taken
+    to ``time`` (Milne's device): with c3 the third derivative and dt = time - t2, the parabola's error is
+    (t - t0)(t - t1)(t - t2) c3 / 6 and BDF2's 2/9 dt^3 c3 of the other sign, so the factor is
+    (2/9 dt^3) / (|prod| / 6 + 2/9 dt^3): 2/11 for equal steps."""
+    dt = time - t2
+    bdf2 = 2 / 9 * dt ** 3
+    return bdf2 / (abs((time - t0) * (time - t1) * dt) / 6 + bdf2)

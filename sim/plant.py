@@ -74,6 +74,8 @@ class FeibPlant:
             self._initial = self.ib.fluid.initial_flow(0.0)
         self.schedule = _Schedule(arrivals)
         self.state = State(self._initial, ())
+        if self.ib.adaptive is not None:
+            self.ib.adaptive.reset()
         self._inject()
         return self.observe()
 

@@ -25,7 +25,7 @@ def cell(kind, key, scenario):
 
 
 def test_levels_new_cells_empty_channel_and_the_stability_cap():
-    scenario = Scenario().with_numerics(dt=10e-6, tolerance=1e-6)          # paper mesh; levels 10-80 us
+    scenario = Scenario().with_numerics(dt=10e-6, tolerance=1e-6, time_scheme="euler")   # paper mesh; 10-80 us
     steps = steps_of(scenario)
     state = SimpleNamespace(time=0.0)
     assert steps.levels == [10e-6, 20e-6, 40e-6, 80e-6]
@@ -53,6 +53,52 @@ def test_next_level_against_the_finest_level():
     assert steps._next_level(1, 0.2) == 2          # at most one up per step
     assert steps._next_level(2, 1.5) == 1          # down as far as needed
     assert steps._next_level(3, math.inf) == 0
+
+
+def test_the_second_order_scheme_has_its_own_stability_cap():
+    """bdf2 is less stable than euler (the melanoma at the paper's mesh: 2.25x its bound ran, 2.6x did not):
+    its cap is 2x the bound, so a melanoma never takes 20 us there; an RBC (bound 409 us) is not capped."""
+    from sim.health import STABLE_FRACTION_BDF2, HealthLimits, paper_bound
+    scenario = Scenario().with_numerics(tolerance=1e-6)                  # bdf2; levels 2.5-20 us
+    steps = steps_of(scenario)
+    melanoma = scenario.cell_type("melanoma")
+    assert 10e-6 < STABLE_FRACTION_BDF2 * paper_bound(melanoma, scenario) < 20e-6
+    assert steps.stable_level([cell("melanoma", 1, scenario)]) == 2
+    assert steps.stable_level([cell("RBC", 1, scenario)]) == 3
+    euler = steps_of(scenario.with_numerics(time_scheme="euler"))
+    assert euler.stable_level([cell("melanoma", 1, scenario)]) == 3
+    # the failure hint of a bdf2 run suggests bdf2's stable dt
+    limits = HealthLimits.of(scenario.with_numerics(tolerance=0.0, time_scheme="bdf2", dt=40e-6))
+    assert limits.suggested_dt(melanoma) == pytest.approx(STABLE_FRACTION_BDF2 * paper_bound(melanoma, scenario))
+
+
+def test_milne_factor_follows_the_steps():
+    from sim.adaptive import _milne
+    assert _milne(3.0, 0.0, 1.0, 2.0) == pytest.approx(2 / 11)                 # equal steps
+    # one level up: the parabola from steps of 1 extrapolated over 2 errs by 4*3*2/6 = 4, BDF2 by 2/9 * 8
+    assert _milne(4.0, 0.0, 1.0, 2.0) == pytest.approx((16 / 9) / (4 + 16 / 9))
+    assert _milne(2.5, 0.0, 1.0, 2.0) < 2 / 11                                 # one level down
+
+
+def test_a_cell_without_an_estimate_holds_the_level_and_reset_forgets():
+    """A cell with no estimate yet (new, or its track restarted by a redistribution) lets no other cell take
+    the level up; a reset (a new run on the same plant) forgets the cells, the level and the counts."""
+    scenario = Scenario().with_numerics(tolerance=1e-6)
+    steps = steps_of(scenario)
+    estimates = iter([[0.01, None], [0.01, 0.01], [6.0, None]])      # 6 at level 2: level 1 at 6/16 x 3 > 1
+    steps._ratio_bdf2 = lambda cell, time: next(current)
+    steps.plant = SimpleNamespace(fixed_step=lambda state, actuation, fluid: state, scenario=scenario)
+    steps.fluid = lambda level: None
+    cells = [cell("RBC", k, scenario) for k in (1, 2)]
+    state = SimpleNamespace(time=0.0, cells=cells)
+    steps._known, steps._actuation, steps.level = {1, 2}, 0.0, 1
+    steps._before_redistribution = lambda active, time: LEVELS - 1
+    for expected in (1, 2, 0):
+        current = iter(next(estimates))
+        steps.step(state, 0.0, None)
+        assert steps.level == expected
+    steps.reset()
+    assert steps.level == LEVELS - 1 and steps._known == set() and steps.steps == [0] * LEVELS
 
 
 def test_next_level_of_the_second_order_scheme():

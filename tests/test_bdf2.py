@@ -92,6 +92,8 @@ def test_bdf2_needs_a_constant_matrix():
 
 @pytest.mark.parametrize("arguments, message", [
     (["paper", "2", "--time-scheme", "bdf3"], "vcyto: error: --time-scheme: invalid choice: 'bdf3'"),
+    (["stream", "--model", "rom", "--time-scheme", "bdf2"], "--time-scheme: sets the time scheme of the feib step"),
+    (["bench", "fluid", "--time-scheme", "bdf2"], "--time-scheme: bench fluid compares convection treatments"),
     (["paper", "2", "--set", "numerics.time_scheme=rk4"], "numerics.time_scheme: must be one of auto, euler, bdf2"),
     (["paper", "2", "--time-scheme", "bdf2", "--convection", "implicit"],
      "numerics.time_scheme: bdf2 needs the convection treatment imex or stokes"),
@@ -110,6 +112,12 @@ def test_the_tradeoff_ladder_names_the_time_scheme():
     # --time-scheme given: every feib level whose own scheme is auto takes it, and says so
     result = tradeoff(Scenario().with_numerics(time_scheme="bdf2"), ladder=LADDER[:2], scenes=())
     assert result["reference"] == "feib h=3.33um dt=2.5us bdf2" and result["rows"] == []
+    from vcyto.tradeoff import resolved_ladder
+    labels = [level.label for level in resolved_ladder(Scenario().with_numerics(time_scheme="bdf2"), LADDER)]
+    assert len(labels) == len(set(labels)) == len(LADDER) - 2       # the two bdf2 levels are now duplicates
+    oseen = resolved_ladder(Scenario().with_numerics(convection="oseen"), LADDER)
+    assert not any("bdf2" in level.label for level in oseen)          # explicit bdf2 left out, auto is euler
+    assert len(oseen) == len(LADDER) - 2 and all(level.scheme in ("euler", "auto") for level in oseen)
 
 
 def test_the_paper_run_reports_its_time_scheme(tmp_path):

@@ -59,6 +59,10 @@ def scenario_from(args, membrane: str | None = None):
     overrides = [f"numerics.{field}={str(value).lower()}" for field, value in MEMBRANE_METHODS[method].items()] \
         if method else []
     overrides += list(args.overrides) + tolerance_override(args)
+    if getattr(args, "time_scheme", None) not in (None, "auto") and getattr(args, "model", None) not in \
+            (None, "feib", "auto"):
+        raise UsageError(f"--time-scheme: sets the time scheme of the feib step only; drop it or use --model feib "
+                         f"or auto (got --model {args.model})")
     for option, field in (("mesh_h", "numerics.mesh_h"), ("dt", "numerics.dt"), ("convection", "numerics.convection"),
                           ("time_scheme", "numerics.time_scheme"), ("saw_model", "saw.model"),
                           ("solver", "numerics.linear_solver")):

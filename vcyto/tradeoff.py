@@ -19,7 +19,7 @@ import numpy as np
 
 from sim.health import HealthError
 from sim.openloop import stepping
-from sim.scenario import UM, Scenario
+from sim.scenario import UM, Scenario, ScenarioError
 
 
 @dataclass(frozen=True)
@@ -85,9 +85,8 @@ class Level:
             text += f" window h={self.window_mesh_h / UM:.3g}um"
         text += f" coupling={self.coupling:g}" if self.coupling is not None else ""
         text += f" tolerance={self.tolerance / UM:g}um" if self.tolerance is not None else ""
-        if self.model == "feib" and (self.scheme != "auto" or self.tolerance is not None):
-            numerics = Scenario().with_numerics(tolerance=self.tolerance or 0.0, time_scheme=self.scheme).numerics
-            text += " " + numerics.scheme
+        if self.model == "feib" and (self.scheme == "bdf2" or (self.scheme == "auto" and self.tolerance is not None)):
+            text += " bdf2"             # auto: bdf2 with a tolerance (and convection imex, the ladder's default)
         return text + (f" stiff Ca<{self.stiff:g}" if self.stiff is not None else "")
 
 
@@ -199,15 +198,33 @@ def compare(run: dict, reference: dict) -> dict:
 
 def tradeoff(scenario: Scenario, ladder=LADDER, scenes=SCENES, progress=None) -> dict:
     """Every scene on every level; rows compared with the first level (the reference). An interrupt (Ctrl-C,
-    SIGTERM) ends it with the rows finished so far, ``interrupted`` set. A time scheme given in ``scenario``
-    (``--time-scheme``) is every feib level's whose own is ``auto``, and their labels name it."""
+    SIGTERM) ends it with the rows finished so far, ``interrupted`` set. The feib levels' time schemes are
+    resolved in ``scenario`` first (``resolved_ladder``)."""
     from .progress import rows_until_interrupted
-    if scenario.numerics.time_scheme != "auto":
-        ladder = tuple(replace(level, scheme=scenario.numerics.time_scheme)
-                       if level.model == "feib" and level.scheme == "auto" else level for level in ladder)
+    ladder = resolved_ladder(scenario, ladder)
     rows, interrupted = rows_until_interrupted(lambda rows: _measure(scenario, ladder, scenes, progress, rows))
     return {"reference": ladder[0].label, "rows": rows, "interrupted": interrupted,
             "planned_rows": len(ladder) * len(scenes)}
+
+
+def resolved_ladder(scenario: Scenario, ladder) -> tuple:
+    """The ladder with each feib level's time scheme as ``scenario`` makes it (``auto`` takes ``--time-scheme``,
+    then bdf2 with a tolerance and a constant matrix, euler otherwise), so its label says what runs; a level
+    whose scheme cannot run with the scenario's convection (bdf2 with oseen or implicit) is left out, and a
+    level that became another's duplicate too."""
+    levels, labels = [], set()
+    for level in ladder:
+        if level.model == "feib":
+            scheme = scenario.numerics.time_scheme if level.scheme == "auto" else level.scheme
+            try:
+                numerics = scenario.with_numerics(tolerance=level.tolerance or 0.0, time_scheme=scheme).numerics
+            except ScenarioError:
+                continue
+            level = replace(level, scheme=numerics.scheme)
+        if level.label not in labels:
+            labels.add(level.label)
+            levels.append(level)
+    return tuple(levels)
 
 
 def _measure(scenario, ladder, scenes, progress, rows):

@@ -273,9 +273,15 @@ def add_command(commands):
         target.parser(targets)
 
 
+CONVECTION_BENCHES = ("fluid", "treatments", "paper")     # they switch the convection treatment themselves
+
+
 def command_bench(args):
     target = TARGETS[args.target]
     progress = stderr_progress(args.quiet or args.json)
+    if args.target in CONVECTION_BENCHES and getattr(args, "time_scheme", None) not in (None, "auto"):
+        raise UsageError(f"--time-scheme: bench {args.target} compares convection treatments with the paper's "
+                         "step; drop --time-scheme (bench tolerance measures bdf2)")
     scenario = scenario_from(args) if target.scenario else None
     result, lines = target.run(args, scenario, progress)
     emit(args, result, lines)

@@ -35,7 +35,7 @@ import math
 
 import numpy as np
 
-from .fluid import NavierStokes
+from .fluid import NavierStokes, lagrange
 from .health import paper_bound, stable_fraction
 from .membrane import polygon_centroid
 
@@ -118,6 +118,8 @@ class AdaptiveSteps:
             if trend is None or len(trend) < 2:
                 continue
             (t0, low0, high0, _), (t1, low1, high1, _) = trend
+            if t1 <= t0:
+                continue
             for k in range(level, 0, -1):
                 ahead = 1.5 * self.levels[k] / (t1 - t0)
                 if low1 + (low1 - low0) * ahead >= low and high1 + (high1 - high0) * ahead <= high:
@@ -203,9 +205,7 @@ class AdaptiveSteps:
         ratio = None
         if len(track) == 3:
             (t0, c0, _), (t1, c1, _), (t2, c2, _) = track
-            weights = [((time - ta) * (time - tb)) / ((t - ta) * (t - tb))
-                       for t, ta, tb in ((t0, t1, t2), (t1, t0, t2), (t2, t0, t1))]
-            predicted = weights[0] * c0 + weights[1] * c1 + weights[2] * c2
+            predicted = lagrange((t0, t1, t2), (c0, c1, c2), time)
             error = _milne(time, t0, t1, t2) * float(np.linalg.norm(centroid - predicted))
             distance = float(np.linalg.norm(centroid - c2))
             budget = SAFETY[self.order] * self.tolerance * distance / self.plant.scenario.channel.length

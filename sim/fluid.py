@@ -78,10 +78,13 @@ def value_back(time: float, value: np.ndarray, times, values, target: float) -> 
     for known, earlier in zip(times, values):
         if abs(known - target) <= 1e-9 * abs(time - target):
             return earlier
-    nodes = [time, *times]
-    points = [value, *values]
+    return lagrange([time, *times], [value, *values], target)
+
+
+def lagrange(nodes, values, target: float):
+    """The polynomial through ``values`` at ``nodes`` (numbers or arrays), evaluated at ``target``."""
     result = 0.0
-    for i, (node, point) in enumerate(zip(nodes, points)):
+    for i, (node, point) in enumerate(zip(nodes, values)):
         weight = 1.0
         for j, other in enumerate(nodes):
             if j != i:

@@ -294,11 +294,9 @@ class NavierStokes:
         bdf2 = numerics.scheme == "bdf2"
         before = value_back(state.time, state.velocity, [t for t, _ in state.history],
                             [v for _, v in state.history], state.time - dt) if bdf2 else None
-        if before is not None:
-            self.space.momentum_load((4 * state.velocity - before) / 3, self.mass_coefficient, 0.0, self.positions,
-                                     rhs)
-            if explicit:
-                self.space.momentum_load(2 * state.velocity - before, 0.0, explicit, self.positions, rhs)
+        if before is not None:        # one pass: the mass of (4 v^m - v^{m-1}) / 3, the convection of 2 v^m - v^{m-1}
+            self.space.momentum_load(2 * state.velocity - before, self.mass_coefficient, explicit, self.positions,
+                                     rhs, carried=(4 * state.velocity - before) / 3)
         else:
             self.space.momentum_load(state.velocity, self.mass_coefficient, explicit, self.positions, rhs)
         self.timings.load += clock.perf_counter() - started

@@ -53,7 +53,7 @@ import scipy.sparse as sp
 
 from . import kernels
 from .linalg import Pardiso, SolverError, _aligned_empty, _mkl_runtime, mkl_version, narrow
-from .store import digest, reuse
+from .store import code_digest, digest, reuse
 
 MIN_UNKNOWNS = 20_000        # below this a plain sequential PARDISO solve is as fast
 MAX_MOVES = 4                # unknowns with perturbed pivots moved out of a half before it falls back to matching
@@ -127,12 +127,13 @@ class _Half:
 
     @classmethod
     def factored(cls, matrix: sp.csr_matrix, unknowns: np.ndarray, single: bool, matched: bool, moved=(),
-                 block: sp.csr_matrix | None = None):
+                 block: sp.csr_matrix | None = None, kept: bool = True):
         """The half of ``unknowns`` (rows and columns of ``matrix``; ``block``: those, if already taken out)
-        factored as it is."""
+        factored as it is; ``kept``: restored from ``sim.store`` or kept there (``Pardiso``)."""
         _one_mkl_thread()
         block = matrix[unknowns][:, unknowns].tocsr() if block is None else block
-        return cls(Pardiso(block, symmetric=True, reproducible=True, single=single, matching=matched), moved, matched)
+        return cls(Pardiso(block, symmetric=True, reproducible=True, single=single, matching=matched, kept=kept),
+                   moved, matched)
 
     @classmethod
     def search(cls, matrix: sp.csr_matrix, unknowns: np.ndarray, single: bool):
@@ -143,8 +144,9 @@ class _Half:
         while True:
             keep = np.setdiff1d(unknowns, moved) if moved else unknowns
             block = matrix[keep][:, keep].tocsr()
-            half = cls.factored(matrix, keep, single, matched=False, moved=moved, block=block)
+            half = cls.factored(matrix, keep, single, matched=False, moved=moved, block=block, kept=False)
             if half.factor.perturbed_pivots == 0:
+                half.factor.keep()           # the one a later run restores (a perturbed one is not kept)
                 return half
             half.factor.release()
             if len(moved) == MAX_MOVES:
@@ -277,7 +279,13 @@ class SplitPardiso:
         self.shape = matrix.shape
         self.symmetric = True
         self._worker = _Worker()
-        self.halves, self.parts = self._factored_halves(matrix, separator_split(matrix, np.asarray(x, dtype=float)))
+        self._digest = digest(matrix.data, matrix.indices, matrix.indptr)
+        x = np.asarray(x, dtype=float)
+        stored = reuse("split-cut", {"layout": 1, "matrix": self._digest, "x": digest(x),
+                                    "code": code_digest(separator_split)},
+                       lambda: dict(zip(("left", "right", "separator"), separator_split(matrix, x))))
+        cut = tuple(np.asarray(stored[name], dtype=np.int64) for name in ("left", "right", "separator"))
+        self.halves, self.parts = self._factored_halves(matrix, cut)
         left, right, separator = self.parts
         self._rows = [matrix[p] for p in self.parts]      # for residuals computed where they are used
         couplings = [matrix[p][:, separator].tocsc() for p in (left, right)]
@@ -301,7 +309,7 @@ class SplitPardiso:
         if self.matching:
             return self._both(lambda: _Half.factored(matrix, left, single, True),
                               lambda: _Half.factored(matrix, right, single, True)), cut
-        key = {"layout": 1, "matrix": digest(matrix.data, matrix.indices, matrix.indptr), "cut": digest(*cut),
+        key = {"layout": 1, "matrix": self._digest, "cut": digest(*cut),
                "mkl": mkl_version(), "single": single, "max_moves": MAX_MOVES}
         searched = []
 
@@ -335,7 +343,7 @@ class SplitPardiso:
     def _couple(self):
         """H of each half and the separator's Schur complement: from the store (sim.store) or computed."""
         matrix, couplings = self._pending
-        key = {"layout": 3, "matrix": digest(matrix.data, matrix.indices, matrix.indptr), "parts": digest(*self.parts),
+        key = {"layout": 3, "matrix": self._digest, "parts": digest(*self.parts),
                "mkl": mkl_version(), "single": self.single,
                "factors": digest(*(h.probe(c) for h, c in zip(self.halves, couplings)))}
         stored = reuse("split-solve", key, lambda: self._coupling(matrix, couplings))

@@ -5,6 +5,12 @@ matrices) are computed through ``reuse(kind, key, build)``: with no store instal
 the tests of ``sim``) ``build()`` runs; an application installs a store (``install``) with a
 ``fetch(kind, key, build)`` method that returns the arrays saved under ``key`` or builds and saves them.
 ``key`` is a dict of plain values naming everything the arrays depend on.
+
+Some results are files a library writes itself (PARDISO's factorisations: ``pardiso_handle_store`` writes its
+internal structures into a directory). For those a store may also offer ``find_directory(kind, key)``, the
+directory of a verified entry and its arrays (or None), and ``keep_directory(kind, key, write)``, which calls
+``write(directory)`` on a fresh directory of its choosing and keeps what it wrote with the arrays it returns
+(``write`` raises OSError when it cannot). ``sim`` only names the directory to the library; the store owns it.
 """
 
 from __future__ import annotations
@@ -36,6 +42,21 @@ def reuse(kind: str, key: dict, build: Callable[[], Arrays]) -> Arrays:
     if _store is None:
         return build()
     return _store.fetch(kind, key, build)
+
+
+def stored_directory(kind: str, key: dict) -> tuple[str, Arrays] | None:
+    """The directory kept for (kind, key) and its arrays, or None (no store, no such entry, or a store that keeps
+    no directories)."""
+    finder = getattr(_store, "find_directory", None)
+    return None if finder is None else finder(kind, key)
+
+
+def keep_directory(kind: str, key: dict, write: Callable[[str], Arrays]) -> None:
+    """Keep, under (kind, key), the files ``write(directory)`` puts in a directory and the arrays it returns
+    (nothing without a store that keeps directories)."""
+    keeper = getattr(_store, "keep_directory", None)
+    if keeper is not None:
+        keeper(kind, key, write)
 
 
 def digest(*arrays: np.ndarray) -> str:

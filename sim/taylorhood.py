@@ -112,13 +112,14 @@ class TaylorHood:
         self._scratch = None
         self._pattern = None
 
-    def momentum_load(self, velocity, mass_coefficient, convection_coefficient, positions, out):
-        """Add (m v - k (v . grad) v, phi_i) to ``out[positions[c, i]]`` (numba kernel, see ``kernels``)."""
+    def momentum_load(self, velocity, mass_coefficient, convection_coefficient, positions, out, carried=None):
+        """Add (m w - k (v . grad) v, phi_i) to ``out[positions[c, i]]``, w = ``carried`` (default v) (numba
+        kernel, see ``kernels``)."""
         if self._scratch is None:
             self._scratch = np.empty((self.element_dofs.shape[1], 2, 6))
         kernels.momentum_load(self.element_dofs, self.jacobian_rows, self.areas, self.q_phi, self.q_dphi,
                               self.q_weights, velocity, mass_coefficient, convection_coefficient, positions, out,
-                              self._scratch)
+                              self._scratch, carried)
         return out
 
     def convection_load(self, velocity: np.ndarray) -> np.ndarray:

@@ -16,25 +16,29 @@ def space(request):
     return TaylorHood(channel_mesh(Scenario().channel, request.param * UM))
 
 
-def test_momentum_load_matches_scikit_fem_assembly(space):
+@pytest.mark.parametrize("carrying", [False, True], ids=["mass-of-the-velocity", "mass-of-another-field"])
+def test_momentum_load_matches_scikit_fem_assembly(space, carrying):
+    """(m w - k (v . grad) v, phi): w = v (euler) or a field of its own (BDF2's one pass)."""
     rng = np.random.default_rng(1)
     velocity = rng.standard_normal((2, space.N))
+    carried = rng.standard_normal((2, space.N)) if carrying else velocity
     basis = space.velocity_basis
-    fields = {"ux": basis.interpolate(velocity[0]), "uy": basis.interpolate(velocity[1])}
+    fields = {"ux": basis.interpolate(velocity[0]), "uy": basis.interpolate(velocity[1]),
+              "wx": basis.interpolate(carried[0]), "wy": basis.interpolate(carried[1])}
     mass, convection = 3.0, 2.0
 
     def component(c):
         @LinearForm
         def form(v, w):
-            u = (w.ux, w.uy)
+            u, m = (w.ux, w.uy), (w.wx, w.wy)
             advected = w.ux * grad(u[c])[0] + w.uy * grad(u[c])[1]
-            return (mass * u[c] - convection * advected) * v
+            return (mass * m[c] - convection * advected) * v
         return asm(form, basis, **fields)
 
     expected = np.array([component(0), component(1)])
     out = np.zeros(2 * space.N)
     positions = np.arange(2 * space.N).reshape(2, space.N)
-    space.momentum_load(velocity, mass, convection, positions, out)
+    space.momentum_load(velocity, mass, convection, positions, out, carried=carried if carrying else None)
     assert np.abs(out.reshape(2, -1) - expected).max() <= 1e-12 * np.abs(expected).max()
 
 

@@ -21,6 +21,7 @@ from sim.scenario import ScenarioError
 
 from .. import runfiles, units
 from ..arguments import Parser
+from ..cache import CacheSettingError
 from ..cache import install_default as install_cache
 from ..stream import StreamStopped
 from . import bench, cache, calibrate, extremes, flow, paper, replay, scenario, stability, stream, sweep, tradeoff
@@ -62,7 +63,7 @@ def main(argv=None) -> int:
         install_cache()
         with runfiles.signals_as_interrupt(signals_seen):     # SIGTERM ends every command as Ctrl-C does
             status = args.handler(args)
-    except (ScenarioError, UsageError, units.QuantityError) as error:
+    except (ScenarioError, UsageError, units.QuantityError, CacheSettingError) as error:
         return _fail(error, EXIT_INPUT)
     except (NumericalBlowUp, SolverError) as error:
         return _fail(error, EXIT_NUMERICAL)

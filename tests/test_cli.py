@@ -64,6 +64,7 @@ def test_bench_fluid_reports_every_treatment_and_the_ratio():
     assert all(value > 0 for value in report["steps_ms"].values())
     assert report["imex_over_backsolve"] > 0 and report["backsolve_ms"] > 0
     assert report["rounds"] == 2 and len(report["imex_over_fastest_backsolve_rounds"]) == 2
+    assert set(report["load_ms"]) == {"euler", "bdf2"} and all(v > 0 for v in report["load_ms"].values())
     if report["linear_solver"] == "pardiso":        # the mixed-precision default against both fastest solves
         assert report["fastest_backsolve_ms"] > 0 and report["fastest_single_backsolve_ms"] > 0
         assert report["double_backsolve_ms"] > 0 and report["corrections_per_step"] >= 1

@@ -114,6 +114,7 @@ def _bench_fluid(scenario: Scenario, repeats: int, progress, rounds: int) -> dic
     for solve in (*fastest.values(), matched):
         getattr(solve, "release", lambda: None)()          # their factors: memory the next timings do not need
     result["steps_ms"] = {"imex": median("step")}
+    result["load_ms"] = _load_ms(base, state, repeats)
     for treatment, count in STEPS.items():
         if treatment == "imex":
             continue
@@ -138,6 +139,23 @@ def _bench_fluid(scenario: Scenario, repeats: int, progress, rounds: int) -> dic
             progress("the factorisation kept in a set-up cache and restored from it")
             result.update(_kept_factorisation(scenario, space, base, rhs))
     return result
+
+
+def _load_ms(base: NavierStokes, state, repeats: int) -> dict:
+    """The momentum load of one imex step (the element kernel and its scatter): euler's (the mass and the convection
+    of v^m) and bdf2's (the mass of (4 v^m - v^{m-1}) / 3 and the convection of 2 v^m - v^{m-1}, one pass)."""
+    space, density = base.space, base.scenario.fluid.density
+    rhs = np.zeros(len(base.free))
+    now, before = state.velocity, 0.99 * state.velocity
+
+    def euler():
+        space.momentum_load(now, base.mass_coefficient, density, base.positions, rhs)
+
+    def bdf2():
+        space.momentum_load(2 * now - before, base.mass_coefficient, density, base.positions, rhs,
+                            carried=(4 * now - before) / 3)
+    count = max(10, repeats)
+    return {"euler": _median_ms(euler, count), "bdf2": _median_ms(bdf2, count)}
 
 
 def _kept_factorisation(scenario: Scenario, space, base: NavierStokes, rhs) -> dict:
@@ -278,6 +296,9 @@ def report_lines(result: dict) -> list[str]:
     ]
     for treatment, value in result["steps_ms"].items():
         lines.append(f"  step {treatment:<12} {value:8.2f} ms")
+    if "load_ms" in result:
+        lines.append(f"  momentum load: euler {result['load_ms']['euler']:.2f} ms, bdf2 (one pass) "
+                     f"{result['load_ms']['bdf2']:.2f} ms")
     lines.append(f"  default back-solve: {result['default_solver']}, {result['backsolve_ms']:.2f} ms")
     slower = result["fastest_backsolve_ms"] > result["backsolve_ms"]
     lines.append(f"  fastest back-solve (the target's yardstick): {result['fastest_backsolve']}, "

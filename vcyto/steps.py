@@ -8,6 +8,7 @@ record interval: it sees the steps the loop takes anyway. Recording sinks (MCAP,
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
@@ -55,20 +56,24 @@ class ProgressSink:
         self.left = self.detected = 0
 
     def on_step(self, record: StepRecord):
+        """The record's detections and exits, in time order (one record of an event-driven plant spans many
+        periods: a cell may leave before another is detected), then the status line."""
         progress = self.progress
         actions = {decision.event_id: decision.action for decision in record.decisions}
+        lines = []
         for event in record.events:
             self.detected += 1
-            if self.notes:
-                progress.note(f"t = {event.time * 1e3:7.3f} ms  cell {event.key}: detected type "
-                              f"{event.classification} (fluorescence {event.fluorescence:.2f}), "
-                              f"decision {actions.get(event.event_id, 'pending')}")
+            lines.append((event.time, 0, f"t = {event.time * 1e3:7.3f} ms  cell {event.key}: detected type "
+                                         f"{event.classification} (fluorescence {event.fluorescence:.2f}), "
+                                         f"decision {actions.get(event.event_id, 'pending')}"))
         for cell in record.truth.cells:
             if cell.fate != "in_channel":
                 self.left += 1
-                if self.notes:
-                    progress.note(f"t = {cell.exit_time * 1e3:7.3f} ms  cell {cell.key} ({cell.type}) left by: "
-                                  f"{cell.fate}")
+                lines.append((cell.exit_time, 1, f"t = {cell.exit_time * 1e3:7.3f} ms  cell {cell.key} ({cell.type}) "
+                                                 f"left by: {cell.fate}"))
+        if self.notes:
+            for _, _, line in sorted(lines, key=lambda item: (item[0] if item[0] == item[0] else math.inf, item[1])):
+                progress.note(line)
         progress.update(f"t = {record.time * 1e3:.3f} ms, {len(record.observation.cells)} cells in the channel, "
                         f"{self.left} left, {self.detected} detected, IDT {'on' if record.actuation else 'off'}")
 

@@ -26,7 +26,7 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
 from .scenario import LINEAR_SOLVERS, PRECISIONS
-from .store import digest, keep_directory, stored_directory
+from .store import digest, discard_directory, keep_directory, stored_directory
 
 SOLVERS = LINEAR_SOLVERS              # the one list: sim.scenario
 
@@ -166,6 +166,7 @@ class Pardiso:
         self.iparm[34] = 1     # zero-based indexing
         self._inputs = self.iparm.tolist()     # the parameters as given (PARDISO writes outputs into iparm)
         self._key = None
+        self._refactored = False
         self.restored = kept and self._restore()
         if not self.restored:
             self._call(12, np.zeros(self.shape[0], dtype=self._dtype))
@@ -194,14 +195,21 @@ class Pardiso:
             return False
         directory, arrays = entry
         stored = np.asarray(arrays.get("iparm", ()), dtype=np.int32)
-        if stored.shape != self.iparm.shape or self._handle_call("pardiso_handle_restore", directory) != 0:
+        error = self._handle_call("pardiso_handle_restore", directory) if stored.shape == self.iparm.shape else None
+        if error != 0:
+            # (MKL may hold memory for a restore that failed half-way; a handle it could not fill is not released)
             self._handle[:] = 0
+            discard_directory(self.KIND, self.key(), "PARDISO could not restore it" +
+                              (f" (error {error})" if error is not None else " (its parameters do not fit)"))
             return False
         self.iparm[:] = stored
         return True
 
     def keep(self):
-        """Keep this factorisation in the store (``sim.store.keep_directory``) for a later run to restore."""
+        """Keep this factorisation in the store (``sim.store.keep_directory``) for a later run to restore (not
+        after ``refactor``: its ordering is the first matrix's)."""
+        if self._refactored:
+            return
         key = self.key()
 
         def write(directory: str) -> dict:
@@ -278,7 +286,7 @@ class Pardiso:
         stored = sp.triu(matrix, format="csr") if self.symmetric else sp.csr_matrix(matrix)
         stored.sort_indices()
         self._data = np.ascontiguousarray(stored.data, dtype=self._dtype)
-        self._key = None
+        self._key, self._refactored = None, True
         self._call(22, np.zeros(self.shape[0], dtype=self._dtype))
         self.perturbed_pivots = int(self.iparm[13])
         return self

@@ -59,6 +59,13 @@ def keep_directory(kind: str, key: dict, write: Callable[[str], Arrays]) -> None
         keeper(kind, key, write)
 
 
+def discard_directory(kind: str, key: dict, why: str) -> None:
+    """Drop the directory kept for (kind, key): it passed the store's checks but the library could not use it."""
+    discarder = getattr(_store, "discard_directory", None)
+    if discarder is not None:
+        discarder(kind, key, why)
+
+
 def digest(*arrays: np.ndarray) -> str:
     """A SHA-256 of arrays' dtypes, shapes and bytes: a key part for data too large to name."""
     hasher = hashlib.sha256()
@@ -82,7 +89,13 @@ def code_digest(*functions) -> str:
 
     def shape(code):
         return (code.co_code, tuple(constant(c) for c in code.co_consts), code.co_names)
-    return hashlib.sha256(repr([shape(getattr(f, "py_func", f).__code__) for f in functions]).encode()).hexdigest()
+
+    def named(function):
+        # its defaults and the values it closes over (a kernel built by a factory) name it too
+        closure = tuple(constant(cell.cell_contents) for cell in (function.__closure__ or ())
+                        if isinstance(cell.cell_contents, (bool, int, float, str, tuple)))
+        return (shape(function.__code__), repr(function.__defaults__), repr(function.__kwdefaults__), closure)
+    return hashlib.sha256(repr([named(getattr(f, "py_func", f)) for f in functions]).encode()).hexdigest()
 
 
 def module_digest(*modules) -> str:

@@ -188,6 +188,20 @@ def test_code_digest_names_the_code():
     assert store.code_digest(form) != store.code_digest(other_constant)
     assert store.code_digest(nested) != store.code_digest(nested_other)      # inside a nested code object
 
+    def banded(x, band=(0.35, 0.65)):
+        return x * band[0]
+
+    def banded_other(x, band=(0.30, 0.70)):
+        return x * band[0]
+    assert store.code_digest(banded) != store.code_digest(banded_other)       # a default value
+
+    def factory(flag):
+        def kernel(x):
+            return x if flag else -x
+        return kernel
+    assert store.code_digest(factory(True)) != store.code_digest(factory(False))   # a value closed over
+    assert store.code_digest(factory(True)) == store.code_digest(factory(True))
+
 
 def test_an_unwritable_cache_says_so_once_and_the_run_goes_on(tmp_path, caplog):
     """A cache directory that cannot be written (here a file's path) warns once per process, not once per entry,

@@ -176,3 +176,52 @@ def test_bench_fluid_measures_the_kept_factorisation():
     result = _kept_factorisation(scenario, base.space, base, rhs)
     assert result["restored_factor_identical"] is True
     assert result["factorisation_kept_s"] > 0 and result["factorisation_restored_s"] > 0
+
+
+def test_clear_and_usage_touch_only_the_caches_own_files(tmp_path):
+    """A cache directory set by mistake to a folder holding other things: clear deletes the entries, nothing else."""
+    directory = tmp_path / "misset"
+    previous = store.install(DiskCache(directory))
+    try:
+        Pardiso(saddle_matrix(), symmetric=True, kept=True)
+    finally:
+        store.install(previous)
+    foreign = [directory / "project" / "src" / "a.py", directory / "project" / "data.npz",
+               directory / "project" / "notes" / "old.tmp", directory / Pardiso.KIND / "readme.txt"]
+    for path in foreign:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_text("the user's")
+    (directory / Pardiso.KIND / "my-folder").mkdir()
+    assert usage(directory)["entries"] == 1
+    assert clear(directory) == 2 and all(path.read_text() == "the user's" for path in foreign)
+    assert (directory / Pardiso.KIND / "my-folder").is_dir() and usage(directory)["entries"] == 0
+
+
+def test_an_entry_that_passes_its_checks_but_cannot_be_restored_is_replaced(cache, caplog):
+    matrix = saddle_matrix()
+    rhs = np.ones(matrix.shape[0])
+    expected = Pardiso(matrix, symmetric=True, kept=True).solve(rhs)
+    [entry] = (cache.directory / Pardiso.KIND).iterdir()
+    handle = entry / "handle.pds"
+    handle.write_bytes(handle.read_bytes()[:4096])                    # unusable, and its checksum made to match
+    with np.load(entry / "entry.npz") as data:
+        arrays = {name: data[name] for name in data.files}
+    files = json.loads(str(arrays["_files"]))
+    from vcyto.cache import _file_sum
+    files["handle.pds"] = list(_file_sum(handle))
+    arrays["_files"] = np.array(json.dumps(files))
+    with open(entry / "entry.npz", "wb") as file:
+        np.savez(file, **arrays)
+    with caplog.at_level(logging.WARNING, logger="vcyto.cache"):
+        again = Pardiso(matrix, symmetric=True, kept=True)
+    assert not again.restored and cache.rebuilt == 1 and np.array_equal(again.solve(rhs), expected)
+    assert any("could not restore" in record.getMessage() for record in caplog.records)
+    restored = Pardiso(matrix, symmetric=True, kept=True)              # the entry was written again
+    assert restored.restored and np.array_equal(restored.solve(rhs), expected)
+
+
+def test_a_refactored_factor_is_not_kept(cache):
+    factor = Pardiso(saddle_matrix(), symmetric=True, matching=True)
+    factor.refactor(saddle_matrix(shift=5.0))
+    factor.keep()
+    assert not list(cache.directory.rglob("handle.pds"))

@@ -507,3 +507,26 @@ def test_a_signal_to_the_main_process_alone_stops_the_sweep_at_once_keeping_whol
     assert text.endswith("\n") and 1 <= len(rows) < 40
     assert all(row["status"] == "ok" and None not in row.values() and row["vcyto"] for row in rows)
     assert f"holds {len(rows)} of the 40 points ({len(rows)} finished in this run)" in stderr
+
+
+def test_an_interrupted_run_records_its_time_and_the_run_that_completes_counts_it(tmp_path):
+    """A run interrupted after finishing points leaves a sweep.json that says so (status interrupted, its rows so
+    far, its wall time); the run that completes the sweep counts both runs' time (it counted only its own)."""
+    built = sweep.parse_sweep({"base": BASE, "parameters": {"rate": [500, 1000, 2000]},
+                               "sweep": {"metrics": ["yield"]}})
+
+    def interrupted_at_2000(scenario, settings):
+        if settings.arrivals.rate == 2000:
+            raise KeyboardInterrupt
+        return fixed_result(scenario, settings)
+    with ThreadPoolExecutor(1) as pool, pytest.raises(KeyboardInterrupt):
+        sweep.run_sweep(built, tmp_path, pool, 1, chunk=1, simulator=interrupted_at_2000, where="threads")
+    record = json.loads((tmp_path / sweep.SUMMARY).read_text())
+    assert record["status"] == "interrupted" and "the same command completes" in record["reason"]
+    assert record["ok"] == 2 and record["points"] == 3 and len(record["rows"]) == 2
+    [run] = record["runs"]
+    assert run["ran"] == 2 and run["interrupted"] is True and run["wall_time_s"] > 0 and run["executor"] == "threads"
+    with sweep.executor(None, 1) as (pool, slots, _):
+        final = sweep.run_sweep(built, tmp_path, pool, slots, simulator=fixed_result)
+    assert final["status"] == "complete" and final["ran"] == 1 and final["ok"] == 3 and len(final["runs"]) == 2
+    assert final["wall_time_s"] == pytest.approx(run["wall_time_s"] + final["run_wall_time_s"])

@@ -24,8 +24,11 @@ import json
 import logging
 import math
 import os
+import re
+import secrets
 import shutil
 import tempfile
+import threading
 import zlib
 from pathlib import Path
 
@@ -59,6 +62,8 @@ class DiskCache:
         self.directory = Path(directory) if directory is not None else cache_directory()
         self.hits = self.misses = self.rebuilt = self.evicted = 0
         self.unwritable = False
+        self._lock = threading.Lock()
+        self.budget = directory_budget()      # a bad VCYTO_CACHE_FACTORS_MB is refused here, before any work
 
     def _full_key(self, kind: str, key: dict) -> str:
         return json.dumps({"kind": kind, "key": key, "vcyto": __version__, "numpy": np.__version__,
@@ -124,26 +129,32 @@ class DiskCache:
 
 
     # ------------------------------------------------------------------ directories (sim.store's second kind)
+    def _count(self, name: str):
+        with self._lock:                  # the split solve's two halves ask the store from two threads at once
+            setattr(self, name, getattr(self, name) + 1)
+
     def find_directory(self, kind: str, key: dict) -> tuple[str, dict] | None:
         """The directory kept for (kind, key) and its arrays, when its key, sizes and checksums hold; else None."""
         path = self.path(kind, key).with_suffix("")
-        if not path.is_dir():
-            self.misses += 1
-            return None
-        arrays = self._verified(path, self._full_key(kind, key))
+        arrays = self._verified(path, self._full_key(kind, key)) if path.is_dir() else None
         if arrays is None:
-            LOG.warning("cache entry %s does not match its checksums or key: rebuilding it", path)
-            self.rebuilt += 1
+            if path.is_dir():             # (not one another run is deleting this moment)
+                LOG.warning("cache entry %s does not match its checksums or key: rebuilding it", path)
+                self._count("rebuilt")
+            else:
+                self._count("misses")
             return None
-        self.hits += 1
+        self._count("hits")
         try:
-            os.utime(path / "entry.npz")          # recently used: the last to go when the budget is exceeded
+            os.utime(path / ENTRY)        # recently used: the last to go when the budget is exceeded
         except OSError:
             pass
         return str(path), arrays
 
     def _verified(self, path: Path, full_key: str) -> dict | None:
-        arrays = self._load(path / "entry.npz", full_key, quiet=True)
+        """The arrays of the directory entry at ``path`` when its key, sizes and CRC-32s hold (MKL's restore does not
+        check its input: a flipped byte restores without error and solves wrong, so the check is never skipped)."""
+        arrays = self._load(path / ENTRY, full_key, quiet=True)
         if arrays is None:
             return None
         files = json.loads(str(arrays.pop("_files", np.array("{}")).item()))
@@ -152,55 +163,121 @@ class DiskCache:
         return arrays
 
     def keep_directory(self, kind: str, key: dict, write) -> None:
-        """Keep what ``write(directory)`` writes (and the arrays it returns) under (kind, key); a failure to write
-        is said once and costs only the next run's set-up."""
+        """Keep what ``write(directory)`` writes (and the arrays it returns) under (kind, key), unless a valid entry
+        is there; a failure to write is said once and costs only the next run's set-up."""
         path, full_key = self.path(kind, key).with_suffix(""), self._full_key(kind, key)
-        if directory_budget() == 0:
+        if self._budget() == 0 or (path.is_dir() and self._verified(path, full_key) is not None):
             return
-        temporary = None
+        temporary = stale = None
         try:
             path.parent.mkdir(parents=True, exist_ok=True)
             temporary = Path(tempfile.mkdtemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp"))
             arrays = {name: np.asarray(value) for name, value in write(str(temporary)).items()}
             files = {item.name: _file_sum(item) for item in sorted(temporary.iterdir())}
-            with open(temporary / "entry.npz", "wb") as file:
+            with open(temporary / ENTRY, "wb") as file:
                 np.savez(file, _key=np.array(full_key), _checksum=np.array(_checksum(arrays)),
                          _files=np.array(json.dumps(files)), **arrays)
             if path.exists():
                 if self._verified(path, full_key) is not None:
-                    return                          # another run kept it first
+                    return                          # another run kept it meanwhile
                 stale = Path(tempfile.mkdtemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp"))
-                os.replace(path, stale / "old")     # out of the way at once; deleted below
-                shutil.rmtree(stale, ignore_errors=True)
-            os.replace(temporary, path)
+                try:
+                    os.replace(path, stale / "old")     # the invalid one out of the way at once; deleted below
+                except FileNotFoundError:
+                    pass                                # another run removed it meanwhile
+            try:
+                os.replace(temporary, path)
+            except OSError:
+                if path.is_dir():
+                    return                              # another run put one in place first
+                raise
             temporary = None
             self._evict(path.parent, keep=path)
         except OSError as error:
-            if not path.is_dir():
-                self._unwritable_warning(path, error)
+            self._unwritable_warning(path, error)
         finally:
-            if temporary is not None:
-                shutil.rmtree(temporary, ignore_errors=True)
+            for leftover in (temporary, stale):
+                if leftover is not None:
+                    shutil.rmtree(leftover, ignore_errors=True)
 
+    def discard_directory(self, kind: str, key: dict, why: str) -> None:
+        """Delete the entry of (kind, key), which passed its checks but could not be used (``why``)."""
+        path = self.path(kind, key).with_suffix("")
+        LOG.warning("cache entry %s: %s; rebuilding it", path, why)
+        self._count("rebuilt")
+        _remove_entry(path)
+
+    def _budget(self) -> int:
+        try:
+            return directory_budget()
+        except CacheSettingError:         # changed since this cache was made (which checked it): the value then
+            return self.budget
 
     def _evict(self, kind: Path, keep: Path):
-        """Delete the least recently used directories of ``kind`` until they hold at most ``directory_budget()``
-        bytes (``keep``, the one just written, stays)."""
+        """Delete the least recently used entries of ``kind`` until they hold at most the budget's bytes (``keep``,
+        the one just written, stays). Entries another run deletes meanwhile are skipped."""
         entries = []
-        for entry in kind.iterdir():
-            if entry.is_dir() and not entry.name.startswith(".") and entry != keep:
+        for entry in _entries(kind):
+            if entry != keep:
                 try:
-                    used = (entry / "entry.npz").stat().st_mtime
+                    entries.append(((entry / ENTRY).stat().st_mtime, entry, _size(entry)))
                 except OSError:
-                    used = 0.0                   # no entry file: incomplete, goes first
-                entries.append((used, entry, sum(p.stat().st_size for p in entry.rglob("*") if p.is_file())))
-        total = sum(size for _, _, size in entries) + sum(p.stat().st_size for p in keep.rglob("*") if p.is_file())
+                    continue
+        total = sum(size for _, _, size in entries) + _size(keep)
+        budget = self._budget()
         for _, entry, size in sorted(entries, key=lambda item: item[0]):
-            if total <= directory_budget():
+            if total <= budget:
                 break
-            shutil.rmtree(entry, ignore_errors=True)
+            _remove_entry(entry)
             total -= size
-            self.evicted += 1
+            self._count("evicted")
+
+
+ENTRY = "entry.npz"                 # in a directory entry: its key, its files' sizes and CRC-32s, its arrays
+_NAME = re.compile(r"\.?[0-9a-f]{64}(\..*\.tmp)?")     # an entry's directory, or (hidden) one being written
+
+
+def _entries(kind: Path) -> list[Path]:
+    """The directory entries of a kind (not those being written)."""
+    try:
+        return [entry for entry in kind.iterdir() if entry.is_dir() and re.fullmatch(r"[0-9a-f]{64}", entry.name)]
+    except OSError:
+        return []
+
+
+def _entry_directories(directory: Path) -> list[Path]:
+    """Every directory the cache made for entries under ``directory`` (kept or being written), nothing else."""
+    found = []
+    for kind in (directory.iterdir() if directory.is_dir() else ()):
+        if kind.is_dir():
+            found += [entry for entry in kind.iterdir() if entry.is_dir() and _NAME.fullmatch(entry.name)]
+    return found
+
+
+def _entry_files(directory: Path) -> list[Path]:
+    """The cache's own files under ``directory``: the ``.npz`` entries named by their keys' hashes, their temporary
+    files, and the unit memo (``units/*.json``, vcyto.units' memo of pint's answers)."""
+    if not directory.is_dir():
+        return []
+    found = [path for path in directory.glob("units/*.json") if path.is_file()]
+    for path in directory.glob("*/*"):
+        if path.is_file() and (re.fullmatch(r"[0-9a-f]{64}\.npz", path.name) or _NAME.fullmatch(path.name)):
+            found.append(path)
+    return found
+
+
+def _size(entry: Path) -> int:
+    return sum(path.stat().st_size for path in entry.iterdir() if path.is_file())
+
+
+def _remove_entry(entry: Path):
+    """Delete an entry's directory: renamed away first (a run that looks for it meanwhile misses cleanly)."""
+    try:
+        gone = entry.with_name(f".{entry.name}.{os.getpid()}.{secrets.token_hex(4)}.tmp")
+        os.replace(entry, gone)
+    except OSError:
+        return
+    shutil.rmtree(gone, ignore_errors=True)
 
 
 class CacheSettingError(ValueError):
@@ -251,10 +328,16 @@ def install_default() -> DiskCache | None:
 def usage(directory: Path | None = None) -> dict:
     """Where the cache is, whether it is on, and how many entries (the unit memo counted as one) and bytes it holds."""
     directory = directory or cache_directory()
-    entries = [*directory.rglob("*.npz"), *directory.glob("units/*.json")] if directory.exists() else []
-    files = [path for path in directory.rglob("*") if path.is_file()] if directory.exists() else []
-    return {"directory": str(directory), "enabled": cache_enabled(), "entries": len(entries),
-            "bytes": sum(p.stat().st_size for p in files), "writable": _writable(directory)}
+    kept = [entry for entry in _entry_directories(directory) if not entry.name.startswith(".")]
+    files = [path for path in _entry_files(directory) if path.suffix != ".tmp"]
+    kept_bytes = 0
+    for entry in kept:
+        try:
+            kept_bytes += _size(entry)
+        except OSError:                   # deleted by another run meanwhile
+            pass
+    return {"directory": str(directory), "enabled": cache_enabled(), "entries": len(files) + len(kept),
+            "bytes": sum(p.stat().st_size for p in files) + kept_bytes, "writable": _writable(directory)}
 
 
 def _writable(directory: Path) -> bool:
@@ -275,13 +358,13 @@ def clear(directory: Path | None = None) -> int:
     directory = directory or cache_directory()
     removed = 0
     if directory.exists():
-        # the kept directories (sim.store's second kind, e.g. PARDISO's factorisations) and their temporary ones
-        for entry in [child for kind in directory.iterdir() if kind.is_dir() for child in kind.iterdir()
-                      if child.is_dir()]:
-            removed += sum(1 for path in entry.rglob("*") if path.is_file())
+        # the directory entries (sim.store's second kind, e.g. PARDISO's factorisations), named by their keys' hashes
+        # (and hidden ones being written): nothing else under the directory is touched
+        for entry in _entry_directories(directory):
+            files = [path for path in entry.rglob("*") if path.is_file()]
             shutil.rmtree(entry, ignore_errors=True)
-        for pattern in ("*.npz", ".*.tmp", "units/*.json"):      # units/: vcyto.units' memo of pint's answers
-            for path in directory.rglob(pattern):
-                path.unlink(missing_ok=True)
-                removed += 1
+            removed += sum(not path.exists() for path in files)
+        for path in _entry_files(directory):
+            path.unlink(missing_ok=True)
+            removed += 1
     return removed

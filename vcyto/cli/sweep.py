@@ -50,7 +50,7 @@ def command_sweep(args):
                 sweep.executor(args.scheduler, workers) as (pool, slots, where):
             progress.note(f"{len(spec.points)} points on {where}; results in {output / sweep.RESULTS}")
             result = sweep.run_sweep(spec, output, pool, slots, progress, retry_failed=args.retry_failed,
-                                     chunk=args.chunk, keep_old_rows=args.keep_old_rows)
+                                     chunk=args.chunk, keep_old_rows=args.keep_old_rows, where=where)
     except sweep.SweepError as error:
         raise UsageError(str(error)) from None
     except KeyboardInterrupt:

@@ -18,6 +18,7 @@ from concurrent.futures import FIRST_COMPLETED, BrokenExecutor, Future, wait
 from datetime import datetime, timezone
 from pathlib import Path
 
+from ..outputs import strict_json, write_into
 from .model import Point, Sweep, float_or_nan, one_line
 from .table import RESULTS, SUMMARY, ResultTable
 from .worker import evaluate
@@ -28,12 +29,14 @@ CHUNKS_PER_SLOT = 2             # chunks submitted ahead per worker slot: one ru
 
 
 def run_sweep(sweep: Sweep, output: Path, executor, slots: int = 1, progress=None, retry_failed: bool = False,
-              simulator=None, chunk: int = 8, keep_old_rows: bool = False) -> dict:
+              simulator=None, chunk: int = 8, keep_old_rows: bool = False, where: str | None = None) -> dict:
     """Run the points of ``sweep`` not yet in ``output/results.csv`` on ``executor`` (``slots`` workers);
     a JSON-ready summary. Points sharing a plant go in chunks of up to ``chunk`` points, no more than an even
     share per worker. ``simulator(scenario, settings) -> run_stream result`` replaces the closed loop (tests).
     A row counts for a point when its id matches: same inputs and same code (vcyto version, schema); with
-    ``keep_old_rows`` an ok row of the same inputs computed by other code counts too (the summary says how many)."""
+    ``keep_old_rows`` an ok row of the same inputs computed by other code counts too (the summary says how many).
+    ``where`` names the executor in the record of this run. An interrupted run that finished points records itself in
+    ``sweep.json`` (status "interrupted", its rows so far), so the run that completes the sweep counts its time."""
     started, began = time.perf_counter(), datetime.now(timezone.utc).isoformat(timespec="seconds")
     earlier = _earlier_runs(output / SUMMARY)
     table = ResultTable(output / RESULTS, sweep.columns)
@@ -57,6 +60,19 @@ def run_sweep(sweep: Sweep, output: Path, executor, slots: int = 1, progress=Non
     except KeyboardInterrupt:
         tracker.close()
         tracker.interrupted(output / RESULTS)
+        ran = tracker.done - tracker.initial
+        if ran:
+            run = {"started": began, "ran": ran, "wall_time_s": time.perf_counter() - started, "workers": slots,
+                   "interrupted": True, **({"executor": where} if where else {})}
+            summary = _summary(sweep, output, rows, ran, table.repaired, run["wall_time_s"], earlier + [run])
+            summary.update(status="interrupted", reason=f"interrupted after {ran} of the {len(todo)} points it had "
+                                                        "to run; the same command completes the sweep",
+                           executor=where, kept_old_rows=len(kept), stale_rows=summary["stale_rows"] - len(kept))
+            summary["files"]["summary"] = str(output / SUMMARY)
+            try:
+                write_into(output / SUMMARY, strict_json(summary) + "\n")
+            except OSError:             # the rows are in the table; only the record of this run's time is lost
+                pass
         raise
     finally:
         tracker.close()
@@ -71,6 +87,7 @@ def run_sweep(sweep: Sweep, output: Path, executor, slots: int = 1, progress=Non
                        runs)
     summary["kept_old_rows"] = len(kept)
     summary["stale_rows"] -= len(kept)
+    summary["status"] = "complete"
     return summary
 
 

@@ -34,3 +34,14 @@ def rom_plant(paper_scenario, paper_solver):
     """The rom plant of the paper's device (its flows from the session's paper solver)."""
     from sim.rom import RomFlows, RomPlant
     return RomPlant(paper_scenario, flows=RomFlows.of(paper_scenario, fluid=paper_solver))
+
+
+@pytest.fixture
+def cache(tmp_path):
+    """A set-up cache of its own (``vcyto.cache.DiskCache`` in ``tmp_path``) installed for ``sim`` during the test."""
+    from sim import store
+    from vcyto.cache import DiskCache
+    disk = DiskCache(tmp_path / "cache")
+    previous = store.install(disk)
+    yield disk
+    store.install(previous)

@@ -15,14 +15,6 @@ from sim.scenario import UM, Scenario
 from vcyto.cache import DiskCache, clear, usage
 
 
-@pytest.fixture
-def cache(tmp_path):
-    disk = DiskCache(tmp_path / "cache")
-    previous = store.install(disk)
-    yield disk
-    store.install(previous)
-
-
 def scenario(**fluid):
     base = Scenario().with_numerics(mesh_h=10 * UM)
     return dataclasses.replace(base, fluid=dataclasses.replace(base.fluid, **fluid)) if fluid else base

@@ -28,14 +28,6 @@ def saddle_matrix(n: int = 40, shift: float = 4.0) -> sp.csr_matrix:
     return sp.bmat([[laplace, constraint.T], [constraint, None]], format="csr")
 
 
-@pytest.fixture
-def cache(tmp_path):
-    disk = DiskCache(tmp_path / "cache")
-    previous = store.install(disk)
-    yield disk
-    store.install(previous)
-
-
 @pytest.mark.parametrize("single", [False, True])
 def test_a_restored_factor_solves_to_the_bits_of_a_fresh_one(cache, single):
     matrix = saddle_matrix()

@@ -19,8 +19,9 @@ predicts q (2^(p j) - 1) / 2^(p k) for level j against the finest one; the next 
 (at most one up) where that is <= 1 (no step is repeated). A new cell, or a change of the IDT drive (the flow
 jumps before any estimate has seen it), starts from the finest level; with no cell in the channel the
 coarsest level is used. A step never ends after a redistribution of a cell's points that the trend of its
-spacing predicts (``_before_redistribution``): that event changes the membrane's forces at once, and only the
-finest level puts it where the reference puts it.
+spacing predicts (``_before_redistribution``), and a coarser step that redistributes anyway is retaken at the
+finest level: that event changes the membrane's forces at once, and only the finest level puts it where the
+reference puts it.
 
 Never above the stability limit of the cells in the channel: STABLE_FRACTION times the paper's bound (33)
 (STABLE_FRACTION_BDF2 = 2 with bdf2, whose limit for the melanoma at the paper's mesh lies between 2.25x and
@@ -41,6 +42,7 @@ from .membrane import polygon_centroid
 
 LEVELS = 4
 SAFETY = {1: 0.3, 2: 0.6}     # the share of the tolerance a transit's local errors may add up to, by the order
+LOOK_AHEAD = 1.0              # steps of a level over which a predicted redistribution keeps that level out
 
 
 class AdaptiveSteps:
@@ -62,6 +64,7 @@ class AdaptiveSteps:
         self.order = 2 if numerics.scheme == "bdf2" else 1
         self._tracks: dict[int, list] = {}                    # bdf2: the last three (time, area centroid) per cell
         self._spacings: dict[int, list] = {}                  # the last two spacing extremes per cell
+        self.retaken = 0                                      # coarse steps retaken at the finest level
 
     # ------------------------------------------------------------------ levels
     def fluid(self, level: int) -> NavierStokes:
@@ -107,7 +110,8 @@ class AdaptiveSteps:
         """The coarsest level whose step ends before any cell's point spacing is predicted to leave the band
         (``numerics.spacing_band``: the redistribution it triggers changes the membrane's forces at once, so
         its time must be the finest level's, as in the reference; a step that ends later would move it by up
-        to that step). The prediction follows the line through the spacings' last two values, over 1.5 steps."""
+        to that step). The prediction follows the line through the spacings' last two values, over ``LOOK_AHEAD``
+        steps; a coarser step it misses is retaken at the finest level (``step``)."""
         numerics = self.plant.scenario.numerics
         if not numerics.redistribute:
             return LEVELS - 1
@@ -121,7 +125,7 @@ class AdaptiveSteps:
             if t1 <= t0:
                 continue
             for k in range(level, 0, -1):
-                ahead = 1.5 * self.levels[k] / (t1 - t0)
+                ahead = LOOK_AHEAD * self.levels[k] / (t1 - t0)
                 if low1 + (low1 - low0) * ahead >= low and high1 + (high1 - high0) * ahead <= high:
                     break
                 level = k - 1
@@ -142,16 +146,23 @@ class AdaptiveSteps:
 
     # ------------------------------------------------------------------ the step
     def step(self, state, actuation: float, until: float | None):
+        """One step of the level ``choose`` picks. A step above the finest in which a cell's points were
+        redistributed is retaken at the finest level (states are values: the first is dropped), so every
+        redistribution happens at the end of a finest-level step, as in the reference."""
         active = [cell for cell in state.cells if cell.in_channel]
         level = self.choose(state, active, until, actuation)
+        samples = [self._sample(state.flow.velocity, cell.membrane.points) for cell in active] \
+            if self.order == 1 else None
+        new = self.plant.fixed_step(state, actuation, self.fluid(level))
+        if level > 0 and _redistributed(active, new):
+            self.retaken += 1
+            level = 0
+            new = self.plant.fixed_step(state, actuation, self.fluid(level))
         dt = self.levels[level]
         if self.order == 2:
-            new = self.plant.fixed_step(state, actuation, self.fluid(level))
             ids = {cell.id for cell in active}
             ratios = [self._ratio_bdf2(cell, new.time) for cell in new.cells if cell.id in ids]
         else:
-            samples = [self._sample(state.flow.velocity, cell.membrane.points) for cell in active]
-            new = self.plant.fixed_step(state, actuation, self.fluid(level))
             ratios = [self._ratio(sample, new.flow.velocity, dt) for sample in samples]
         known = [ratio for ratio in ratios if ratio is not None]
         if known:
@@ -245,6 +256,7 @@ class AdaptiveSteps:
         """Forget every cell, the IDT drive and the level (a new run on the same plant: ``FeibPlant.reset``)."""
         self._known, self._actuation, self._tracks, self._spacings = set(), None, {}, {}
         self.level, self.ratio, self.history, self.steps = LEVELS - 1, float("nan"), [], [0] * LEVELS
+        self.retaken = 0
 
     # ------------------------------------------------------------------ reporting
     def summary(self, end_time: float) -> dict:
@@ -255,8 +267,15 @@ class AdaptiveSteps:
             share[self.levels.index(dt)] += stop - start
         return {"tolerance_um": self.tolerance * 1e6, "scheme": self.plant.scenario.numerics.scheme,
                 "levels_us": [dt * 1e6 for dt in self.levels],
-                "steps": list(self.steps), "time_ms": [t * 1e3 for t in share],
+                "steps": list(self.steps), "retaken": self.retaken, "time_ms": [t * 1e3 for t in share],
                 "changes": [(round(t * 1e3, 6), dt * 1e6) for t, dt in self.history]}
+
+
+def _redistributed(active, new) -> bool:
+    """Whether a step from ``active`` (the cells in the channel before it) to the state ``new`` redistributed some
+    cell's points."""
+    before = {cell.id: cell.membrane.redistributions for cell in active}
+    return any(cell.id in before and cell.membrane.redistributions != before[cell.id] for cell in new.cells)
 
 
 def _milne(time: float, t0: float, t1: float, t2: float) -> float:

@@ -10,7 +10,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from sim.adaptive import LEVELS, AdaptiveSteps
+from sim.adaptive import LEVELS, LOOK_AHEAD, AdaptiveSteps
 from sim.scenario import UM, Scenario
 from vcyto.paper import paper_scenario, run_paper
 
@@ -114,7 +114,7 @@ def test_next_level_of_the_second_order_scheme():
 
 def test_no_coarse_step_across_a_predicted_redistribution():
     """A redistribution changes a membrane's forces at once: the step that ends after it must be the finest
-    level's, so the event keeps the reference's time. The spacing's trend predicts it (over 1.5 steps)."""
+    level's, so the event keeps the reference's time. The spacing's trend predicts it (over one step)."""
     scenario = Scenario().with_numerics(tolerance=1e-6)                  # band 0.3-0.7 h; levels 2.5-20 us
     steps = steps_of(scenario)
     rbc = cell("RBC", 1, scenario)
@@ -122,8 +122,9 @@ def test_no_coarse_step_across_a_predicted_redistribution():
     steps._known = {1}
     h = scenario.numerics.mesh_h
     # the band's top (0.7) is reached (0.1 - gain) / gain x 10 us after the last value; level k looks
-    # 1.5 x 2^k x 2.5 us = 3.75, 7.5, 15, 30 us ahead
-    for gain, expected in ((0.0, 3), (0.001, 3), (0.03, 2), (0.05, 1), (0.08, 0)):   # spacing max per 10 us
+    # LOOK_AHEAD x 2^k x 2.5 us = 2.5, 5, 10, 20 us ahead
+    assert LOOK_AHEAD == 1.0
+    for gain, expected in ((0.0, 3), (0.001, 3), (0.03, 3), (0.045, 2), (0.06, 1), (0.08, 0)):   # per 10 us
         steps.level = 3
         steps._spacings = {1: [(0.0, 0.45, 0.60, 0), (10e-6, 0.45, 0.60 + gain, 0)]}
         assert steps.choose(state, [rbc], None) == expected, gain
@@ -139,6 +140,30 @@ def test_no_coarse_step_across_a_predicted_redistribution():
     assert len(steps._spacings[1]) == 1 and steps._spacings[1][0][3] == 1
     steps.level = 3
     assert steps.choose(state, [rbc], None) == 3                # no trend: no limit
+
+
+def test_a_coarse_step_that_redistributes_is_retaken_at_the_finest_level():
+    """A redistribution the trend did not predict (here: no trend yet, the points spread past the band) happens in a
+    step above the finest: that step is dropped and retaken at the finest level, and the summary counts it."""
+    from sim.feib import ImmersedBoundary
+    scenario = Scenario().with_numerics(mesh_h=10 * UM / 3, tolerance=1e-6)    # the RBC's spacing inside the band
+    plant = ImmersedBoundary(scenario)
+    rbc = cell("RBC", 1, scenario)
+    spread = replace(rbc, membrane=rbc.membrane.resampled(0.8 * scenario.numerics.mesh_h, minimum_points=4))
+    assert spread.membrane.spacing().max() > 0.7 * scenario.numerics.mesh_h      # above the band (0.3-0.7 h)
+    state = plant.start(cells=(spread,))
+    steps = plant.adaptive
+    steps._known, steps.level = {1}, 2                     # a known cell at 10 us: no reason to step finer
+    new = plant.step(state, 0.0)
+    assert new.cells[0].membrane.redistributions == spread.membrane.redistributions + 1
+    assert math.isclose(new.time - state.time, steps.levels[0]) and steps.retaken == 1
+    assert steps.steps == [1, 0, 0, 0] and steps.summary(new.time)["retaken"] == 1
+    steps.reset()                                          # the cell as born (spacing inside the band): no retake
+    steps._known, steps.level = {1}, 2
+    state = plant.start(cells=(rbc,))
+    new = plant.step(state, 0.0)
+    assert new.cells[0].membrane.redistributions == rbc.membrane.redistributions and steps.retaken == 0
+    assert math.isclose(new.time - state.time, steps.levels[2]) and steps.steps == [0, 0, 1, 0]
 
 
 def paper_pair(number, mesh_h, tolerance):

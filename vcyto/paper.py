@@ -146,8 +146,10 @@ def time_step_line(summary: dict | None) -> list[str]:
     parts = ", ".join(f"{dt:g} us: {steps} steps, {ms:.3f} ms" for dt, steps, ms
                       in zip(summary["levels_us"], summary["steps"], summary["time_ms"]) if steps)
     scheme = f" ({summary['scheme']})" if summary.get("scheme") else ""
+    retaken = summary.get("retaken", 0)
+    redone = f"; {retaken} retaken at {summary['levels_us'][0]:g} us (a redistribution inside)" if retaken else ""
     return [f"  time steps for a {summary['tolerance_um']:g} um tolerance{scheme}: {parts}; "
-            f"{len(summary['changes'])} changes"]
+            f"{len(summary['changes'])} changes{redone}"]
 
 
 def report_lines(result: dict) -> list[str]:

@@ -112,18 +112,18 @@ def test_a_factor_kept_by_one_process_gives_another_the_same_bits(tmp_path):
     assert runs[0]["bits"] == runs[1]["bits"]
 
 
-def test_the_least_recently_used_factors_go_beyond_the_budget(cache, monkeypatch):
+def test_the_least_recently_used_factors_go_beyond_the_budget(cache):
     matrices = {name: saddle_matrix(shift=shift) for name, shift in (("a", 4.0), ("b", 5.0), ("c", 6.0))}
     Pardiso(matrices["a"], symmetric=True, kept=True)
     entry = usage(cache.directory)["bytes"]
-    monkeypatch.setenv("VCYTO_CACHE_FACTORS_MB", str(2.5 * entry / 1e6))          # room for two entries
+    cache.budget = int(2.5 * entry)                                                # room for two entries
     Pardiso(matrices["b"], symmetric=True, kept=True)
     assert Pardiso(matrices["a"], symmetric=True, kept=True).restored            # a used after b
     Pardiso(matrices["c"], symmetric=True, kept=True)                              # over budget: b goes
     assert cache.evicted == 1
     assert [Pardiso(matrices[name], symmetric=True, kept=True).restored for name in "ac"] == [True, True]
     assert not Pardiso(matrices["b"], symmetric=True, kept=True).restored
-    monkeypatch.setenv("VCYTO_CACHE_FACTORS_MB", "0")                             # keeps no new one
+    cache.budget = 0                                                               # keeps no new one
     Pardiso(saddle_matrix(shift=7.0), symmetric=True, kept=True)
     assert not Pardiso(saddle_matrix(shift=7.0), symmetric=True, kept=True).restored
 
@@ -217,3 +217,10 @@ def test_a_refactored_factor_is_not_kept(cache):
     factor.refactor(saddle_matrix(shift=5.0))
     factor.keep()
     assert not list(cache.directory.rglob("handle.pds"))
+
+
+def test_the_budget_comes_from_the_environment(tmp_path, monkeypatch):
+    monkeypatch.setenv("VCYTO_CACHE_FACTORS_MB", "12.5")
+    assert DiskCache(tmp_path).budget == 12_500_000
+    monkeypatch.delenv("VCYTO_CACHE_FACTORS_MB")
+    assert DiskCache(tmp_path).budget == 2_048_000_000

@@ -63,7 +63,7 @@ class DiskCache:
         self.hits = self.misses = self.rebuilt = self.evicted = 0
         self.unwritable = False
         self._lock = threading.Lock()
-        self.budget = directory_budget()      # a bad VCYTO_CACHE_FACTORS_MB is refused here, before any work
+        self.budget = directory_budget()      # bytes of directory entries per kind; a bad setting is refused here
 
     def _full_key(self, kind: str, key: dict) -> str:
         return json.dumps({"kind": kind, "key": key, "vcyto": __version__, "numpy": np.__version__,
@@ -98,13 +98,11 @@ class DiskCache:
             return None
         stored_key = arrays.pop("_key", np.array("")).item()
         checksum = arrays.pop("_checksum", np.array("")).item()
-        files = arrays.pop("_files", None)
-        if stored_key != full_key or checksum != _checksum(arrays):
+        # a directory entry's file list (``_files``) is checked against the files themselves, not in the checksum
+        if stored_key != full_key or checksum != _checksum({k: v for k, v in arrays.items() if k != "_files"}):
             if not quiet:
                 LOG.warning("cache entry %s does not match its checksum or key: rebuilding it", path)
             return None
-        if files is not None:
-            arrays["_files"] = files
         return arrays
 
     def _save(self, path: Path, full_key: str, arrays: dict):
@@ -166,7 +164,7 @@ class DiskCache:
         """Keep what ``write(directory)`` writes (and the arrays it returns) under (kind, key), unless a valid entry
         is there; a failure to write is said once and costs only the next run's set-up."""
         path, full_key = self.path(kind, key).with_suffix(""), self._full_key(kind, key)
-        if self._budget() == 0 or (path.is_dir() and self._verified(path, full_key) is not None):
+        if self.budget == 0 or (path.is_dir() and self._verified(path, full_key) is not None):
             return
         temporary = stale = None
         try:
@@ -207,12 +205,6 @@ class DiskCache:
         self._count("rebuilt")
         _remove_entry(path)
 
-    def _budget(self) -> int:
-        try:
-            return directory_budget()
-        except CacheSettingError:         # changed since this cache was made (which checked it): the value then
-            return self.budget
-
     def _evict(self, kind: Path, keep: Path):
         """Delete the least recently used entries of ``kind`` until they hold at most the budget's bytes (``keep``,
         the one just written, stays). Entries another run deletes meanwhile are skipped."""
@@ -224,9 +216,8 @@ class DiskCache:
                 except OSError:
                     continue
         total = sum(size for _, _, size in entries) + _size(keep)
-        budget = self._budget()
         for _, entry, size in sorted(entries, key=lambda item: item[0]):
-            if total <= budget:
+            if total <= self.budget:
                 break
             _remove_entry(entry)
             total -= size
@@ -234,24 +225,26 @@ class DiskCache:
 
 
 ENTRY = "entry.npz"                 # in a directory entry: its key, its files' sizes and CRC-32s, its arrays
-_NAME = re.compile(r"\.?[0-9a-f]{64}(\..*\.tmp)?")     # an entry's directory, or (hidden) one being written
+_NAME = re.compile(r"\.?[0-9a-f]{64}(\..*\.tmp)?")     # an entry (a key's hash), or a hidden one being written
 
 
-def _entries(kind: Path) -> list[Path]:
-    """The directory entries of a kind (not those being written)."""
+def _directories(kind: Path) -> list[Path]:
+    """The directories the cache made in ``kind``: entries and (hidden) ones being written."""
     try:
-        return [entry for entry in kind.iterdir() if entry.is_dir() and re.fullmatch(r"[0-9a-f]{64}", entry.name)]
+        return [entry for entry in kind.iterdir() if entry.is_dir() and _NAME.fullmatch(entry.name)]
     except OSError:
         return []
 
 
+def _entries(kind: Path) -> list[Path]:
+    """The directory entries of a kind (not those being written)."""
+    return [entry for entry in _directories(kind) if not entry.name.startswith(".")]
+
+
 def _entry_directories(directory: Path) -> list[Path]:
     """Every directory the cache made for entries under ``directory`` (kept or being written), nothing else."""
-    found = []
-    for kind in (directory.iterdir() if directory.is_dir() else ()):
-        if kind.is_dir():
-            found += [entry for entry in kind.iterdir() if entry.is_dir() and _NAME.fullmatch(entry.name)]
-    return found
+    kinds = [kind for kind in directory.iterdir() if kind.is_dir()] if directory.is_dir() else []
+    return [entry for kind in kinds for entry in _directories(kind)]
 
 
 def _entry_files(directory: Path) -> list[Path]:
@@ -318,9 +311,7 @@ def _checksum(arrays: dict) -> str:
 
 def install_default() -> DiskCache | None:
     """Install the disk cache for ``sim`` unless ``VCYTO_CACHE=off``; returns it (or None)."""
-    cache = DiskCache() if cache_enabled() else None
-    if cache is not None:
-        directory_budget()                        # a bad setting is refused before any work
+    cache = DiskCache() if cache_enabled() else None      # (it refuses a bad VCYTO_CACHE_FACTORS_MB)
     store.install(cache)
     return cache
 

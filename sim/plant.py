@@ -110,6 +110,10 @@ class FeibPlant:
             self._inject()
         return self.observe()
 
+    @property
+    def time(self) -> float:
+        return self.state.time
+
     def time_steps(self) -> dict:
         """The dt used: fixed, or per level with the changes over time (``sim.adaptive``)."""
         if self.ib.adaptive is None:
@@ -145,6 +149,55 @@ class FeibPlant:
         return {"dt": dt, "physics_steps": timings.steps, "fluid_solve_s": fluid.solve,
                 "fluid_load_s": fluid.load, "membrane_s": timings.membrane, "health_checks_s": timings.health,
                 "health": "ok"}
+
+
+class AdaptiveFeibPlant(FeibPlant):
+    """The FE-IB plant whose steps a tolerance picks (``sim.adaptive``), event-driven: ``step_until`` takes one
+    step a call, across the controller's period ends while the drive holds.
+
+    The IDT drive changes only at the controller's period ends; a step that ends there can be no longer than
+    the time left in the period, so a period begun with a fine step ends with more fine steps. The closed
+    loop (``vcyto.stream``) instead tells the plant when the drive may change next (``until``: a pulse edge,
+    taken at the first period end at or after it, where the period-by-period loop switches) and the plant steps
+    freely up to it, at the levels the estimate, the stability cap and the redistributions allow. The detector
+    is fed the cells that crossed one of its lines in a step, at the step's start and end (it interpolates the
+    crossing time between them). ``step`` (one control period) stays for the loops that step periods."""
+
+    one_step_per_call = True       # the loop shows every call to its sinks and does not stop it at a record interval
+
+    def step_until(self, actuation: float, until: float, stop_lines=(), record_lines=(), max_periods: int = 10**7):
+        """One step at ``actuation``, ending at or before the first control period end at or after ``until`` and
+        where the next cell is due. Returns (1, seen): ``seen`` the partial observations, at the step's start and
+        end, of the cells whose centroid crossed a line x = w of ``stop_lines`` or ``record_lines`` forwards."""
+        dt, period = self.scenario.numerics.dt, self.control_period
+        now = self.state.time
+        stop = math.inf
+        if math.isfinite(until):
+            ticks = math.ceil(until / period - 1e-9)
+            if ticks * period <= now + 0.5 * dt:
+                ticks = math.floor(now / period + 1e-9) + 1
+            stop = ticks * period
+        if self.schedule.waiting:
+            arrival = self.schedule.items[self.schedule.position][0]
+            due = dt * math.ceil((arrival - 0.5 * dt) / dt - 1e-9)
+            if due > now + 0.5 * dt:
+                stop = min(stop, due)
+        before = self.state
+        self.state = self.ib.step(before, actuation, until=None if math.isinf(stop) else stop)
+        self._inject()
+        return 1, self._crossed(before, tuple(stop_lines) + tuple(record_lines))
+
+    def _crossed(self, before: State, lines) -> list[Observation]:
+        """The cells in the channel at the step's start whose centroid crossed one of ``lines`` forwards in it,
+        as two partial observations (start, end); none when no cell crossed."""
+        start = {view.key: view for view in membrane_views(before.cells)}
+        end = {view.key: view for view in membrane_views(self.state.cells)}
+        keys = [key for key, view in start.items() if key in end
+                and any(view.x < line <= end[key].x for line in lines)]
+        if not keys:
+            return []
+        return [Observation(before.time, tuple(start[key] for key in keys)),
+                Observation(self.state.time, tuple(end[key] for key in keys))]
 
 
 @dataclass

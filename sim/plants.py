@@ -32,8 +32,9 @@ class PlantModel:
 
 
 def _feib(scenario, control_period, flows, **options):
-    from .plant import FeibPlant
-    return FeibPlant(scenario, control_period=control_period, **options)
+    from .plant import AdaptiveFeibPlant, FeibPlant
+    kind = AdaptiveFeibPlant if scenario.numerics.tolerance > 0 else FeibPlant    # with a tolerance: event-driven
+    return kind(scenario, control_period=control_period, **options)
 
 
 def _auto(scenario, control_period, flows, **options):

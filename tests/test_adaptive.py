@@ -248,3 +248,64 @@ def test_bad_tolerances_are_one_line_errors(arguments, message):
     result = subprocess.run([sys.executable, "-m", "vcyto.cli", *arguments], capture_output=True, text=True)
     assert result.returncode == 2 and result.stderr.startswith("vcyto: error: " + message)
     assert result.stderr.count("\n") == 1 and "Traceback" not in result.stderr
+
+
+class DriveSink(PathSink):
+    """PathSink, and the time, drive and step number of every record."""
+
+    def __init__(self):
+        super().__init__()
+        self.records = []
+
+    def on_step(self, record):
+        super().on_step(record)
+        self.records.append((record.time, record.actuation, record.step))
+
+
+@pytest.fixture(scope="module")
+def loop_runs():
+    """The default stream on a coarse mesh at 1 um: the event-driven plant the loop builds with a tolerance, and
+    the same plant stepped one control period at a time (``FeibPlant.step``)."""
+    from sim import contract, plants
+    from sim.arrivals import Arrivals
+    from sim.plant import FeibPlant
+    from vcyto.stream import StreamSettings, run_stream
+    scenario = Scenario().with_numerics(mesh_h=20 * UM / 3, tolerance=1e-6)
+    settings = StreamSettings(Arrivals(cells=("RBC", "melanoma")))
+    runs = {}
+    for name, plant in (("event-driven", plants.build("feib", scenario)), ("by period", FeibPlant(scenario))):
+        assert isinstance(plant, contract.StepsUntil) == (name == "event-driven")
+        sink = DriveSink()
+        result = run_stream(scenario, settings, plant=plant, sinks=[sink])
+        runs[name] = (result, sink, plant)
+    return runs
+
+
+def test_with_a_tolerance_the_plant_steps_across_control_periods(loop_runs):
+    """The loop lets the plant step freely while the drive holds: steps end between the controller's period
+    ends and take 20 us where only the RBC is in the channel; the drive still changes only at a period end, and
+    every record is one physics step."""
+    result, sink, plant = loop_runs["event-driven"]
+    period = plant.control_period
+    times, drives, steps = (np.array(column) for column in zip(*sink.records))
+    on_grid = np.isclose(times / period, np.round(times / period), rtol=0, atol=1e-6)
+    assert not on_grid.all()                                              # steps end between period ends
+    changed = np.flatnonzero(np.diff(drives) != 0) + 1
+    assert len(changed) >= 2 and on_grid[changed].all()                  # the pulse's edges: at period ends
+    assert np.array_equal(steps, np.arange(1, len(steps) + 1))            # one record a step, numbered
+    assert result["time_steps"]["steps"][3] > 0 and result["steps"] == sum(result["time_steps"]["steps"])
+    by_period = loop_runs["by period"][0]
+    assert result["steps"] < 0.9 * sum(by_period["time_steps"]["steps"])
+
+
+def test_the_event_driven_loop_sorts_as_the_period_by_period_loop(loop_runs):
+    """Same outlets, decisions and detections: each event's crossing time within one control period of the
+    period-stepped run's, the pulse on as long within two periods (its edges are taken at period ends)."""
+    (event_driven, _, plant), (by_period, _, _) = loop_runs["event-driven"], loop_runs["by period"]
+    period = plant.control_period
+    assert [(c["type"], c["decision"], c["outlet"]) for c in event_driven["cells"]] == \
+        [(c["type"], c["decision"], c["outlet"]) for c in by_period["cells"]] == \
+        [("RBC", "pass", "lower"), ("melanoma", "sort", "upper")]
+    for ours, theirs in zip(event_driven["cells"], by_period["cells"]):
+        assert abs(ours["detection_time_ms"] - theirs["detection_time_ms"]) * 1e-3 < period
+    assert abs(event_driven["idt_on_time_ms"] - by_period["idt_on_time_ms"]) * 1e-3 <= 2 * period + 1e-12

@@ -173,6 +173,8 @@ class _Run:
         self.steps = 0
         self.fields = _field_payload(plant) if self.paced and isinstance(plant, contract.HasFields) else None
         self.grouped = isinstance(plant, contract.StepsUntil)
+        # one step a call (the FE-IB plant with a tolerance): every call is shown, none stopped for the records
+        self.single = self.grouped and getattr(plant, "one_step_per_call", False)
         self.observation = None
         self.truth_update = plant.truth_update if isinstance(plant, contract.ReportsTruthUpdates) else None
         self.diagnostics = plant.diagnostics if isinstance(plant, contract.HasDiagnostics) else None
@@ -182,29 +184,42 @@ class _Run:
     def now(self) -> float:
         return self.plant.time if self.grouped else self.observation.time
 
+    @property
+    def clock(self) -> float:
+        """The controller's time: the last end of a control period (a plant that steps across them may stop
+        between two; the drive changes only at their ends, as when the loop steps period by period)."""
+        now = self.now
+        if not self.single:
+            return now
+        period = self.plant.control_period
+        return math.floor(now / period + 1e-9) * period
+
     def step(self, cap: float):
         plant, controller = self.plant, self.controller
         if self.grouped:
             # what the detector reacts to: the cells crossing its lines, one period before and at the crossing
-            until = min(controller.next_change(self.now), cap)
-            if self.paced:
+            started = self.now
+            until = min(controller.next_change(self.clock), cap)
+            if self.paced and not self.single:
                 until = min(until, self.shown + self.settings.record_interval)
             window_start, window_end = self.settings.detector.window
             periods, seen = plant.step_until(self.actuation, until, stop_lines=(window_end,),
                                              record_lines=(window_start,))
+            self.idt_time += self.actuation * (self.now - started)
         else:
             self.observation, periods = plant.step(self.actuation), 1
             seen = [self.observation]
+            self.idt_time += self.actuation * plant.control_period
         self.steps += periods
-        self.idt_time += self.actuation * plant.control_period * periods
         new_events = [event for view in seen for event in self.detector.observe(view.time, _sightings(view))]
         for event in new_events:
             controller.on_event(event)
             self.events[event.key] = event
-        self.actuation = controller.actuation(self.now)
+        self.actuation = controller.actuation(self.clock)
         self.pending.extend(new_events)
         # an event-driven plant shows its state every record_interval (events and decisions wait for it)
-        due = not self.grouped or self.now >= self.shown + self.settings.record_interval - 1e-12 or plant.done
+        due = (not self.grouped or self.single or self.now >= self.shown + self.settings.record_interval - 1e-12
+               or plant.done)
         if due and self.sinks:
             self._show()
 

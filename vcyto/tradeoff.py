@@ -153,8 +153,7 @@ def run_scene(plant, scene: Scene) -> dict:
     started = time.perf_counter()
     failure = None
     try:
-        for observation in stepping(lambda _, drive: plant.step(drive), observation, scene.actuation,
-                                    until=scene.max_time, running=lambda _: not plant.done):
+        for observation in _steps(plant, scene, observation):
             for view in observation.cells:
                 paths[view.key].append((observation.time, view.x, view.y))
     except HealthError as error:
@@ -167,6 +166,22 @@ def run_scene(plant, scene: Scene) -> dict:
                            "exit_time": cell.exit_time, "exit_y": cell.exit_y,
                            "area_ratio_min": measures.get("area_ratio_min"), "path": np.array(paths[cell.key])}
     return {"wall_s": wall, "cells": cells, "failure": failure}
+
+
+def _steps(plant, scene: Scene, observation):
+    """The observations after each step: period by period, or, for a plant that steps across control periods
+    (``one_step_per_call``: feib with a tolerance), one step at a time up to the next pulse edge, the drive
+    taken at the last period end, as the closed loop drives it (``vcyto.stream``)."""
+    if not getattr(plant, "one_step_per_call", False):
+        yield from stepping(lambda _, drive: plant.step(drive), observation, scene.actuation,
+                            until=scene.max_time, running=lambda _: not plant.done)
+        return
+    period = plant.control_period
+    while not plant.done and plant.time < scene.max_time:
+        clock = math.floor(plant.time / period + 1e-9) * period
+        edges = [edge for pulse in scene.pulses for edge in pulse if clock < edge < math.inf]
+        plant.step_until(scene.actuation(clock), min(edges + [scene.max_time]))
+        yield plant.observe()
 
 
 def compare(run: dict, reference: dict) -> dict:

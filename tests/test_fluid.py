@@ -200,3 +200,24 @@ def test_implicit_oseen_and_imex_agree_on_a_short_transient(transients):
 
 def test_implicit_treatment_solves_its_nonlinear_system(transients):
     assert 1 < transients["implicit"].iterations < 30
+
+
+@pytest.mark.parametrize("numerics", [{"dt": 2.5e-6}, {"dt": 20e-6, "time_scheme": "bdf2"}, {"dt": 1e-3}])
+def test_the_gathered_constant_matrix_is_the_block_assembly_bit_for_bit(numerics):
+    """The constant treatments' matrix of a step (``sim.fluid._Structure``: gathered from the positions of its
+    entries, as every --tolerance level builds its own) has the block assembly's entries, order and bits, so its
+    factorisation, its kept entry in the cache and every solve are the same; the pressure scale too."""
+    from sim.fluid import _structure
+    fluid = NavierStokes(Scenario().with_numerics(mesh_h=20 * UM / 3, **numerics))
+    a = fluid.mass_coefficient * fluid.space.mass + fluid.stiffness
+    assembled = fluid._assembled(a, a)
+    viscosity = fluid.scenario.fluid.viscosity
+    gathered = _structure(fluid.space, fluid.free, fluid.dirichlet).assembled(fluid.mass_coefficient, viscosity,
+                                                                               fluid.pressure_scale)
+    for ours, theirs in zip(gathered, assembled):
+        for part in ("indptr", "indices", "data"):
+            assert np.array_equal(getattr(ours, part), getattr(theirs, part)), part
+    bx, by = fluid.space.divergence
+    assert fluid.pressure_scale == abs(a).max() / max(abs(bx).max(), abs(by).max())
+    assert np.array_equal(fluid._constant.factor.solve(np.ones(len(fluid.free))),
+                          fluid._factored(*assembled, symmetric=True).factor.solve(np.ones(len(fluid.free))))

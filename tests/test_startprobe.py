@@ -22,5 +22,7 @@ def test_a_warm_start_reads_the_cache_and_never_imports_pint(tmp_path):
     assert {"matrices", "steady-flow"} <= kinds, kinds
     assert list((tmp_path / "units").glob("pint-*.json"))
     warm = probe(tmp_path, *arguments)
-    assert warm["reached_first_step"] and not warm["pint_imported"]
+    assert warm["reached_first_step"] and not warm["pint_imported"] and warm["steps"] == 0
     assert warm["cpu_s"] > 0
+    through = probe(tmp_path, "--steps", "2", *arguments)        # the start through the first two steps
+    assert through["reached_first_step"] and through["steps"] == 2 and through["wall_s"] > 0

@@ -13,6 +13,8 @@ message, as with the sinks called inline; what changes is that their cost overla
 - Failures: an exception in a sink (a full disk) stops the loop at its next step with that exception.
 - ``close`` waits until every queued step has been written, then closes the sinks (the caller calls it
   on normal exit, Ctrl-C and SIGTERM, as for a single sink).
+- Deferred: a ``Deferred`` sink is built on the worker thread as it starts, before any step, so building it
+  (importing Rerun and opening its recording: ~0.7-0.9 s) overlaps the plant's set-up instead of preceding it.
 """
 
 from __future__ import annotations
@@ -27,6 +29,15 @@ _STOP = object()
 _END = object()
 
 
+class Deferred:
+    """A sink that ``BackgroundSinks`` builds on its worker thread: ``build()`` returns the sinks (none, one or
+    more) it stands for; ``field_every`` is theirs, known before they exist (the loop's thread computes a step's
+    flow field when a sink asks for it)."""
+
+    def __init__(self, build, field_every: int = 0):
+        self.build, self.field_every = build, field_every
+
+
 class BackgroundSinks:
     def __init__(self, sinks, depth: int = 16):
         self.sinks = list(sinks)
@@ -35,7 +46,20 @@ class BackgroundSinks:
         self._thread = threading.Thread(target=self._work, name="vcyto-sinks", daemon=True)
         self._thread.start()
 
+    def _build(self):
+        """Replace each ``Deferred`` by the sinks it builds (a failure to build is a sink's failure)."""
+        if not any(isinstance(sink, Deferred) for sink in self.sinks):
+            return
+        built = []
+        try:
+            for sink in self.sinks:
+                built += sink.build() if isinstance(sink, Deferred) else [sink]
+        except BaseException as error:      # reported to the loop's thread at its next step
+            self._failure = error
+        self.sinks = built                  # one assignment: the loop's thread reads the list as a whole
+
     def _work(self):
+        self._build()
         while True:
             item = self._queue.get()
             try:

@@ -101,14 +101,15 @@ def command_stream(args):
 def _open_sinks(args, scenario, settings, view, files):
     """The MCAP and Rerun sinks of the run, on a background thread (their work overlaps the plant's solve), or
     None."""
-    from ..sinks import BackgroundSinks
+    from ..sinks import BackgroundSinks, Deferred
     sinks = []
     if files is not None and files.path("mcap") is not None:
         from ..recording import McapRecorder
         sinks.append(McapRecorder(files.path("mcap"), _run_metadata(scenario, settings),
                                   flush_every=args.flush_every, field_every=args.field_every))
     if view.kind is not None and (view.kind == "connect" or view.path or files is not None):
-        sinks += _rerun_sink(args, scenario, settings, view, files)
+        # built on the sinks' thread: importing Rerun and opening the recording overlap the plant's set-up
+        sinks.append(Deferred(lambda: _rerun_sink(args, scenario, settings, view, files), args.field_every))
     return BackgroundSinks(sinks) if sinks else None
 
 

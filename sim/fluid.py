@@ -132,10 +132,16 @@ class _Structure:
         # the union's values come from these, -1 (no entry) reading the appended zero
         self._mass = np.append(space.mass.data, 0.0)[arrays["union_mass"]]
         self._laplace = np.append(space.laplace.data, 0.0)[arrays["union_laplace"]]
-        self._divergence = sp.hstack([bx, by]).tocsr().data
+        divergence = sp.hstack([bx, by]).tocsr().data
         self.divergence_largest = max(abs(bx).max(), abs(by).max())
-        self._parts = {name: (arrays[f"{name}_indptr"], arrays[f"{name}_indices"], arrays[f"{name}_source"],
-                              tuple(arrays[f"{name}_shape"])) for name in ("rows", "lift")}
+        self._parts = {}
+        for name in ("rows", "lift"):         # each entry's values gathered once; a step only scales and adds
+            source = arrays[f"{name}_source"]
+            velocity = source < len(self._mass)
+            at = source[velocity]
+            self._parts[name] = (arrays[f"{name}_indptr"], arrays[f"{name}_indices"], tuple(arrays[f"{name}_shape"]),
+                                 velocity, ~velocity, self._mass[at], self._laplace[at],
+                                 divergence[source[~velocity] - len(self._mass)])
 
     def velocity_largest(self, mass_coefficient: float, viscosity: float) -> float:
         """max |a_ij|, a = c M + mu L."""
@@ -146,15 +152,16 @@ class _Structure:
         return tuple(self._gathered(*self._parts[name], mass_coefficient, viscosity, scale)
                      for name in ("rows", "lift"))
 
-    def _gathered(self, indptr, indices, source, shape, mass_coefficient, viscosity, scale) -> sp.csr_matrix:
-        union = len(self._mass)
-        velocity = source < union
-        values = np.empty(len(source))
-        at = source[velocity]
-        values[velocity] = mass_coefficient * self._mass[at] + viscosity * self._laplace[at]
-        values[~velocity] = -(self._divergence[source[~velocity] - union] * scale)
-        kept = ~velocity | (values != 0.0)
-        if not kept.all():
+    @staticmethod
+    def _gathered(indptr, indices, shape, velocity, coupling, mass, laplace, divergence, mass_coefficient, viscosity,
+                  scale) -> sp.csr_matrix:
+        values = np.empty(len(velocity))
+        momentum = mass_coefficient * mass
+        momentum += viscosity * laplace             # c m + mu l, as the sparse sum computes it
+        values[velocity] = momentum
+        values[coupling] = -(divergence * scale)       # the divergence blocks' entries
+        if (momentum == 0.0).any():
+            kept = coupling | (values != 0.0)
             rows = np.repeat(np.arange(shape[0]), np.diff(indptr))[kept]
             indptr = np.concatenate(([0], np.cumsum(np.bincount(rows, minlength=shape[0])))).astype(indptr.dtype)
             indices, values = indices[kept], values[kept]

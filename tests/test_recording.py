@@ -123,6 +123,39 @@ def test_a_failing_sink_stops_the_run_with_its_error(plant):
     assert failing.closed
 
 
+def test_a_deferred_sink_is_built_on_the_sinks_thread_and_writes_the_same_messages(plant, tmp_path):
+    """``vcyto stream`` builds its Rerun sink on the sinks' thread (its import overlaps the plant's set-up): a
+    ``Deferred`` sink is built there, before any step, and records what the same sink given directly records;
+    a sink that cannot be built stops the run with its error, as a failing sink does."""
+    import threading
+
+    from vcyto.sinks import Deferred
+    settings = StreamSettings(Arrivals(cells=("melanoma", "RBC", "melanoma")), model="streamline")
+    built_on = []
+
+    def build():
+        built_on.append(threading.current_thread().name)
+        return [McapRecorder(tmp_path / "deferred.mcap", {"seed": 0}, flush_every=10, field_every=0)]
+    sink = BackgroundSinks([Deferred(build)])
+    try:
+        run_stream(Scenario(), settings, plant=plant, sinks=[sink])
+    finally:
+        sink.close()
+    record(plant, tmp_path / "direct.mcap", background=True)
+    assert built_on == ["vcyto-sinks"]
+    assert content(tmp_path / "deferred.mcap") == content(tmp_path / "direct.mcap")
+
+    def unbuildable():
+        raise OSError(28, "No space left on device")
+    with pytest.raises(OSError, match="No space left"):
+        sink = BackgroundSinks([Deferred(unbuildable)])
+        try:
+            run_stream(Scenario(), StreamSettings(Arrivals(cells=("RBC",)), model="streamline"), plant=plant,
+                       sinks=[sink])
+        finally:
+            sink.close()
+
+
 def test_a_killed_run_keeps_every_step_up_to_the_last_flush(tmp_path):
     command = [sys.executable, "-m", "vcyto.cli", "stream", "--model", "streamline", "--count", "400",
                "--mix", "RBC:0.5,melanoma:0.5", "--rate", "2000", "--quiet", "--output", str(tmp_path),

@@ -43,9 +43,11 @@ def add_command(commands):
                              "stream-DATE-TIME-MILLISECONDS-PID); a name whose files exist is refused")
     stream.add_argument("--no-record", action="store_true", help="no MCAP recording")
     stream.add_argument("--flush-every", type=Integer(low=1), default="50", metavar="N",
-                        help="flush the recording every N control periods: a crash loses at most N (default 50)")
+                        help="flush the recording every N recorded steps (control periods; with --tolerance, "
+                             "FE-IB steps): a crash loses at most N (default 50)")
     stream.add_argument("--field-every", type=Integer(low=0), default="200", metavar="N",
-                        help="record the velocity field every N control periods, 0 = never (default 200)")
+                        help="record the velocity field every N recorded steps (control periods; with "
+                             "--tolerance, FE-IB steps), 0 = never (default 200)")
     _viewer_options(stream)
     output_options(stream)
     stream.set_defaults(handler=command_stream)

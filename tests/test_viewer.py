@@ -116,3 +116,33 @@ def test_a_long_sort_logs_a_bounded_set_of_entities_and_every_path_once(tmp_path
     assert len([e for e in temporal if e.startswith("/device/paths/")]) == 16
     assert len(temporal) <= 16 + 8                      # slots + idt, cells, events, pulses (2), log, flow
     assert paths == collections.Counter({cell["key"]: 1 for cell in left})
+
+
+def test_a_display_without_a_server_is_seen_before_the_viewer_is_started(monkeypatch, tmp_path):
+    """A viewer started without a reachable display exits only once it opens its window (on a busy machine
+    after the start's grace): so vcyto asks the display server first. No server at DISPLAY=:n or at a remote
+    one: a one-line reason and no viewer started; a listening X socket (abstract, as Linux's X servers make) or
+    Wayland socket: usable."""
+    import os
+    import socket
+
+    from vcyto import viewer
+    monkeypatch.delenv("WAYLAND_DISPLAY", raising=False)
+    number = 700 + os.getpid() % 200                  # a display no X server on this machine is using
+    monkeypatch.setenv("DISPLAY", f":{number}")
+    assert viewer.display_problem() == f"no display server answers at DISPLAY=:{number}"
+    with pytest.raises(viewer.ViewerUnavailable, match="no display server answers"):
+        viewer.start_viewer(port=1)                   # nothing listens on port 1: it would start one
+    monkeypatch.setenv("DISPLAY", f"127.0.0.1:{number}.0")
+    assert viewer.display_problem() is not None
+    with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as server:
+        server.bind(f"\0/tmp/.X11-unix/X{number}")
+        server.listen()
+        monkeypatch.setenv("DISPLAY", f":{number}.0")
+        assert viewer.display_problem() is None
+    with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as server:
+        server.bind(str(tmp_path / "wayland-0"))
+        server.listen()
+        monkeypatch.setenv("DISPLAY", f":{number}")
+        monkeypatch.setenv("WAYLAND_DISPLAY", str(tmp_path / "wayland-0"))
+        assert viewer.display_problem() is None

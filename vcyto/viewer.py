@@ -27,6 +27,46 @@ def has_display() -> bool:
     return bool(os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")) or sys.platform in ("darwin", "win32")
 
 
+def _accepts(family: int, address, timeout: float = 0.5) -> bool:
+    try:
+        with socket.socket(family, socket.SOCK_STREAM) as probe:
+            probe.settimeout(timeout)
+            probe.connect(address)
+            return True
+    except (OSError, ValueError):
+        return False
+
+
+def display_problem() -> str | None:
+    """Why the display the environment names cannot be used (None: it can, or this platform has no such check).
+
+    A viewer started without a reachable display exits, but only once it tries to open its window, which on a
+    busy machine can take longer than the grace ``start_viewer`` gives it; so the display server itself is
+    asked first: the Wayland socket, else the X server of ``DISPLAY`` (its Unix socket, abstract or in
+    /tmp/.X11-unix, or TCP port 6000 + n for a remote one such as ssh's forwarding)."""
+    if sys.platform in ("darwin", "win32"):
+        return None
+    wayland = os.environ.get("WAYLAND_DISPLAY")
+    if wayland:
+        path = wayland if os.path.isabs(wayland) else os.path.join(os.environ.get("XDG_RUNTIME_DIR", ""), wayland)
+        if _accepts(socket.AF_UNIX, path):
+            return None
+    display = os.environ.get("DISPLAY", "")
+    host, _, number = display.rpartition(":")
+    number = number.split(".")[0]
+    if number.isdigit():
+        if host in ("", "unix"):
+            socket_path = f"/tmp/.X11-unix/X{number}"
+            if _accepts(socket.AF_UNIX, "\0" + socket_path) or _accepts(socket.AF_UNIX, socket_path):
+                return None
+        elif _accepts(socket.AF_INET, (host, 6000 + int(number))):
+            return None
+    elif display:
+        return None                       # a form we do not parse (a launchd path...): let the viewer try
+    shown = ", ".join(f"{name}={os.environ[name]}" for name in ("DISPLAY", "WAYLAND_DISPLAY") if os.environ.get(name))
+    return f"no display server answers at {shown or 'the display named'}"
+
+
 # --- finding, starting and reaching a viewer (the view itself is below) -------------------------------
 
 VIEWER_PORT = 9876
@@ -84,6 +124,9 @@ def start_viewer(bind: str = "127.0.0.1", port: int = VIEWER_PORT) -> tuple[str,
     binary = find_viewer()
     if binary is None:
         raise ViewerUnavailable("the rerun-sdk installation has no viewer binary")
+    problem = display_problem()
+    if problem is not None:
+        raise ViewerUnavailable(problem)
     command = [str(binary), "--port", str(port), "--bind", bind, "--memory-limit", "75%", "--hide-welcome-screen"]
     try:
         process = subprocess.Popen(command, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,

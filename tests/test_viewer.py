@@ -4,6 +4,7 @@ import collections
 import json
 import subprocess
 import sys
+from pathlib import Path
 
 import pytest
 from rerun.chunk import RrdReader
@@ -131,6 +132,7 @@ def test_a_display_without_a_server_is_seen_before_the_viewer_is_started(monkeyp
     number = 700 + os.getpid() % 200                  # a display no X server on this machine is using
     monkeypatch.setenv("DISPLAY", f":{number}")
     assert viewer.display_problem() == f"no display server answers at DISPLAY=:{number}"
+    monkeypatch.setattr(viewer, "find_viewer", lambda: Path(sys.executable))     # a binary it would start
     with pytest.raises(viewer.ViewerUnavailable, match="no display server answers"):
         viewer.start_viewer(port=1)                   # nothing listens on port 1: it would start one
     monkeypatch.setenv("DISPLAY", f"127.0.0.1:{number}.0")

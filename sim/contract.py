@@ -109,7 +109,11 @@ class Plant(Protocol):
 @runtime_checkable
 class StepsUntil(Protocol):
     """Advances many control periods in one call (the rom plant): returns (periods, partial observations of
-    the cells that crossed a stop or a record line), stopping after a forward crossing of a stop line."""
+    the cells that crossed a stop or a record line), stopping after a forward crossing of a stop line.
+
+    A plant with ``one_step_per_call = True`` (the FE-IB plant with a tolerance) takes one step of its own a call,
+    across control period ends, returning (1, ...); it offers ``clock``, its last control period end, where the
+    loop reads the controller's drive, and the loop shows every call to its sinks."""
 
     def step_until(self, actuation: float, until: float, stop_lines=(), record_lines=(),
                    max_periods: int = 10**7) -> tuple[int, list[Observation]]: ...

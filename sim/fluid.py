@@ -127,13 +127,12 @@ class _Structure:
     the union's) in the order the block assembly gives; as that assembly's sparse sum does, a velocity entry whose
     value is exactly zero is left out. So ``assembled`` gives the assembly's entries, order and bits."""
 
-    def __init__(self, space: TaylorHood, arrays: dict):
-        bx, by = space.divergence
+    def __init__(self, space: TaylorHood, divergence: sp.csr_matrix, arrays: dict):
         # the union's values come from these, -1 (no entry) reading the appended zero
         self._mass = np.append(space.mass.data, 0.0)[arrays["union_mass"]]
         self._laplace = np.append(space.laplace.data, 0.0)[arrays["union_laplace"]]
-        divergence = sp.hstack([bx, by]).tocsr().data
-        self.divergence_largest = max(abs(bx).max(), abs(by).max())
+        self.divergence_largest = float(abs(divergence).max())    # [Bx, By]: the largest of either block
+        divergence = divergence.data
         self._parts = {}
         for name in ("rows", "lift"):         # each entry's values gathered once; a step only scales and adds
             source = arrays[f"{name}_source"]
@@ -209,13 +208,12 @@ def _structure(space: TaylorHood, free: np.ndarray, dirichlet: np.ndarray) -> _S
     name = digest(free, dirichlet)
     if name not in known:
         mass, laplace = space.mass, space.laplace
-        bx, by = space.divergence
-        divergence = sp.hstack([bx, by]).tocsr()
+        divergence = sp.hstack(space.divergence).tocsr()
         key = {"layout": 1, "unknowns": name, "scipy": scipy.__version__,
                "patterns": digest(*(a for m in (mass, laplace, divergence) for a in (m.indptr, m.indices))),
                "code": code_digest(_tagged_structure, _positions)}
-        known[name] = _Structure(space, reuse("fluid-structure", key,
-                                              lambda: _tagged_structure(mass, laplace, divergence, free, dirichlet)))
+        known[name] = _Structure(space, divergence, reuse("fluid-structure", key, lambda: _tagged_structure(
+            mass, laplace, divergence, free, dirichlet)))
     return known[name]
 
 

@@ -100,15 +100,19 @@ class FeibPlant:
         dt = self.scenario.numerics.dt
         end = (round(self.state.time / self.control_period) + 1) * self.control_period
         while self.state.time < end - 0.5 * dt:
-            stop = end
-            if self.schedule.waiting:
-                arrival = self.schedule.items[self.schedule.position][0]
-                due = dt * math.ceil((arrival - 0.5 * dt) / dt - 1e-9)
-                if due > self.state.time + 0.5 * dt:
-                    stop = min(end, due)
-            self.state = self.ib.step(self.state, actuation, until=stop)
+            self.state = self.ib.step(self.state, actuation, until=min(end, self._next_due()))
             self._inject()
         return self.observe()
+
+    def _next_due(self) -> float:
+        """When the next scheduled cell is injected (on the dt grid, as the fixed step injects it), if after now."""
+        dt = self.scenario.numerics.dt
+        if self.schedule.waiting:
+            arrival = self.schedule.items[self.schedule.position][0]
+            due = dt * math.ceil((arrival - 0.5 * dt) / dt - 1e-9)
+            if due > self.state.time + 0.5 * dt:
+                return due
+        return math.inf
 
     @property
     def time(self) -> float:
@@ -165,23 +169,22 @@ class AdaptiveFeibPlant(FeibPlant):
 
     one_step_per_call = True       # the loop shows every call to its sinks and does not stop it at a record interval
 
+    @property
+    def clock(self) -> float:
+        """The controller's time: the last control period end (the drive changes only there)."""
+        return math.floor(self.state.time / self.control_period + 1e-9) * self.control_period
+
     def step_until(self, actuation: float, until: float, stop_lines=(), record_lines=(), max_periods: int = 10**7):
         """One step at ``actuation``, ending at or before the first control period end at or after ``until`` and
         where the next cell is due. Returns (1, seen): ``seen`` the partial observations, at the step's start and
         end, of the cells whose centroid crossed a line x = w of ``stop_lines`` or ``record_lines`` forwards."""
-        dt, period = self.scenario.numerics.dt, self.control_period
-        now = self.state.time
-        stop = math.inf
+        period = self.control_period
+        stop = self._next_due()
         if math.isfinite(until):
-            ticks = math.ceil(until / period - 1e-9)
-            if ticks * period <= now + 0.5 * dt:
-                ticks = math.floor(now / period + 1e-9) + 1
-            stop = ticks * period
-        if self.schedule.waiting:
-            arrival = self.schedule.items[self.schedule.position][0]
-            due = dt * math.ceil((arrival - 0.5 * dt) / dt - 1e-9)
-            if due > now + 0.5 * dt:
-                stop = min(stop, due)
+            end = math.ceil(until / period - 1e-9) * period
+            if end <= self.state.time + 0.5 * self.scenario.numerics.dt:
+                end = self.clock + period
+            stop = min(stop, end)
         before = self.state
         self.state = self.ib.step(before, actuation, until=None if math.isinf(stop) else stop)
         self._inject()

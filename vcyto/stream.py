@@ -186,13 +186,9 @@ class _Run:
 
     @property
     def clock(self) -> float:
-        """The controller's time: the last end of a control period (a plant that steps across them may stop
-        between two; the drive changes only at their ends, as when the loop steps period by period)."""
-        now = self.now
-        if not self.single:
-            return now
-        period = self.plant.control_period
-        return math.floor(now / period + 1e-9) * period
+        """The controller's time: the plant's last control period end when it steps across them (the drive
+        changes only at their ends, as when the loop steps period by period), else the plant's time."""
+        return self.plant.clock if self.single else self.now
 
     def step(self, cap: float):
         plant, controller = self.plant, self.controller

@@ -176,9 +176,8 @@ def _steps(plant, scene: Scene, observation):
         yield from stepping(lambda _, drive: plant.step(drive), observation, scene.actuation,
                             until=scene.max_time, running=lambda _: not plant.done)
         return
-    period = plant.control_period
     while not plant.done and plant.time < scene.max_time:
-        clock = math.floor(plant.time / period + 1e-9) * period
+        clock = plant.clock
         edges = [edge for pulse in scene.pulses for edge in pulse if clock < edge < math.inf]
         plant.step_until(scene.actuation(clock), min(edges + [scene.max_time]))
         yield plant.observe()

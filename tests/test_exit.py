@@ -3,6 +3,7 @@ handlers complete, the status kept, the interpreter's teardown skipped, the ordi
 still finish. A reader that went away (141), a Ctrl-C while the libraries load (130, one line), and no empty or
 half-written figure left by a run that fails."""
 
+import gc
 import json
 import os
 import signal
@@ -60,6 +61,29 @@ def test_the_executable_exits_with_mains_status_through_a_pipe():
     assert shown.returncode == 0 and json.loads(shown.stdout)
     bad = subprocess.run([sys.executable, "-m", "vcyto", "paper", "3"], capture_output=True, text=True, timeout=120)
     assert bad.returncode == 2 and bad.stderr.startswith("vcyto: error:") and "Traceback" not in bad.stderr
+
+
+GC_SCRIPT = textwrap.dedent("""
+    import atexit, gc, sys
+    sys.argv = ["vcyto", *sys.argv[1:]]
+    atexit.register(lambda: print(gc.get_freeze_count(), gc.isenabled()))
+    from vcyto.__main__ import run
+    run()
+""")
+
+
+def test_the_executable_freezes_what_the_imports_leave_and_keeps_collecting():
+    """The entry point loads the libraries with the collector off, freezes what they leave, and turns the
+    collector back on; ``vcyto.cli.main`` called from Python (as the tests do) leaves it alone."""
+    done = subprocess.run([sys.executable, "-c", GC_SCRIPT, "scenario", "--json"], capture_output=True, text=True,
+                          timeout=120)
+    assert done.returncode == 0, done.stderr
+    frozen, enabled = done.stdout.strip().splitlines()[-1].split()
+    assert int(frozen) > 50_000 and enabled == "True"
+    from vcyto.cli import main
+    already = gc.get_freeze_count()
+    assert main(["scenario", "--json"]) == 0
+    assert gc.get_freeze_count() == already and gc.isenabled()
 
 
 def test_a_reader_that_went_away_gives_status_141_and_no_error(tmp_path):

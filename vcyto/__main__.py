@@ -2,19 +2,30 @@
 
 The command line is imported inside ``run``: a Ctrl-C while Python loads the libraries (the first half second)
 ends with one line and status 130, as an interrupt does later, instead of a traceback.
+
+The garbage collector is off while the libraries load, and the ~120,000 objects they leave (modules, functions,
+classes: they live as long as the process) are then frozen (``gc.freeze``): no later collection walks them again.
+Measured on the ``--tolerance 1um`` stream (README's command): the collections took 0.06 s during the imports and
+0.37 s during the run (four full collections of ~0.07 s each), against none and 0.15-0.17 s. Only the process's
+own entry point does this; ``vcyto.cli.main`` called from Python leaves the collector alone.
 """
 
+import gc
 import os
 import sys
 
 
 def run() -> None:
+    gc.disable()
     try:
         from .cli import run as run_command_line
     except KeyboardInterrupt:               # nothing has been written yet
         sys.stderr.write("vcyto: interrupted\n")
         sys.stderr.flush()
         os._exit(130)
+    finally:
+        gc.freeze()
+        gc.enable()
     run_command_line()
 
 

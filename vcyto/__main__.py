@@ -7,7 +7,9 @@ The garbage collector is off while the libraries load, and the ~120,000 objects 
 classes: they live as long as the process) are then frozen (``gc.freeze``): no later collection walks them again.
 Measured on the ``--tolerance 1um`` stream (README's command): the collections took 0.06 s during the imports and
 0.37 s during the run (four full collections of ~0.07 s each), against none and 0.15-0.17 s. Only the process's
-own entry point does this; ``vcyto.cli.main`` called from Python leaves the collector alone.
+own entry points do this (``python -m vcyto.cli`` freezes after its package's import, and the start-up probe
+``vcyto.startprobe`` imports as the executable does); ``vcyto.cli.main`` called from Python leaves the collector
+alone.
 """
 
 import gc
@@ -15,18 +17,25 @@ import os
 import sys
 
 
-def run() -> None:
+def load_command_line():
+    """``vcyto.cli``, imported with the collector off; what the imports leave is then frozen."""
     gc.disable()
     try:
-        from .cli import run as run_command_line
+        from . import cli
+    finally:
+        gc.freeze()
+        gc.enable()
+    return cli
+
+
+def run() -> None:
+    try:
+        cli = load_command_line()
     except KeyboardInterrupt:               # nothing has been written yet
         sys.stderr.write("vcyto: interrupted\n")
         sys.stderr.flush()
         os._exit(130)
-    finally:
-        gc.freeze()
-        gc.enable()
-    run_command_line()
+    cli.run()
 
 
 if __name__ == "__main__":

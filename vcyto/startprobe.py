@@ -24,6 +24,8 @@ class _FirstStep(BaseException):
 
 def probe(arguments: list[str], steps: int = 0) -> dict:
     """Run ``vcyto arguments`` up to its plant step ``steps`` + 1 (0: the first); its start-up times (seconds)."""
+    from vcyto.__main__ import load_command_line
+    main = load_command_line().main          # imported as the executable imports it (the collector off)
     import sim.feib as feib
     step, taken = feib.ImmersedBoundary.step, []
 
@@ -34,7 +36,6 @@ def probe(arguments: list[str], steps: int = 0) -> dict:
         return step(self, *args, **kwargs)
 
     feib.ImmersedBoundary.step = stop
-    from vcyto.cli import main
     reached = False
     try:
         main(arguments)

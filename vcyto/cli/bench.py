@@ -4,13 +4,14 @@ the table ``TARGETS``."""
 from __future__ import annotations
 
 import math
+import sys
 from pathlib import Path
 from typing import Callable, NamedTuple
 
 from .. import arguments as limits
 from ..arguments import Integer, Quantity
 from ..options import check_cells_fit, length_value, parse_mix, scenario_from, scenario_options
-from .common import UsageError, emit, output_options, positive_list, stderr_progress
+from .common import EXIT_NUMERICAL, RunStopped, UsageError, emit, output_options, positive_list, stderr_progress
 
 EXAMPLES = Path(__file__).resolve().parent.parent.parent / "examples"
 
@@ -98,6 +99,20 @@ def _sweep_parser(targets):
                              help="runs per pool size; medians (default 1)")
     output_options(sweep_bench)
     sweep_bench.set_defaults(handler=command_bench)
+
+
+def _process_parser(targets):
+    process_bench = targets.add_parser("process", help="whole vcyto processes with a warm set-up cache: the start, "
+                                                       "paper 1 and 2, the README's stream at fixed steps and at "
+                                                       "--tolerance 1um (the speed-up per round), against their "
+                                                       "targets")
+    process_bench.add_argument("--rounds", type=Integer(low=1, high=100), default="3",
+                               help="timed rounds, each running every command once (default 3; a round takes "
+                                    "about 1.5 min on 2 cores)")
+    process_bench.add_argument("--no-warm-up", action="store_true",
+                               help="time from the first round (default: one untimed round fills the set-up cache)")
+    output_options(process_bench)
+    process_bench.set_defaults(handler=command_bench)
 
 
 def _sort_parser(targets):
@@ -213,6 +228,16 @@ def _sweep(args, scenario, progress):
     return result, sweep_bench.sweep_lines(result)
 
 
+def _process(args, scenario, progress):
+    from ..bench import process
+    try:
+        result = process.bench_process(args.rounds, warm_up=not args.no_warm_up, progress=progress)
+    except process.CommandFailed as failure:
+        print(f"vcyto: bench process: {failure}", file=sys.stderr)
+        raise RunStopped(EXIT_NUMERICAL) from failure
+    return result, process.process_lines(result)
+
+
 def _sort(args, scenario, progress):
     from ..bench import sort
     try:
@@ -260,6 +285,7 @@ TARGETS = {
     "membrane": Target(_membrane_parser, _membrane),
     "recording": Target(_recording_parser, _recording),
     "sweep": Target(_sweep_parser, _sweep, scenario=False),
+    "process": Target(_process_parser, _process, scenario=False),
     "sort": Target(_sort_parser, _sort),
     "realtime": Target(_realtime_parser, _realtime),
     "controller": Target(_controller_parser, _controller, scenario=False),

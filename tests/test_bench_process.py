@@ -1,0 +1,59 @@
+"""`vcyto bench process` (vcyto.bench.process): whole processes timed in rounds. The arithmetic (medians, the
+speed-up within each round, the warm-up left out, the verdicts) on scripted times; the runner on real,
+quick processes: headless, the wall time measured, a failing command reported in one line."""
+
+import subprocess
+import sys
+
+import pytest
+
+from vcyto.bench import process
+from vcyto.bench.process import Command, CommandFailed, bench_process, process_lines, run_command
+
+COMMANDS = (Command("slow", ("a",), target_s=10.0), Command("fast", ("b",)), Command("fixed", ("c",), target_s=5.0))
+
+
+def test_medians_and_the_speed_up_are_taken_per_round_and_the_warm_up_is_not_counted():
+    scripted = {"slow": iter([99.0, 12.0, 8.0, 9.0]), "fast": iter([99.0, 3.0, 2.0, 4.0]),
+                "fixed": iter([99.0, 4.0, 6.0, 5.0])}
+    order = []
+
+    def run(command, directory):
+        order.append(command.name)
+        assert directory.is_dir() and not any(directory.iterdir())      # a fresh directory per run
+        return next(scripted[command.name])
+
+    result = bench_process(rounds=3, commands=COMMANDS, pairs=(("slow", "fast"),), run=run)
+    assert order == ["slow", "fast", "fixed"] * 4                          # one warm-up round, then three
+    rows = {row["name"]: row for row in result["rows"]}
+    assert rows["slow"]["times_s"] == [12.0, 8.0, 9.0] and rows["slow"]["median_s"] == 9.0
+    assert rows["fixed"]["median_s"] == 5.0
+    (pair,) = result["speed_ups"]
+    assert pair["per_round"] == [4.0, 4.0, 2.25]          # 12/3, 8/2, 9/4: within each round
+    assert pair["median"] == 4.0                          # not median(slow) / median(fast) = 9 / 3
+    lines = "\n".join(process_lines(result))
+    assert "target <= 10 s: met" in lines and "target <= 5 s: met" in lines
+    assert "median 4.00  target >= 3: met" in lines
+
+
+def test_without_a_warm_up_every_round_counts_and_a_missed_target_says_so():
+    result = bench_process(rounds=2, commands=COMMANDS, pairs=(("slow", "fast"),), warm_up=False,
+                           run=lambda command, directory: {"slow": 11.0, "fast": 5.0, "fixed": 1.0}[command.name])
+    assert [len(row["times_s"]) for row in result["rows"]] == [2, 2, 2]
+    lines = "\n".join(process_lines(result))
+    assert "target <= 10 s: not met" in lines and "median 2.20  target >= 3: not met" in lines
+
+
+def test_the_runner_times_a_headless_process_and_reports_a_failure_in_one_line(tmp_path, monkeypatch):
+    monkeypatch.setenv("DISPLAY", ":0")
+    assert "DISPLAY" not in process.headless_environment()
+    wall = run_command(Command("scenario", ("scenario", "--json")), tmp_path)
+    assert 0.0 < wall < 120.0
+    with pytest.raises(CommandFailed, match=r"`vcyto paper 3` exited with status 2: vcyto: error: .*invalid choice: 3"):
+        run_command(Command("bad", ("paper", "3")), tmp_path)
+
+
+def test_the_command_line_refuses_zero_rounds_in_one_line():
+    done = subprocess.run([sys.executable, "-m", "vcyto", "bench", "process", "--rounds", "0"], capture_output=True,
+                          text=True, timeout=120)
+    assert done.returncode == 2 and len(done.stderr.strip().splitlines()) == 1 and "--rounds" in done.stderr

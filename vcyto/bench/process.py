@@ -1,0 +1,127 @@
+"""`vcyto bench process`: the wall time of whole ``vcyto`` processes, as a user who types the commands waits for
+them, with a warm set-up cache.
+
+Each command runs as its own process (``python -m vcyto ...``) with its files in a temporary directory, headless
+(``DISPLAY`` and ``WAYLAND_DISPLAY`` removed: the Rerun view is saved as an ``.rrd``, as on a machine without a
+display). One untimed run of every command first fills the set-up cache. Then each round runs every command
+once, in the same order, so that the README's stream at fixed 2.5 us steps and at ``--tolerance 1um`` run next
+to each other: their speed-up is taken within a round (the machine's load changes slowly against a round), and
+the median over the rounds is reported. The start is ``python -m vcyto.startprobe``'s time to the first FE-IB
+step of ``vcyto paper 2``.
+
+The targets are issue 18's (README, "Speed"): the start well under a second, ``vcyto paper 2`` <= 2 s,
+``vcyto paper 1`` <= 10 s, the README's stream <= 15 s, and with ``--tolerance 1um`` the stream >= 3x faster.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+from typing import Callable, NamedTuple
+
+import numpy as np
+
+STREAM = ("stream", "--cells", "RBC,melanoma")
+TOLERANCE = ("--tolerance", "1um")
+UNRECORDED = ("--no-viewer", "--output", "")
+
+
+class Command(NamedTuple):
+    """One timed command: its name in the report, its ``vcyto`` arguments (``{dir}`` is the round's directory),
+    its target in seconds (None: none of its own), whether the time is the start probe's, and a note."""
+    name: str
+    arguments: tuple
+    target_s: float | None = None
+    probe: bool = False
+    note: str = ""
+
+
+COMMANDS = (
+    Command("start to the first step (paper 2)", ("paper", "2", "--no-png", "--quiet"), probe=True,
+            note="target: well under a second"),
+    Command("vcyto paper 2", ("paper", "2", "--png", "{dir}/paper2.png", "--quiet"), 2.0),
+    Command("vcyto paper 1", ("paper", "1", "--png", "{dir}/paper1.png", "--quiet"), 10.0),
+    Command("stream", (*STREAM, "--output", "{dir}", "--quiet"), 15.0),
+    Command("stream --tolerance 1um", (*STREAM, *TOLERANCE, "--output", "{dir}", "--quiet")),
+    Command("stream, no recordings", (*STREAM, *UNRECORDED, "--quiet")),
+    Command("stream --tolerance 1um, no recordings", (*STREAM, *TOLERANCE, *UNRECORDED, "--quiet")),
+)
+# (fixed steps, --tolerance 1um): the speed-up pairs, run next to each other in a round
+PAIRS = (("stream", "stream --tolerance 1um"),
+         ("stream, no recordings", "stream --tolerance 1um, no recordings"))
+SPEED_UP_TARGET = 3.0
+
+
+class CommandFailed(RuntimeError):
+    """A timed command exited with a non-zero status (the benchmark reports it and stops)."""
+
+
+def headless_environment() -> dict:
+    environment = {key: value for key, value in os.environ.items() if key not in ("DISPLAY", "WAYLAND_DISPLAY")}
+    environment.pop("PYTHONDONTWRITEBYTECODE", None)        # a user's environment keeps the compiled modules
+    return environment
+
+
+def run_command(command: Command, directory: Path) -> float:
+    """Run ``command`` in a new process; its wall time in seconds (the probe's: to the first step)."""
+    arguments = [part.replace("{dir}", str(directory)) for part in command.arguments]
+    module = "vcyto.startprobe" if command.probe else "vcyto"
+    started = time.perf_counter()
+    done = subprocess.run([sys.executable, "-m", module, *arguments], capture_output=True, text=True,
+                          env=headless_environment(), cwd=directory)
+    wall = time.perf_counter() - started
+    if done.returncode != 0:
+        last = (done.stderr.strip().splitlines() or ["(nothing on stderr)"])[-1]
+        raise CommandFailed(f"`vcyto {' '.join(arguments)}` exited with status {done.returncode}: {last}")
+    if command.probe:
+        probed = json.loads(done.stdout.strip().splitlines()[-1])
+        if not probed["reached_first_step"]:
+            raise CommandFailed(f"`vcyto {' '.join(arguments)}` ended before its first FE-IB step")
+        return float(probed["wall_s"])
+    return wall
+
+
+def bench_process(rounds: int = 3, commands=COMMANDS, pairs=PAIRS, warm_up: bool = True,
+                  run: Callable[[Command, Path], float] = run_command, progress=lambda message: None) -> dict:
+    """Time ``commands`` in ``rounds`` rounds (after one untimed run of each if ``warm_up``)."""
+    times: dict[str, list[float]] = {command.name: [] for command in commands}
+    with tempfile.TemporaryDirectory(prefix="vcyto-bench-process-") as scratch:
+        for number in range(rounds + (1 if warm_up else 0)):
+            timed = number >= (1 if warm_up else 0)
+            label = f"round {number + (0 if warm_up else 1)}/{rounds}" if timed else "warm-up (untimed)"
+            for index, command in enumerate(commands):
+                progress(f"{label}: {command.name}")
+                directory = Path(scratch) / f"{number}-{index}"
+                directory.mkdir()
+                wall = run(command, directory)
+                if timed:
+                    times[command.name].append(wall)
+    rows = [{"name": command.name, "arguments": list(command.arguments), "times_s": times[command.name],
+             "median_s": float(np.median(times[command.name])), "target_s": command.target_s, "note": command.note}
+            for command in commands]
+    speed_ups = []
+    for fixed, tolerance in pairs:
+        ratios = [a / b for a, b in zip(times[fixed], times[tolerance])]
+        speed_ups.append({"fixed": fixed, "tolerance": tolerance, "per_round": ratios,
+                          "median": float(np.median(ratios)), "target": SPEED_UP_TARGET})
+    return {"rounds": rounds, "python": sys.executable, "rows": rows, "speed_ups": speed_ups}
+
+
+def process_lines(result: dict) -> list[str]:
+    lines = [f"whole processes, warm set-up cache, headless; {result['rounds']} rounds, median [lowest-highest]:"]
+    for row in result["rows"]:
+        target = f"  {row['note']}" if row["target_s"] is None else f"  target <= {row['target_s']:g} s: " + (
+            "met" if row["median_s"] <= row["target_s"] else "not met")
+        times = row["times_s"]
+        lines.append(f"  {row['name']:<40} {row['median_s']:6.2f} s [{min(times):.2f}-{max(times):.2f}]{target}")
+    for pair in result["speed_ups"]:
+        ratios = ", ".join(f"{ratio:.2f}" for ratio in pair["per_round"])
+        verdict = "met" if pair["median"] >= pair["target"] else "not met"
+        lines.append(f"  speed-up '{pair['fixed']}' / '{pair['tolerance']}': per round {ratios}; "
+                     f"median {pair['median']:.2f}  target >= {pair['target']:g}: {verdict}")
+    return lines

@@ -2,6 +2,7 @@
 of the sort (plant coordinates, classes, event markers), replay of both recording formats."""
 
 import json
+import os
 import shutil
 import subprocess
 import sys
@@ -246,3 +247,25 @@ def test_sinks_keep_only_the_cells_in_the_channel(sort):
     recorder, viewer = sort["recorder"], sort["viewer"]
     assert recorder._paths == {} and recorder._classes._detected == {} and recorder._classes._event_keys == {}
     assert viewer.logger.paths == {} and viewer.logger.positions == {} and viewer.classes._action == {}
+
+
+def test_the_flow_colours_are_matplotlibs_viridis_and_a_warm_process_needs_no_matplotlib(tmp_path):
+    """The speed image and its legend take matplotlib's viridis colours (the table is kept in the set-up cache):
+    the same bytes as matplotlib's colouring, NaN black; a second process opens the Rerun view and shows a field
+    without importing matplotlib."""
+    from matplotlib import colormaps
+
+    from vcyto.rerunlog import viridis
+    values = np.concatenate([np.linspace(0.0, 1.0, 20_001), np.arange(257) / 256, (np.arange(256) + 0.999) / 256,
+                             [-0.5, 1.5, np.nan, 1 - 1e-12]])
+    expected = (colormaps["viridis"](values)[:, :3] * 255).astype(np.uint8)
+    assert viridis(values).dtype == np.uint8 and np.array_equal(viridis(values), expected)
+    assert np.array_equal(viridis(values[:20_001].reshape(-1, 3)), expected[:20_001].reshape(-1, 3, 3))  # an image
+    script = ("import sys; import vcyto.cache as c; c.install_default(); from sim.scenario import Scenario; "
+              "from vcyto.rerunlog import RerunLogger; from controller.detector import DetectorSettings; "
+              "RerunLogger(Scenario(), DetectorSettings().window, ('save', sys.argv[1])); "
+              "print('matplotlib' in sys.modules)")
+    environment = {**os.environ, "VCYTO_CACHE_DIR": str(tmp_path / "cache")}
+    imported = [subprocess.run([sys.executable, "-c", script, str(tmp_path / f"{n}.rrd")], capture_output=True,
+                               text=True, env=environment, timeout=120).stdout.strip() for n in range(2)]
+    assert imported == ["True", "False"]

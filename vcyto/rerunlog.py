@@ -29,6 +29,7 @@ bounded number of calls per batch, and the state is bounded by the cells in the 
 from __future__ import annotations
 
 import collections
+import functools
 import math
 import time
 
@@ -44,6 +45,31 @@ RECENT_EVENTS = 16                     # markers shown with each new detector ev
 PATH_SLOTS = 16                        # the paths of the last this many cells stay in the view
 BATCH_ROWS = 2000                      # rows kept before they are sent
 BATCH_SECONDS = 0.5                    # wall time after which kept rows are sent (the live view's lag)
+
+
+def viridis(scaled) -> np.ndarray:
+    """RGB (uint8) of values in [0, 1] on matplotlib's viridis: what ``(colormaps["viridis"](scaled)[..., :3] * 255)
+    .astype(np.uint8)`` gives (values below 0 or above 1 take the ends, NaN black), read from a 256-entry table
+    kept in the set-up cache: a warm process shows the flow without importing matplotlib (whose import, with
+    pyparsing and its settings, was 0.1-0.3 s of the Rerun sink's start)."""
+    values = np.asarray(scaled, dtype=float)
+    index = np.clip(np.nan_to_num(values, nan=0.0, posinf=1.0, neginf=0.0) * 256, 0, 255).astype(np.intp)
+    rgb = _viridis_table()[index]
+    rgb[np.isnan(values)] = 0
+    return rgb
+
+
+@functools.lru_cache(maxsize=1)
+def _viridis_table() -> np.ndarray:
+    """matplotlib's 256 viridis colours as uint8 RGB, through ``sim.store`` (keyed by matplotlib's version)."""
+    from importlib.metadata import version
+
+    from sim.store import reuse
+
+    def build():
+        from matplotlib import colormaps
+        return {"rgb": (colormaps["viridis"](np.arange(256))[:, :3] * 255).astype(np.uint8)}
+    return reuse("colormap", {"name": "viridis", "matplotlib": version("matplotlib"), "layout": 1}, build)["rgb"]
 
 
 class _Rows:
@@ -130,9 +156,8 @@ class RerunLogger:
 
     def _legend(self):
         """A colour bar above the channel: 0 to ``speed_max_mm_s`` (mm/s), faster flow in the top colour."""
-        from matplotlib import colormaps
         rr, width = self.rr, 256
-        bar = (colormaps["viridis"](np.linspace(0.0, 1.0, width))[:, :3] * 255).astype(np.uint8)
+        bar = viridis(np.linspace(0.0, 1.0, width))
         bar = np.repeat(bar[np.newaxis], 6, axis=0)
         base = self.height_um + 8.0
         self.stream.log("device/legend/bar", rr.Transform3D(translation=[0.0, base, 0.0],
@@ -215,10 +240,8 @@ class RerunLogger:
     def field(self, payload: dict):
         """The speed image from an MCAP ``/flow/velocity`` payload: 1 um pixels, row 0 at y = 0 (the transform
         on ``device`` shows it y up), colours on the fixed scale 0 .. ``speed_max_mm_s`` (the legend)."""
-        from matplotlib import colormaps
         speed_mm_s = speed_grid(payload, 1.0) * 1e3
-        scaled = np.clip(speed_mm_s / self.speed_max_mm_s, 0.0, 1.0)
-        rgb = (colormaps["viridis"](scaled)[:, :, :3] * 255).astype(np.uint8)
+        rgb = viridis(np.clip(speed_mm_s / self.speed_max_mm_s, 0.0, 1.0))
         self.stream.set_time("sim_time", duration=self._now[0])
         if self._now[1] is not None:
             self.stream.set_time("step", sequence=self._now[1])

@@ -73,7 +73,7 @@ class AdaptiveSteps:
             base = self.plant.fluid
             numerics = self.plant.scenario.numerics
             fluid = NavierStokes(self.plant.scenario.with_numerics(dt=self.levels[level], tolerance=0.0,
-                                                                   time_scheme=numerics.scheme), base.space)
+                                                                   time_scheme=numerics.scheme), like=base)
             base.timings.factor += fluid.timings.factor
             fluid.timings = base.timings
             self._fluids[level] = fluid

@@ -221,3 +221,20 @@ def test_the_gathered_constant_matrix_is_the_block_assembly_bit_for_bit(numerics
     assert fluid.pressure_scale == abs(a).max() / max(abs(bx).max(), abs(by).max())
     assert np.array_equal(fluid._constant.factor.solve(np.ones(len(fluid.free))),
                           fluid._factored(*assembled, symmetric=True).factor.solve(np.ones(len(fluid.free))))
+
+
+def test_a_solver_like_another_steps_as_one_built_alone_and_refuses_another_device():
+    """``NavierStokes(scenario, like=other)`` (a --tolerance level) shares the other's mesh, unknowns and boundary
+    data and builds only its constant matrix: its steps are those of a solver built from scratch, bit for bit;
+    a solver of another channel is refused."""
+    scenario = Scenario().with_numerics(mesh_h=20 * UM / 3, time_scheme="bdf2")
+    base = NavierStokes(scenario)
+    level = scenario.with_numerics(dt=4 * scenario.numerics.dt)
+    shared, alone = NavierStokes(level, like=base), NavierStokes(level)
+    assert shared.space is base.space and shared.free is base.free and shared.inflow is base.inflow
+    start = base.steady(1.0)
+    one, other = shared.step(start, actuation=1.0), alone.step(start, actuation=1.0)
+    assert np.array_equal(one.velocity, other.velocity) and np.array_equal(one.pressure, other.pressure)
+    assert not np.array_equal(one.velocity, base.step(start, actuation=1.0).velocity)    # another dt: it can fail
+    with pytest.raises(ValueError, match="another device or mesh"):
+        NavierStokes(scenario.with_inlets_shut(), like=base)

@@ -9,8 +9,9 @@ to each other: their speed-up is taken within a round (the machine's load change
 the median over the rounds is reported. The start is ``python -m vcyto.startprobe``'s time to the first FE-IB
 step of ``vcyto paper 2``.
 
-The targets are issue 18's (README, "Speed"): the start well under a second, ``vcyto paper 2`` <= 2 s,
-``vcyto paper 1`` <= 10 s, the README's stream <= 15 s, and with ``--tolerance 1um`` the stream >= 3x faster.
+The targets (the README's first screen; docs/numerics.md, "Time steps chosen by a tolerance"): the start well
+under a second, ``vcyto paper 2`` <= 2 s, ``vcyto paper 1`` <= 10 s, the README's stream <= 15 s, and with
+``--tolerance 1um`` the stream >= 3x faster.
 """
 
 from __future__ import annotations

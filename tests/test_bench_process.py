@@ -57,3 +57,11 @@ def test_the_command_line_refuses_zero_rounds_in_one_line():
     done = subprocess.run([sys.executable, "-m", "vcyto", "bench", "process", "--rounds", "0"], capture_output=True,
                           text=True, timeout=120)
     assert done.returncode == 2 and len(done.stderr.strip().splitlines()) == 1 and "--rounds" in done.stderr
+
+
+def test_the_report_counts_its_rounds():
+    one = bench_process(rounds=1, commands=COMMANDS, pairs=(("slow", "fast"),), warm_up=False,
+                        run=lambda command, directory: 1.0)
+    assert process_lines(one)[0].startswith("whole processes, warm set-up cache, headless; 1 round, ")
+    one["rounds"] = 2
+    assert "; 2 rounds, " in process_lines(one)[0]

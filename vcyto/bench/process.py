@@ -114,7 +114,8 @@ def bench_process(rounds: int = 3, commands=COMMANDS, pairs=PAIRS, warm_up: bool
 
 
 def process_lines(result: dict) -> list[str]:
-    lines = [f"whole processes, warm set-up cache, headless; {result['rounds']} rounds, median [lowest-highest]:"]
+    rounds = f"{result['rounds']} round" + ("" if result["rounds"] == 1 else "s")
+    lines = [f"whole processes, warm set-up cache, headless; {rounds}, median [lowest-highest]:"]
     for row in result["rows"]:
         target = f"  {row['note']}" if row["target_s"] is None else f"  target <= {row['target_s']:g} s: " + (
             "met" if row["median_s"] <= row["target_s"] else "not met")

@@ -2,8 +2,10 @@
 speed-up within each round, the warm-up left out, the verdicts) on scripted times; the runner on real,
 quick processes: headless, the wall time measured, a failing command reported in one line."""
 
+import os
 import subprocess
 import sys
+from pathlib import Path
 
 import pytest
 
@@ -46,11 +48,27 @@ def test_without_a_warm_up_every_round_counts_and_a_missed_target_says_so():
 
 def test_the_runner_times_a_headless_process_and_reports_a_failure_in_one_line(tmp_path, monkeypatch):
     monkeypatch.setenv("DISPLAY", ":0")
-    assert "DISPLAY" not in process.headless_environment()
+    monkeypatch.setenv("VCYTO_CACHE_DIR", "relative/cache")
+    environment = process.headless_environment()
+    assert "DISPLAY" not in environment
+    # the commands run in a directory of their own: the paths that name this one are absolute
+    assert Path(environment["VCYTO_CACHE_DIR"]) == Path("relative/cache").resolve()
+    assert Path(environment["PYTHONPATH"].split(os.pathsep)[0]) / "vcyto" == Path(process.__file__).parents[1]
     wall = run_command(Command("scenario", ("scenario", "--json")), tmp_path)
     assert 0.0 < wall < 120.0
     with pytest.raises(CommandFailed, match=r"`vcyto paper 3` exited with status 2: vcyto: error: .*invalid choice: 3"):
         run_command(Command("bad", ("paper", "3")), tmp_path)
+    # a probe that prints no result (here: its usage error) is one line too, not a traceback
+    with pytest.raises(CommandFailed, match=r"exited with status 1: startprobe: --steps needs a whole number"):
+        run_command(Command("probe", ("--steps", "x"), probe=True), tmp_path)
+
+
+def test_the_benchmark_refuses_a_cache_that_is_off():
+    done = subprocess.run([sys.executable, "-m", "vcyto", "bench", "process"], capture_output=True, text=True,
+                          timeout=120, env={**os.environ, "VCYTO_CACHE": "off"})
+    assert done.returncode == 2 and done.stderr.strip().splitlines() == [
+        "vcyto: error: bench process times commands with a warm set-up cache, which VCYTO_CACHE=off turns off: "
+        "unset VCYTO_CACHE"]
 
 
 def test_the_command_line_refuses_zero_rounds_in_one_line():

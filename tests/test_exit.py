@@ -84,6 +84,12 @@ def test_the_executable_freezes_what_the_imports_leave_and_keeps_collecting():
     already = gc.get_freeze_count()
     assert main(["scenario", "--json"]) == 0
     assert gc.get_freeze_count() == already and gc.isenabled()
+    # a caller that had the collector off (the start-up probe from Python) keeps it off
+    kept = subprocess.run([sys.executable, "-c", "import gc; gc.disable(); from vcyto.__main__ import "
+                           "load_command_line; load_command_line(); print(gc.isenabled(), gc.get_freeze_count())"],
+                          capture_output=True, text=True, timeout=120)
+    enabled, frozen = kept.stdout.split()
+    assert enabled == "False" and int(frozen) > 50_000
 
 
 def test_a_reader_that_went_away_gives_status_141_and_no_error(tmp_path):

@@ -261,6 +261,9 @@ def test_the_flow_colours_are_matplotlibs_viridis_and_a_warm_process_needs_no_ma
     expected = (colormaps["viridis"](values)[:, :3] * 255).astype(np.uint8)
     assert viridis(values).dtype == np.uint8 and np.array_equal(viridis(values), expected)
     assert np.array_equal(viridis(values[:20_001].reshape(-1, 3)), expected[:20_001].reshape(-1, 3, 3))  # an image
+    black = viridis(float("nan"))            # a single value: its own array, the table untouched
+    black[...] = 255
+    assert np.array_equal(viridis(values), expected) and viridis(0.0).tolist() == expected[0].tolist()
     script = ("import sys; import vcyto.cache as c; c.install_default(); from sim.scenario import Scenario; "
               "from vcyto.rerunlog import RerunLogger; from controller.detector import DetectorSettings; "
               "RerunLogger(Scenario(), DetectorSettings().window, ('save', sys.argv[1])); "

@@ -18,13 +18,16 @@ import sys
 
 
 def load_command_line():
-    """``vcyto.cli``, imported with the collector off; what the imports leave is then frozen."""
+    """``vcyto.cli``, imported with the collector off; what the imports leave is then frozen (the collector is
+    then as it was)."""
+    collecting = gc.isenabled()
     gc.disable()
     try:
         from . import cli
     finally:
         gc.freeze()
-        gc.enable()
+        if collecting:
+            gc.enable()
     return cli
 
 

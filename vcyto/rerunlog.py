@@ -48,13 +48,14 @@ BATCH_SECONDS = 0.5                    # wall time after which kept rows are sen
 
 
 def viridis(scaled) -> np.ndarray:
-    """RGB (uint8) of values in [0, 1] on matplotlib's viridis: what ``(colormaps["viridis"](scaled)[..., :3] * 255)
-    .astype(np.uint8)`` gives (values below 0 or above 1 take the ends, NaN black), read from a 256-entry table
+    """RGB (uint8, a new array) of float values in [0, 1] on matplotlib's viridis: what
+    ``(colormaps["viridis"](scaled)[..., :3] * 255).astype(np.uint8)`` gives for floats (values below 0 or above
+    1 take the ends, NaN black; integers are read as floats, not as table indices), read from a 256-entry table
     kept in the set-up cache: a warm process shows the flow without importing matplotlib (whose import, with
     pyparsing and its settings, was 0.1-0.3 s of the Rerun sink's start)."""
     values = np.asarray(scaled, dtype=float)
     index = np.clip(np.nan_to_num(values, nan=0.0, posinf=1.0, neginf=0.0) * 256, 0, 255).astype(np.intp)
-    rgb = _viridis_table()[index]
+    rgb = np.take(_viridis_table(), index, axis=0)          # a copy, also for a single value
     rgb[np.isnan(values)] = 0
     return rgb
 
@@ -69,7 +70,10 @@ def _viridis_table() -> np.ndarray:
     def build():
         from matplotlib import colormaps
         return {"rgb": (colormaps["viridis"](np.arange(256))[:, :3] * 255).astype(np.uint8)}
-    return reuse("colormap", {"name": "viridis", "matplotlib": version("matplotlib"), "layout": 1}, build)["rgb"]
+    table = reuse("colormap", {"name": "viridis", "matplotlib": version("matplotlib"), "layout": 1}, build)["rgb"]
+    table = np.array(table, dtype=np.uint8)
+    table.setflags(write=False)                             # shared by every call of the process
+    return table
 
 
 class _Rows:

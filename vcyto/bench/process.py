@@ -58,32 +58,52 @@ PAIRS = (("stream", "stream --tolerance 1um"),
 SPEED_UP_TARGET = 3.0
 
 
+TIMEOUT_S = 1800.0          # a command that takes longer has hung (the slowest, paper 1, takes ~10-20 s)
+
+
 class CommandFailed(RuntimeError):
-    """A timed command exited with a non-zero status (the benchmark reports it and stops)."""
+    """A timed command failed, hung or said nothing usable (the benchmark reports it in one line and stops)."""
 
 
 def headless_environment() -> dict:
+    """This process's environment without a display, its paths made absolute (the commands run in a directory
+    of their own: a relative cache directory or import path would name another one there)."""
     environment = {key: value for key, value in os.environ.items() if key not in ("DISPLAY", "WAYLAND_DISPLAY")}
     environment.pop("PYTHONDONTWRITEBYTECODE", None)        # a user's environment keeps the compiled modules
+    if environment.get("VCYTO_CACHE_DIR"):
+        environment["VCYTO_CACHE_DIR"] = str(Path(environment["VCYTO_CACHE_DIR"]).resolve())
+    # this vcyto first (importable as here, from an uninstalled checkout too), then the given path, made absolute
+    paths = [str(Path(__file__).resolve().parents[2])]
+    paths += [str(Path(entry).resolve()) for entry in environment.get("PYTHONPATH", "").split(os.pathsep) if entry]
+    environment["PYTHONPATH"] = os.pathsep.join(paths)
     return environment
 
 
 def run_command(command: Command, directory: Path) -> float:
     """Run ``command`` in a new process; its wall time in seconds (the probe's: to the first step)."""
     arguments = [part.replace("{dir}", str(directory)) for part in command.arguments]
+    shown = f"`vcyto {' '.join(arguments)}`"
     module = "vcyto.startprobe" if command.probe else "vcyto"
     started = time.perf_counter()
-    done = subprocess.run([sys.executable, "-m", module, *arguments], capture_output=True, text=True,
-                          env=headless_environment(), cwd=directory)
+    try:
+        done = subprocess.run([sys.executable, "-m", module, *arguments], capture_output=True, text=True,
+                              env=headless_environment(), cwd=directory, timeout=TIMEOUT_S)
+    except subprocess.TimeoutExpired:
+        raise CommandFailed(f"{shown} took more than {TIMEOUT_S:.0f} s: stopped") from None
     wall = time.perf_counter() - started
+    last = (done.stderr.strip().splitlines() or ["(nothing on stderr)"])[-1]
+    if done.returncode < 0:
+        raise CommandFailed(f"{shown} was killed by signal {-done.returncode}: {last}")
     if done.returncode != 0:
-        last = (done.stderr.strip().splitlines() or ["(nothing on stderr)"])[-1]
-        raise CommandFailed(f"`vcyto {' '.join(arguments)}` exited with status {done.returncode}: {last}")
+        raise CommandFailed(f"{shown} exited with status {done.returncode}: {last}")
     if command.probe:
-        probed = json.loads(done.stdout.strip().splitlines()[-1])
-        if not probed["reached_first_step"]:
-            raise CommandFailed(f"`vcyto {' '.join(arguments)}` ended before its first FE-IB step")
-        return float(probed["wall_s"])
+        try:
+            probed = json.loads(done.stdout.strip().splitlines()[-1])
+            reached, wall = bool(probed["reached_first_step"]), float(probed["wall_s"])
+        except (IndexError, ValueError, KeyError, TypeError):
+            raise CommandFailed(f"{shown}: the start-up probe printed no result ({last})") from None
+        if not reached:
+            raise CommandFailed(f"{shown} ended before its first FE-IB step: {last}")
     return wall
 
 

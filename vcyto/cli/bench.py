@@ -230,6 +230,10 @@ def _sweep(args, scenario, progress):
 
 def _process(args, scenario, progress):
     from ..bench import process
+    from ..cache import cache_enabled
+    if not cache_enabled():
+        raise UsageError("bench process times commands with a warm set-up cache, which VCYTO_CACHE=off turns off: "
+                         "unset VCYTO_CACHE")
     try:
         result = process.bench_process(args.rounds, warm_up=not args.no_warm_up, progress=progress)
     except process.CommandFailed as failure:

@@ -191,12 +191,18 @@ def _tagged_structure(mass: sp.csr_matrix, laplace: sp.csr_matrix, divergence: s
     tags_divergence = sp.csr_matrix((np.arange(union.nnz + 1, union.nnz + divergence.nnz + 1, dtype=np.float64),
                                      divergence.indices, divergence.indptr), shape=divergence.shape)
     momentum = sp.bmat([[tags_velocity, None], [None, tags_velocity]], format="csr")
-    rows = sp.bmat([[momentum, tags_divergence.T], [tags_divergence, None]], format="csr")[free]
-    for name, columns in (("rows", free), ("lift", dirichlet)):
-        part = rows[:, columns].tocsr()
+    # the assembly's own blocks (the divergence's tags come out negated, as its values do)
+    for name, part in zip(("rows", "lift"), _block_rows(momentum, tags_divergence, free, dirichlet)):
         arrays.update({f"{name}_indptr": part.indptr, f"{name}_indices": part.indices,
-                       f"{name}_source": part.data.astype(np.int64) - 1, f"{name}_shape": np.array(part.shape)})
+                       f"{name}_source": np.abs(part.data).astype(np.int64) - 1, f"{name}_shape": np.array(part.shape)})
     return arrays
+
+
+def _block_rows(momentum: sp.csr_matrix, divergence: sp.csr_matrix, free: np.ndarray, dirichlet: np.ndarray):
+    """The free rows of [[momentum, -D^T], [-D, 0]] (D the scaled divergence): (their free columns, their Dirichlet
+    columns). The one block assembly of every system the fluid solver factors, and of ``_Structure``'s tags."""
+    rows = sp.bmat([[momentum, -divergence.T], [-divergence, None]], format="csr")[free]
+    return rows[:, free].tocsr(), rows[:, dirichlet].tocsr()
 
 
 def _structure(space: TaylorHood, free: np.ndarray, dirichlet: np.ndarray) -> _Structure:
@@ -211,7 +217,7 @@ def _structure(space: TaylorHood, free: np.ndarray, dirichlet: np.ndarray) -> _S
         divergence = sp.hstack(space.divergence).tocsr()
         key = {"layout": 1, "unknowns": name, "scipy": scipy.__version__,
                "patterns": digest(*(a for m in (mass, laplace, divergence) for a in (m.indptr, m.indices))),
-               "code": code_digest(_tagged_structure, _positions)}
+               "code": code_digest(_tagged_structure, _positions, _block_rows)}
         known[name] = _Structure(space, divergence, reuse("fluid-structure", key, lambda: _tagged_structure(
             mass, laplace, divergence, free, dirichlet)))
     return known[name]
@@ -332,9 +338,7 @@ class NavierStokes:
         """The free rows of [[A, -s B^T], [-s B, 0]], A = [[A_xx, A_xy], [A_yx, A_yy]]: (free columns, Dirichlet
         columns)."""
         momentum = sp.bmat([[block_xx, off_xy], [off_yx, block_yy]], format="csr")
-        divergence = self._divergence
-        rows = sp.bmat([[momentum, -divergence.T], [-divergence, None]], format="csr")[self.free]
-        return rows[:, self.free].tocsr(), rows[:, self.dirichlet].tocsr()
+        return _block_rows(momentum, self._divergence, self.free, self.dirichlet)
 
     def _system(self, block_xx, block_yy, off_xy=None, off_yx=None, symmetric=False, reuse=None):
         """Factor the free-free block of [[A, -s B^T], [-s B, 0]], A = [[A_xx, A_xy], [A_yx, A_yy]].

@@ -10,7 +10,8 @@ from pathlib import Path
 import pytest
 
 from vcyto.bench import process
-from vcyto.bench.process import Command, CommandFailed, bench_process, process_lines, run_command
+from vcyto.bench.floor import floor_probe
+from vcyto.bench.process import Command, CommandFailed, Timed, bench_process, process_lines, run_command
 
 COMMANDS = (Command("slow", ("a",), target_s=10.0), Command("fast", ("b",)), Command("fixed", ("c",), target_s=5.0))
 
@@ -25,7 +26,7 @@ def test_medians_and_the_speed_up_are_taken_per_round_and_the_warm_up_is_not_cou
         assert directory.is_dir() and not any(directory.iterdir())      # a fresh directory per run
         return next(scripted[command.name])
 
-    result = bench_process(rounds=3, commands=COMMANDS, pairs=(("slow", "fast"),), run=run)
+    result = bench_process(rounds=3, commands=COMMANDS, pairs=(("slow", "fast"),), run=run, floor=None)
     assert order == ["slow", "fast", "fixed"] * 4                          # one warm-up round, then three
     rows = {row["name"]: row for row in result["rows"]}
     assert rows["slow"]["times_s"] == [12.0, 8.0, 9.0] and rows["slow"]["median_s"] == 9.0
@@ -39,7 +40,7 @@ def test_medians_and_the_speed_up_are_taken_per_round_and_the_warm_up_is_not_cou
 
 
 def test_without_a_warm_up_every_round_counts_and_a_missed_target_says_so():
-    result = bench_process(rounds=2, commands=COMMANDS, pairs=(("slow", "fast"),), warm_up=False,
+    result = bench_process(rounds=2, commands=COMMANDS, pairs=(("slow", "fast"),), warm_up=False, floor=None,
                            run=lambda command, directory: {"slow": 11.0, "fast": 5.0, "fixed": 1.0}[command.name])
     assert [len(row["times_s"]) for row in result["rows"]] == [2, 2, 2]
     lines = "\n".join(process_lines(result))
@@ -54,8 +55,11 @@ def test_the_runner_times_a_headless_process_and_reports_a_failure_in_one_line(t
     # the commands run in a directory of their own: the paths that name this one are absolute
     assert Path(environment["VCYTO_CACHE_DIR"]) == Path("relative/cache").resolve()
     assert Path(environment["PYTHONPATH"].split(os.pathsep)[0]) / "vcyto" == Path(process.__file__).parents[1]
-    wall = run_command(Command("scenario", ("scenario", "--json")), tmp_path)
-    assert 0.0 < wall < 120.0
+    wall = run_command(Command("scenario", ("scenario",)), tmp_path)
+    assert wall.steps is None and 0.0 < wall.wall_s < 120.0
+    # a command that prints its result (--json) without its steps is refused in one line, not counted as none
+    with pytest.raises(CommandFailed, match=r"`vcyto scenario --json` printed no result with its steps"):
+        run_command(Command("scenario", ("scenario", "--json")), tmp_path)
     with pytest.raises(CommandFailed, match=r"`vcyto paper 3` exited with status 2: vcyto: error: .*invalid choice: 3"):
         run_command(Command("bad", ("paper", "3")), tmp_path)
     # a probe that prints no result (here: its usage error) is one line too, not a traceback
@@ -78,8 +82,64 @@ def test_the_command_line_refuses_zero_rounds_in_one_line():
 
 
 def test_the_report_counts_its_rounds():
-    one = bench_process(rounds=1, commands=COMMANDS, pairs=(("slow", "fast"),), warm_up=False,
+    one = bench_process(rounds=1, commands=COMMANDS, pairs=(("slow", "fast"),), warm_up=False, floor=None,
                         run=lambda command, directory: 1.0)
     assert process_lines(one)[0].startswith("whole processes, warm set-up cache, headless; 1 round, ")
     one["rounds"] = 2
     assert "; 2 rounds, " in process_lines(one)[0]
+
+
+def test_the_floor_is_each_rounds_steps_times_that_rounds_fastest_back_solve():
+    # rounds where the machine's fastest back-solve was 10 ms and then 5 ms: 1,000 steps have floors of 10 s
+    # and 5 s; a command of 12 s, then 8 s, is 1.2x and 1.6x above them (median 1.4)
+    walls = {"slow": iter([12.0, 8.0]), "fast": iter([3.0, 2.0]), "fixed": iter([4.0, 4.0])}
+    floors = iter([{"floor_ms": 10.0, "backsolves": {"a": 12.0, "b": 10.0}},
+                   {"floor_ms": 5.0, "backsolves": {"a": 5.0, "b": 6.0}}])
+    probed = []
+
+    def floor(directory):
+        probed.append(directory)
+        return next(floors)
+
+    def run(command, directory):
+        wall = next(walls[command.name])
+        return Timed(wall, 1000) if command.name == "slow" else Timed(wall, None) if command.name == "fast" else wall
+
+    result = bench_process(rounds=2, commands=COMMANDS, pairs=(("slow", "fast"),), warm_up=False, run=run,
+                           floor=floor)
+    assert len(probed) == 2 and len(set(probed)) == 2                      # once a round, a directory each
+    rows = {row["name"]: row for row in result["rows"]}
+    assert rows["slow"]["floor_s"] == [10.0, 5.0] and rows["slow"]["floor_median_s"] == 7.5
+    assert rows["slow"]["over_floor"] == pytest.approx(1.4)
+    assert "floor_s" not in rows["fast"] and "floor_s" not in rows["fixed"]    # steps unknown: no floor
+    assert result["floor"]["median_ms"] == 7.5 and result["floor"]["backsolves_ms"] == {"a": 8.5, "b": 8.0}
+    lines = "\n".join(process_lines(result))
+    assert "floor 7.50 s (1,000 steps x the fastest back-solve), wall / floor 1.40" in lines
+    assert "beyond this machine" not in lines                              # 7.5 s < the 10 s target
+    assert "this machine's fastest back-solve at the paper's mesh" in lines and "7.50 ms [5.00-10.00]" in lines
+    # the same steps on a machine twice as slow: the floor (15 s) passes the 10 s target, which no code then meets
+    floors = iter([{"floor_ms": 20.0, "backsolves": {"a": 20.0}}, {"floor_ms": 10.0, "backsolves": {"a": 10.0}}])
+    walls = {"slow": iter([24.0, 16.0]), "fast": iter([3.0, 2.0]), "fixed": iter([4.0, 4.0])}
+    slow = bench_process(rounds=2, commands=COMMANDS, pairs=(("slow", "fast"),), warm_up=False, run=run,
+                         floor=lambda directory: next(floors))
+    assert "floor 15.00 s (1,000 steps x the fastest back-solve), wall / floor 1.40; the target is beyond this " \
+           "machine at these steps" in "\n".join(process_lines(slow))
+
+
+def test_the_floor_probe_times_the_back_solves_of_the_papers_fluid(monkeypatch):
+    import vcyto.bench.fluid as fluid
+    monkeypatch.setattr(fluid, "BLOCK_S", 0.05)          # short blocks: what is tested is which solves and the min
+    result = floor_probe(rounds=2)
+    assert result["dofs"] == 54243 and result["dt_us"] == 2.5 and result["rounds"] == 2
+    times = result["backsolves"]
+    assert any(label.startswith("the default: ") for label in times) and all(ms > 0 for ms in times.values())
+    # the floor is the median of each round's fastest: never above the fastest median nor below the least
+    assert 0 < result["floor_ms"] <= max(times.values())
+    assert len(times) == (3 if fluid.pardiso_available() else 1)
+
+
+def test_the_floor_probe_refuses_bad_arguments_in_one_line():
+    done = subprocess.run([sys.executable, "-m", "vcyto.bench.floor", "--rounds", "0"], capture_output=True,
+                          text=True, timeout=120)
+    assert done.returncode == 1 and done.stderr.strip().splitlines() == [
+        "floor: usage: python -m vcyto.bench.floor [--rounds N] (N a whole number >= 1, e.g. 3)"]

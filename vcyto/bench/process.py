@@ -12,6 +12,14 @@ step of ``vcyto paper 2``.
 The targets (the README's first screen; docs/numerics.md, "Time steps chosen by a tolerance"): the start well
 under a second, ``vcyto paper 2`` <= 2 s, ``vcyto paper 1`` <= 10 s, the README's stream <= 15 s, and with
 ``--tolerance 1um`` the stream >= 3x faster.
+
+The floor: once a round, after the commands, ``python -m vcyto.bench.floor`` times the back-solves this machine
+offers for the fluid at the paper's mesh (PARDISO's parallel substitution in double and single precision, the
+default's); the fastest of them is the round's floor of one FE-IB step. A fixed-step command that prints its
+result (``--json``, which the timed commands pass) is reported with its steps x that floor (the time no code
+could beat without a faster solve: every step solves the fluid at least once) and its wall time over it; a
+target below its floor is beyond this machine at those steps, whatever the code does. ``vcyto paper 2`` steps
+at 25 us, whose matrix has the same pattern and so the same factor sizes as the probe's (2.5 us).
 """
 
 from __future__ import annotations
@@ -45,9 +53,9 @@ class Command(NamedTuple):
 COMMANDS = (
     Command("start to the first step (paper 2)", ("paper", "2", "--no-png", "--quiet"), probe=True,
             note="target: well under a second"),
-    Command("vcyto paper 2", ("paper", "2", "--png", "{dir}/paper2.png", "--quiet"), 2.0),
-    Command("vcyto paper 1", ("paper", "1", "--png", "{dir}/paper1.png", "--quiet"), 10.0),
-    Command("stream", (*STREAM, "--output", "{dir}", "--quiet"), 15.0),
+    Command("vcyto paper 2", ("paper", "2", "--png", "{dir}/paper2.png", "--quiet", "--json"), 2.0),
+    Command("vcyto paper 1", ("paper", "1", "--png", "{dir}/paper1.png", "--quiet", "--json"), 10.0),
+    Command("stream", (*STREAM, "--output", "{dir}", "--quiet", "--json"), 15.0),
     Command("stream --tolerance 1um", (*STREAM, *TOLERANCE, "--output", "{dir}", "--quiet")),
     Command("stream, no recordings", (*STREAM, *UNRECORDED, "--quiet")),
     Command("stream --tolerance 1um, no recordings", (*STREAM, *TOLERANCE, *UNRECORDED, "--quiet")),
@@ -59,6 +67,12 @@ SPEED_UP_TARGET = 3.0
 
 
 TIMEOUT_S = 1800.0          # a command that takes longer has hung (the slowest, paper 1, takes ~10-20 s)
+
+
+class Timed(NamedTuple):
+    """One run of a command: its wall time and, for a command with ``--json``, the FE-IB steps it took."""
+    wall_s: float
+    steps: int | None = None
 
 
 class CommandFailed(RuntimeError):
@@ -79,8 +93,9 @@ def headless_environment() -> dict:
     return environment
 
 
-def run_command(command: Command, directory: Path) -> float:
-    """Run ``command`` in a new process; its wall time in seconds (the probe's: to the first step)."""
+def run_command(command: Command, directory: Path) -> Timed:
+    """Run ``command`` in a new process: its wall time in seconds (the probe's: to the first step) and, when it
+    prints its result (``--json``), its FE-IB steps."""
     arguments = [part.replace("{dir}", str(directory)) for part in command.arguments]
     shown = f"`vcyto {' '.join(arguments)}`"
     module = "vcyto.startprobe" if command.probe else "vcyto"
@@ -104,13 +119,40 @@ def run_command(command: Command, directory: Path) -> float:
             raise CommandFailed(f"{shown}: the start-up probe printed no result ({last})") from None
         if not reached:
             raise CommandFailed(f"{shown} ended before its first FE-IB step: {last}")
-    return wall
+    steps = None
+    if "--json" in arguments:
+        try:
+            steps = int(json.loads(done.stdout)["steps"])
+        except (ValueError, KeyError, TypeError):
+            raise CommandFailed(f"{shown} printed no result with its steps ({last})") from None
+    return Timed(wall, steps)
+
+
+def run_floor(directory: Path) -> dict:
+    """``vcyto.bench.floor`` in a new process (this machine's back-solves at the paper's mesh, now): its result."""
+    try:
+        done = subprocess.run([sys.executable, "-m", "vcyto.bench.floor"], capture_output=True, text=True,
+                              env=headless_environment(), cwd=directory, timeout=TIMEOUT_S)
+    except subprocess.TimeoutExpired:
+        raise CommandFailed(f"the floor probe took more than {TIMEOUT_S:.0f} s: stopped") from None
+    last = (done.stderr.strip().splitlines() or ["(nothing on stderr)"])[-1]
+    try:
+        if done.returncode != 0:
+            raise ValueError
+        return json.loads(done.stdout.strip().splitlines()[-1])
+    except (IndexError, ValueError):
+        raise CommandFailed(f"the floor probe (python -m vcyto.bench.floor) failed with status "
+                            f"{done.returncode}: {last}") from None
 
 
 def bench_process(rounds: int = 3, commands=COMMANDS, pairs=PAIRS, warm_up: bool = True,
-                  run: Callable[[Command, Path], float] = run_command, progress=lambda message: None) -> dict:
-    """Time ``commands`` in ``rounds`` rounds (after one untimed run of each if ``warm_up``)."""
+                  run: Callable[[Command, Path], Timed | float] = run_command,
+                  floor: Callable[[Path], dict] | None = run_floor, progress=lambda message: None) -> dict:
+    """Time ``commands`` in ``rounds`` rounds (after one untimed run of each if ``warm_up``); with ``floor``, probe
+    the machine's fastest back-solve once a round, after the commands (``vcyto.bench.floor``)."""
     times: dict[str, list[float]] = {command.name: [] for command in commands}
+    steps: dict[str, list[int | None]] = {command.name: [] for command in commands}
+    floors: list[dict] = []
     with tempfile.TemporaryDirectory(prefix="vcyto-bench-process-") as scratch:
         for number in range(rounds + (1 if warm_up else 0)):
             timed = number >= (1 if warm_up else 0)
@@ -119,18 +161,42 @@ def bench_process(rounds: int = 3, commands=COMMANDS, pairs=PAIRS, warm_up: bool
                 progress(f"{label}: {command.name}")
                 directory = Path(scratch) / f"{number}-{index}"
                 directory.mkdir()
-                wall = run(command, directory)
+                done = run(command, directory)
+                done = done if isinstance(done, Timed) else Timed(float(done))
                 if timed:
-                    times[command.name].append(wall)
+                    times[command.name].append(done.wall_s)
+                    steps[command.name].append(done.steps)
+            if timed and floor is not None:
+                progress(f"{label}: this machine's fastest back-solve (the floor of fixed steps)")
+                directory = Path(scratch) / f"{number}-floor"
+                directory.mkdir()
+                floors.append(floor(directory))
     rows = [{"name": command.name, "arguments": list(command.arguments), "times_s": times[command.name],
-             "median_s": float(np.median(times[command.name])), "target_s": command.target_s, "note": command.note}
+             "median_s": float(np.median(times[command.name])), "target_s": command.target_s, "note": command.note,
+             **_floor_of(times[command.name], steps[command.name], floors)}
             for command in commands]
     speed_ups = []
     for fixed, tolerance in pairs:
         ratios = [a / b for a, b in zip(times[fixed], times[tolerance])]
         speed_ups.append({"fixed": fixed, "tolerance": tolerance, "per_round": ratios,
                           "median": float(np.median(ratios)), "target": SPEED_UP_TARGET})
-    return {"rounds": rounds, "python": sys.executable, "rows": rows, "speed_ups": speed_ups}
+    result = {"rounds": rounds, "python": sys.executable, "rows": rows, "speed_ups": speed_ups}
+    if floors:
+        result["floor"] = {"per_round_ms": [probe["floor_ms"] for probe in floors],
+                           "median_ms": float(np.median([probe["floor_ms"] for probe in floors])),
+                           "backsolves_ms": {label: float(np.median([probe["backsolves"][label] for probe in floors]))
+                                             for label in floors[0]["backsolves"]}}
+    return result
+
+
+def _floor_of(times: list[float], steps: list[int | None], floors: list[dict]) -> dict:
+    """A fixed-step command's floor in each round (its steps x that round's fastest back-solve) and the medians of
+    the floor and of wall / floor; nothing for a command whose steps are unknown or without floor probes."""
+    if not floors or not steps or any(count is None for count in steps):
+        return {}
+    floor_s = [count * probe["floor_ms"] / 1e3 for count, probe in zip(steps, floors)]
+    return {"steps": steps, "floor_s": floor_s, "floor_median_s": float(np.median(floor_s)),
+            "over_floor": float(np.median([wall / low for wall, low in zip(times, floor_s)]))}
 
 
 def process_lines(result: dict) -> list[str]:
@@ -141,9 +207,22 @@ def process_lines(result: dict) -> list[str]:
             "met" if row["median_s"] <= row["target_s"] else "not met")
         times = row["times_s"]
         lines.append(f"  {row['name']:<40} {row['median_s']:6.2f} s [{min(times):.2f}-{max(times):.2f}]{target}")
+        if "floor_median_s" in row:
+            steps = sorted(set(row["steps"]))
+            counted = f"{steps[0]:,}" if len(steps) == 1 else f"{steps[0]:,}-{steps[-1]:,}"
+            beyond = row["target_s"] is not None and row["floor_median_s"] > row["target_s"]
+            lines.append(f"  {'':<40} floor {row['floor_median_s']:.2f} s ({counted} steps x the fastest back-solve), "
+                         f"wall / floor {row['over_floor']:.2f}"
+                         + ("; the target is beyond this machine at these steps" if beyond else ""))
     for pair in result["speed_ups"]:
         ratios = ", ".join(f"{ratio:.2f}" for ratio in pair["per_round"])
         verdict = "met" if pair["median"] >= pair["target"] else "not met"
         lines.append(f"  speed-up '{pair['fixed']}' / '{pair['tolerance']}': per round {ratios}; "
                      f"median {pair['median']:.2f}  target >= {pair['target']:g}: {verdict}")
+    if "floor" in result:
+        floor = result["floor"]
+        per_round = floor["per_round_ms"]
+        lines.append(f"this machine's fastest back-solve at the paper's mesh (python -m vcyto.bench.floor, once a "
+                     f"round): {floor['median_ms']:.2f} ms [{min(per_round):.2f}-{max(per_round):.2f}]; medians:")
+        lines += [f"  {ms:6.2f} ms  {label}" for label, ms in floor["backsolves_ms"].items()]
     return lines

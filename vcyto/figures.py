@@ -7,19 +7,7 @@ import numpy as np
 from sim.scenario import UM, Scenario
 from sim.transfer import PointLocator
 
-
-def pyplot():
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-    return plt
-
-
-def save_figure(figure, path, dpi: int = 120) -> None:
-    """Write ``figure`` as a PNG at ``path`` all at once: drawn into a temporary file beside it, then moved in
-    place (``os.replace``), so an interrupted or failed save never leaves a truncated image under the name."""
-    from .outputs import write_whole
-    write_whole(path, lambda temporary: figure.savefig(temporary, format="png", dpi=dpi))
+from .painter import pyplot, save_figure  # noqa: F401 - the figures' commands take them from here
 
 
 def speed_image(locator: PointLocator, velocity: np.ndarray, scenario: Scenario, pixel: float = 1 * UM):
@@ -38,14 +26,20 @@ def show_speed(axis, locator, velocity, scenario):
     return axis.imshow(speed, origin="lower", extent=extent, cmap="viridis", interpolation="bilinear")
 
 
-def draw_device(axis, scenario: Scenario):
-    """Inlets (cyan), outlets (orange) and the SAW window (red) on the channel's outline."""
+def device_lines(scenario: Scenario) -> list[tuple]:
+    """Inlets (cyan), outlets (orange) and the SAW window (red) on the channel's outline, as (x, y, colour,
+    width) in um."""
     channel = scenario.channel
-    for inlet in channel.inlets:
-        axis.plot([0, 0], np.array(inlet.span) / UM, color="tab:cyan", lw=4)
-    for outlet in channel.outlets:
-        axis.plot([channel.length / UM] * 2, np.array(outlet.span) / UM, color="tab:orange", lw=4)
-    axis.plot(np.array(channel.saw_window.span) / UM, [0, 0], color="tab:red", lw=4)
+    lines = [([0.0, 0.0], list(np.array(inlet.span) / UM), "tab:cyan", 4) for inlet in channel.inlets]
+    lines += [([channel.length / UM] * 2, list(np.array(outlet.span) / UM), "tab:orange", 4)
+              for outlet in channel.outlets]
+    return lines + [(list(np.array(channel.saw_window.span) / UM), [0.0, 0.0], "tab:red", 4)]
+
+
+def draw_device(axis, scenario: Scenario):
+    """``device_lines`` drawn on ``axis``, at equal scales, with the axes' labels."""
+    for xs, ys, colour, width in device_lines(scenario):
+        axis.plot(xs, ys, color=colour, lw=width)
     axis.set_aspect("equal")
     axis.set_xlabel("x (um)")
     axis.set_ylabel("y (um)")

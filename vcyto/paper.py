@@ -17,6 +17,7 @@ from sim.openloop import stepping, with_cells
 from sim.scenario import UM, Scenario
 
 from . import STARTED, figures
+from .painter import Painter
 
 
 @dataclass(frozen=True)
@@ -173,26 +174,25 @@ def report_lines(result: dict) -> list[str]:
     ] + time_step_line(result.get("time_steps"))
 
 
-def save_png(path: str, result: dict, scenario: Scenario):
-    """The final speed field with the centroid path and membrane outlines along it."""
-    plt = figures.pyplot()
-    plant = result["_plant"]
-    # a fixed layout: the constrained layout engine cost ~50 ms of a 2 s command for the same picture
-    figure, axis = plt.subplots(figsize=(7.5, 4.6))
-    figure.subplots_adjust(left=0.08, right=0.99, bottom=0.11, top=0.92)
-    image = figures.show_speed(axis, plant.locator, result["_flow"].velocity, scenario)
+def png_spec(result: dict, scenario: Scenario) -> dict:
+    """The data of the PNG (``vcyto.painter.paper_figure``): the final speed field with the centroid path and
+    membrane outlines along it, the device and a title."""
+    speed, extent = figures.speed_image(result["_plant"].locator, result["_flow"].velocity, scenario)
     centroids = result["_path"]
-    axis.plot(centroids[:, 0] / UM, centroids[:, 1] / UM, color="w", lw=1.2)
+    lines = [(centroids[:, 0] / UM, centroids[:, 1] / UM, "w", 1.2)]
     for _, points in result["_outlines"]:
         closed = np.vstack([points, points[:1]])
-        axis.plot(closed[:, 0] / UM, closed[:, 1] / UM, color="tab:red", lw=1.0)
-    figures.draw_device(axis, scenario)
+        lines.append((closed[:, 0] / UM, closed[:, 1] / UM, "tab:red", 1.0))
     cell = result["cells"][0]
-    axis.set_title(f"paper scenario {result['scenario']}: {cell['type']} leaves by the {cell['outlet']} outlet "
-                   f"at t = {cell['exit_time_ms']:.2f} ms")
-    figure.colorbar(image, ax=axis, label="speed (m/s)", shrink=0.8)
-    figures.save_figure(figure, path)
-    plt.close(figure)
+    title = (f"paper scenario {result['scenario']}: {cell['type']} leaves by the {cell['outlet']} outlet "
+             f"at t = {cell['exit_time_ms']:.2f} ms")
+    return {"speed": speed, "extent": extent, "lines": lines + figures.device_lines(scenario), "title": title}
+
+
+def save_png(path: str, result: dict, scenario: Scenario, painter: Painter | None = None) -> str:
+    """The final speed field with the centroid path and membrane outlines along it, drawn by ``painter``'s
+    helper process when there is one (``vcyto.painter``); returns where it was drawn ("helper" or "here")."""
+    return (painter or Painter(start=False)).paint("paper", path, png_spec(result, scenario))
 
 
 def public(result: dict) -> dict:

@@ -33,29 +33,35 @@ def add_command(commands):
 
 
 def command_paper(args):
-    from .. import paper, runfiles
+    from .. import runfiles
+    from ..painter import Painter
     from ..progress import Progress
-    # with --tolerance the finest level is --dt or 2.5 us, the step the tolerance is stated against
-    scenario = paper.paper_scenario(args.number, scenario_from(args, membrane="paper"),
-                                    dt_given=args.dt is not None or args.tolerance is not None)
-    check_run_time(args, scenario, args.max_time, "--dt/--max-time")
-    png = None if args.no_png else output_path(args.png or f"recordings/paper{args.number}.png", default=not args.png)
-    progress = Progress(quiet=args.quiet or args.json)
-    signals_seen.clear()
-    with removed_unless_written(png), runfiles.signals_as_interrupt(signals_seen):
-        try:
-            result = paper.run_paper(args.number, scenario, args.max_time, progress)
-        except paper.Interrupted as stop:
-            progress.close()
-            signal_name = signals_seen.get("last", "SIGINT")
-            runfiles.say(f"interrupted by {signal_name} at step {stop.step} (t = {stop.time * 1e3:.3f} ms); an "
-                         "unfinished paper run saves nothing")
-            raise RunStopped(EXIT_SIGTERM if signal_name == "SIGTERM" else EXIT_SIGINT) from None
-        finally:
-            progress.close()
-        lines = paper.report_lines(result)
-        if png:
-            paper.save_png(str(png), result, scenario)
-            result["png"] = str(png)
-            lines.append(f"  saved {png}")
+    # the PNG's helper process starts first: it imports matplotlib while this one imports the plant and runs
+    # (vcyto.painter); leaving this block (an error, Ctrl-C) stops it
+    with Painter(start=not args.no_png) as painter:
+        from .. import paper
+        # with --tolerance the finest level is --dt or 2.5 us, the step the tolerance is stated against
+        scenario = paper.paper_scenario(args.number, scenario_from(args, membrane="paper"),
+                                        dt_given=args.dt is not None or args.tolerance is not None)
+        check_run_time(args, scenario, args.max_time, "--dt/--max-time")
+        png = None if args.no_png else output_path(args.png or f"recordings/paper{args.number}.png",
+                                                   default=not args.png)
+        progress = Progress(quiet=args.quiet or args.json)
+        signals_seen.clear()
+        with removed_unless_written(png), runfiles.signals_as_interrupt(signals_seen):
+            try:
+                result = paper.run_paper(args.number, scenario, args.max_time, progress)
+            except paper.Interrupted as stop:
+                progress.close()
+                signal_name = signals_seen.get("last", "SIGINT")
+                runfiles.say(f"interrupted by {signal_name} at step {stop.step} (t = {stop.time * 1e3:.3f} ms); an "
+                             "unfinished paper run saves nothing")
+                raise RunStopped(EXIT_SIGTERM if signal_name == "SIGTERM" else EXIT_SIGINT) from None
+            finally:
+                progress.close()
+            lines = paper.report_lines(result)
+            if png:
+                paper.save_png(str(png), result, scenario, painter)
+                result["png"] = str(png)
+                lines.append(f"  saved {png}")
     emit(args, paper.public(result), lines)

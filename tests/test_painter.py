@@ -1,0 +1,66 @@
+"""vcyto.painter: a figure drawn by a helper process started early. The same bytes as drawn in the process
+itself; every way the helper can fail falls back to drawing here, which reports errors as before; the helper
+never outlives its command."""
+
+import signal
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from vcyto import painter
+from vcyto.painter import Painter
+
+
+def spec():
+    rng = np.random.default_rng(4)
+    xs = np.linspace(0.0, 300.0, 50)
+    return {"speed": rng.uniform(0.0, 0.05, (22, 30)), "extent": (0, 300.0, 0, 220.0),
+            "lines": [(xs, 100 + 20 * np.sin(xs / 40), "w", 1.2), ([0.0, 0.0], [40.0, 80.0], "tab:cyan", 4)],
+            "title": "paper scenario 2: melanoma leaves by the upper outlet at t = 2.01 ms"}
+
+
+def test_the_helper_draws_the_same_bytes_as_this_process(tmp_path):
+    with Painter() as helper:
+        assert helper.paint("paper", tmp_path / "helper.png", spec()) == "helper"
+    assert Painter(start=False).paint("paper", tmp_path / "here.png", spec()) == "here"
+    drawn = (tmp_path / "helper.png").read_bytes()
+    assert drawn.startswith(b"\x89PNG\r\n\x1a\n") and len(drawn) > 10_000
+    assert drawn == (tmp_path / "here.png").read_bytes()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["helper.png", "here.png"]     # no temporary file left
+
+
+def test_a_helper_that_died_is_replaced_by_drawing_here(tmp_path):
+    helper = Painter()
+    helper._process.send_signal(signal.SIGKILL)
+    helper._process.wait(timeout=30)
+    assert helper.paint("paper", tmp_path / "figure.png", spec()) == "here"
+    assert (tmp_path / "figure.png").read_bytes().startswith(b"\x89PNG")
+
+
+def test_a_figure_the_helper_cannot_write_fails_here_with_the_error_naming_the_file(tmp_path):
+    missing = tmp_path / "no such directory" / "figure.png"
+    with Painter() as helper:
+        with pytest.raises(OSError) as raised:
+            helper.paint("paper", missing, spec())
+    assert raised.value.filename == str(missing) and not (tmp_path / "no such directory").exists()
+
+
+def test_close_stops_a_waiting_helper_and_a_helper_whose_command_went_away_exits():
+    helper = Painter()
+    process = helper._process
+    helper.close()
+    assert process.poll() is not None and helper._process is None
+    helper.close()                                    # twice is harmless
+    # the command's end closes the helper's standard input: it exits by itself, status 1, quietly
+    orphan = subprocess.Popen([sys.executable, "-m", "vcyto.painter"], stdin=subprocess.PIPE,
+                              stderr=subprocess.PIPE)
+    _, err = orphan.communicate(b"", timeout=120)
+    assert orphan.returncode == 1 and err == b""
+
+
+def test_a_helper_that_fails_to_draw_says_why_on_its_stderr():
+    done = subprocess.run([sys.executable, "-m", "vcyto.painter"], input=painter.pickle.dumps(("nothing", "x.png", {})),
+                          capture_output=True, timeout=120)
+    assert done.returncode == 1 and done.stderr.decode().strip() == "vcyto painter: KeyError: 'nothing'"

@@ -1,0 +1,150 @@
+"""A figure drawn by a helper process that imports matplotlib while the run computes.
+
+Importing matplotlib costs a ``vcyto paper`` run ~0.4 s of one core (its artists build their docstrings as
+their classes are created), and drawing and writing the PNG ~0.25 s more, both after the run, while the user
+waits. ``Painter`` starts ``python -m vcyto.painter`` when the command starts: the helper imports matplotlib on
+the core the command's own imports leave idle, then waits for one figure on its standard input (a pickled
+name, path and plain data: arrays, lines, texts), draws it with the Agg backend and writes the PNG whole
+(``vcyto.outputs.write_whole``: a temporary file moved in place). The command meanwhile runs; at its end it
+hands over the figure's data and waits for the helper to finish, so the PNG exists when the command reports
+it (docs/numerics.md, "Round 11").
+
+The helper imports only numpy, matplotlib and ``vcyto.outputs`` (no ``sim``). Whatever happens to it (it could
+not start, died, or failed to draw), the command draws the same figure itself with the same function, as it
+did before, so an error (a full disk) is reported exactly as then; the helper only ever saves time. The PNG's
+bytes are the same either way (tested). It ends with the command: on Ctrl-C, an error or the normal exit
+``close`` stops it, and a helper whose command died sees its standard input close and exits.
+"""
+
+from __future__ import annotations
+
+import os
+import pickle
+import subprocess
+import sys
+from pathlib import Path
+
+WAIT_S = 300.0          # drawing one figure takes well under a second; longer means the helper hangs
+
+
+def pyplot():
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    return plt
+
+
+def save_figure(figure, path, dpi: int = 120) -> None:
+    """Write ``figure`` as a PNG at ``path`` all at once: drawn into a temporary file beside it, then moved in
+    place (``os.replace``), so an interrupted or failed save never leaves a truncated image under the name."""
+    from .outputs import write_whole
+    write_whole(Path(path), lambda temporary: figure.savefig(temporary, format="png", dpi=dpi))
+
+
+def _lines(axis, lines):
+    for xs, ys, colour, width in lines:
+        axis.plot(xs, ys, color=colour, lw=width)
+
+
+def paper_figure(plt, spec: dict):
+    """``vcyto paper``'s figure: the speed field (``spec["speed"]``, rows of y upward, over ``spec["extent"]``)
+    with the centroid path, membrane outlines and the device's inlets, outlets and SAW window
+    (``spec["lines"]``: x, y, colour, width), the title and a colour bar."""
+    # a fixed layout: the constrained layout engine cost ~50 ms of a 2 s command for the same picture
+    figure, axis = plt.subplots(figsize=(7.5, 4.6))
+    figure.subplots_adjust(left=0.08, right=0.99, bottom=0.11, top=0.92)
+    image = axis.imshow(spec["speed"], origin="lower", extent=spec["extent"], cmap="viridis",
+                        interpolation="bilinear")
+    _lines(axis, spec["lines"])
+    axis.set_aspect("equal")
+    axis.set_xlabel("x (um)")
+    axis.set_ylabel("y (um)")
+    axis.set_title(spec["title"])
+    figure.colorbar(image, ax=axis, label="speed (m/s)", shrink=0.8)
+    return figure
+
+
+FIGURES = {"paper": paper_figure}
+
+
+def draw(name: str, path, spec: dict, plt=None) -> None:
+    """Draw figure ``name`` from ``spec`` and write it to ``path`` as a PNG, whole (in this process)."""
+    plt = plt or pyplot()
+    figure = FIGURES[name](plt, spec)
+    try:
+        save_figure(figure, path)
+    finally:
+        plt.close(figure)
+
+
+class Painter:
+    """The helper process of one figure (module docstring). ``paint`` draws it there, or here if that fails."""
+
+    def __init__(self, start: bool = True):
+        self._process = None
+        if not start:
+            return
+        package_parent = str(Path(__file__).resolve().parents[1])      # this vcyto, installed or not
+        path = os.environ.get("PYTHONPATH")
+        environment = {**os.environ, "PYTHONPATH": package_parent + (os.pathsep + path if path else "")}
+        try:
+            self._process = subprocess.Popen([sys.executable, "-m", "vcyto.painter"], stdin=subprocess.PIPE,
+                                             stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, env=environment)
+        except OSError:                   # no helper: the figure is drawn here
+            self._process = None
+
+    def paint(self, name: str, path, spec: dict) -> str:
+        """Write figure ``name`` to ``path``; returns where it was drawn ("helper" or "here")."""
+        process = self._process
+        if process is not None:
+            try:
+                process.communicate(pickle.dumps((name, str(path), spec), protocol=pickle.HIGHEST_PROTOCOL),
+                                    timeout=WAIT_S)
+                if process.returncode == 0:
+                    return "helper"
+            except (OSError, subprocess.TimeoutExpired):       # it died before reading, or hangs
+                pass
+            finally:                                           # (an interruption here stops it too)
+                self.close()
+        draw(name, path, spec)
+        return "here"
+
+    def close(self):
+        """Stop the helper if it is still waiting (an interrupted or failed run draws nothing)."""
+        process, self._process = self._process, None
+        if process is not None:
+            _stop(process)
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
+
+
+def _stop(process: subprocess.Popen) -> None:
+    if process.poll() is None:
+        process.kill()
+    try:
+        process.communicate(timeout=10)
+    except (OSError, ValueError, subprocess.TimeoutExpired):
+        pass
+
+
+def _main() -> int:
+    """The helper: import matplotlib, read one figure, draw it; exit 0 when it is written, 1 otherwise (the
+    command then draws it itself and reports any error), quietly when the command went away."""
+    try:
+        plt = pyplot()
+        name, path, spec = pickle.load(sys.stdin.buffer)
+        draw(name, path, spec, plt)
+    except (EOFError, KeyboardInterrupt, BrokenPipeError):
+        return 1
+    except Exception as error:            # told on stderr, which the command keeps; it draws the figure itself
+        print(f"vcyto painter: {type(error).__name__}: {error}", file=sys.stderr)
+        return 1
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(_main())

@@ -93,8 +93,8 @@ def test_the_floor_is_each_rounds_steps_times_that_rounds_fastest_back_solve():
     # rounds where the machine's fastest back-solve was 10 ms and then 5 ms: 1,000 steps have floors of 10 s
     # and 5 s; a command of 12 s, then 8 s, is 1.2x and 1.6x above them (median 1.4)
     walls = {"slow": iter([12.0, 8.0]), "fast": iter([3.0, 2.0]), "fixed": iter([4.0, 4.0])}
-    floors = iter([{"floor_ms": 10.0, "backsolves": {"a": 12.0, "b": 10.0}},
-                   {"floor_ms": 5.0, "backsolves": {"a": 5.0, "b": 6.0}}])
+    floors = iter([{"floor_ms": 10.0, "reproducible_ms": 12.0, "backsolves": {"a": 12.0, "b": 10.0}},
+                   {"floor_ms": 5.0, "reproducible_ms": 6.0, "backsolves": {"a": 5.0, "b": 6.0}}])
     probed = []
 
     def floor(directory):
@@ -111,19 +111,29 @@ def test_the_floor_is_each_rounds_steps_times_that_rounds_fastest_back_solve():
     rows = {row["name"]: row for row in result["rows"]}
     assert rows["slow"]["floor_s"] == [10.0, 5.0] and rows["slow"]["floor_median_s"] == 7.5
     assert rows["slow"]["over_floor"] == pytest.approx(1.4)
+    assert rows["slow"]["reproducible_floor_median_s"] == 9.0                # 1,000 x (12 ms, 6 ms): 12 s and 6 s
     assert "floor_s" not in rows["fast"] and "floor_s" not in rows["fixed"]    # steps unknown: no floor
     assert result["floor"]["median_ms"] == 7.5 and result["floor"]["backsolves_ms"] == {"a": 8.5, "b": 8.0}
     lines = "\n".join(process_lines(result))
-    assert "floor 7.50 s (1,000 steps x the fastest back-solve), wall / floor 1.40" in lines
-    assert "beyond this machine" not in lines                              # 7.5 s < the 10 s target
+    assert "floor 7.50 s (1,000 steps x the fastest back-solve; 9.00 s x the reproducible one), wall / floor 1.40\n" \
+        in lines                                                           # both below the 10 s target
     assert "this machine's fastest back-solve at the paper's mesh" in lines and "7.50 ms [5.00-10.00]" in lines
+    assert "the fastest reproducible one (the default's) 9.00 ms" in lines
     # the same steps on a machine twice as slow: the floor (15 s) passes the 10 s target, which no code then meets
-    floors = iter([{"floor_ms": 20.0, "backsolves": {"a": 20.0}}, {"floor_ms": 10.0, "backsolves": {"a": 10.0}}])
+    floors = iter([{"floor_ms": 20.0, "reproducible_ms": 20.0, "backsolves": {"a": 20.0}},
+                   {"floor_ms": 10.0, "reproducible_ms": 10.0, "backsolves": {"a": 10.0}}])
     walls = {"slow": iter([24.0, 16.0]), "fast": iter([3.0, 2.0]), "fixed": iter([4.0, 4.0])}
     slow = bench_process(rounds=2, commands=COMMANDS, pairs=(("slow", "fast"),), warm_up=False, run=run,
                          floor=lambda directory: next(floors))
-    assert "floor 15.00 s (1,000 steps x the fastest back-solve), wall / floor 1.40; the target is beyond this " \
-           "machine at these steps" in "\n".join(process_lines(slow))
+    assert "floor 15.00 s (1,000 steps x the fastest back-solve; 15.00 s x the reproducible one), wall / floor 1.40; " \
+           "the target is beyond this machine at these steps" in "\n".join(process_lines(slow))
+    # a floor below the target with a reproducible floor above it: beyond the reproducible back-solve only
+    floors = iter([{"floor_ms": 8.0, "reproducible_ms": 11.0, "backsolves": {"a": 8.0}}] * 2)
+    walls = {"slow": iter([12.0, 12.0]), "fast": iter([3.0, 2.0]), "fixed": iter([4.0, 4.0])}
+    reproducible = bench_process(rounds=2, commands=COMMANDS, pairs=(("slow", "fast"),), warm_up=False, run=run,
+                                 floor=lambda directory: next(floors))
+    assert "wall / floor 1.50; the target is beyond this machine's reproducible back-solve at these steps" in \
+        "\n".join(process_lines(reproducible))
 
 
 def test_the_floor_probe_times_the_back_solves_of_the_papers_fluid(monkeypatch):
@@ -135,6 +145,8 @@ def test_the_floor_probe_times_the_back_solves_of_the_papers_fluid(monkeypatch):
     assert any(label.startswith("the default: ") for label in times) and all(ms > 0 for ms in times.values())
     # the floor is the median of each round's fastest: never above the fastest median nor below the least
     assert 0 < result["floor_ms"] <= max(times.values())
+    default = next(ms for label, ms in times.items() if label.startswith("the default: "))
+    assert result["reproducible_ms"] == default
     assert len(times) == (3 if fluid.pardiso_available() else 1)
 
 

@@ -22,8 +22,9 @@ ROUNDS = 3
 
 
 def floor_probe(rounds: int = ROUNDS) -> dict:
-    """The back-solves of the fluid's matrix (ms, medians over ``rounds`` blocks each) and the floor: the median
-    over the rounds of each round's fastest of them (on a busy host any of them can be the fastest)."""
+    """The back-solves of the fluid's matrix (ms, medians over ``rounds`` blocks each), the floor (the median over
+    the rounds of each round's fastest of them: on a busy host any of them can be the fastest) and the default's,
+    the fastest reproducible one."""
     from sim.fluid import NavierStokes
     from sim.scenario import Scenario
 
@@ -39,7 +40,9 @@ def floor_probe(rounds: int = ROUNDS) -> dict:
     result = {"dofs": int(base.space.dofs), "dt_us": scenario.numerics.dt * 1e6, "rounds": rounds,
               "backsolves": {label: round(statistics.median(row[name] for row in timed), 3)
                              for name, (_, _, label) in solves.items()},
-              "floor_ms": round(statistics.median(min(row.values()) for row in timed), 3)}
+              "floor_ms": round(statistics.median(min(row.values()) for row in timed), 3),
+              # the default is the reproducible back-solve (bit for bit; PARDISO's parallel ones are not)
+              "reproducible_ms": round(statistics.median(row["default"] for row in timed), 3)}
     for name, (_, solve, _) in solves.items():
         getattr(solve, "release", lambda: None)()
     return result

@@ -107,8 +107,8 @@ def _process_parser(targets):
                                                        "--tolerance 1um (the speed-up per round), against their "
                                                        "targets")
     process_bench.add_argument("--rounds", type=Integer(low=1, high=100), default="3",
-                               help="timed rounds, each running every command once (default 3; a round takes "
-                                    "about 1.5 min on 2 cores)")
+                               help="timed rounds, each running every command once and then the floor probe "
+                                    "(default 3; a round takes about 2 min on 2 cores)")
     process_bench.add_argument("--no-warm-up", action="store_true",
                                help="time from the first round (default: one untimed round fills the set-up cache)")
     output_options(process_bench)

@@ -42,8 +42,10 @@ def test_a_helper_that_died_is_replaced_by_drawing_here(tmp_path):
 def test_a_figure_the_helper_cannot_write_fails_here_with_the_error_naming_the_file(tmp_path):
     missing = tmp_path / "no such directory" / "figure.png"
     with Painter() as helper:
+        process = helper._process
         with pytest.raises(OSError) as raised:
             helper.paint("paper", missing, spec())
+    assert process.returncode == 1                        # the helper tried and failed; the command then drew it
     assert raised.value.filename == str(missing) and not (tmp_path / "no such directory").exists()
 
 
@@ -57,10 +59,38 @@ def test_close_stops_a_waiting_helper_and_a_helper_whose_command_went_away_exits
     orphan = subprocess.Popen([sys.executable, "-m", "vcyto.painter"], stdin=subprocess.PIPE,
                               stderr=subprocess.PIPE)
     _, err = orphan.communicate(b"", timeout=120)
-    assert orphan.returncode == 1 and err == b""
+    assert orphan.returncode == 1 and b"Traceback" not in err and b"vcyto painter" not in err
 
 
 def test_a_helper_that_fails_to_draw_says_why_on_its_stderr():
     done = subprocess.run([sys.executable, "-m", "vcyto.painter"], input=painter.pickle.dumps(("nothing", "x.png", {})),
                           capture_output=True, timeout=120)
-    assert done.returncode == 1 and done.stderr.decode().strip() == "vcyto painter: KeyError: 'nothing'"
+    last = done.stderr.decode().strip().splitlines()[-1]
+    assert done.returncode == 1 and last == "vcyto painter: KeyError: 'nothing'"
+
+
+def test_the_helper_runs_this_vcyto_whatever_the_current_directory_holds(tmp_path, monkeypatch):
+    # a package named vcyto in the user's directory, whose painter would "draw" nothing and succeed
+    (tmp_path / "vcyto").mkdir()
+    (tmp_path / "vcyto" / "__init__.py").write_text("")
+    (tmp_path / "vcyto" / "painter.py").write_text("import sys; sys.exit(0)\n")
+    monkeypatch.chdir(tmp_path)
+    with Painter() as helper:
+        assert helper.paint("paper", tmp_path / "figure.png", spec()) == "helper"
+    assert (tmp_path / "figure.png").read_bytes().startswith(b"\x89PNG")
+
+
+def test_a_helper_stopped_while_it_draws_leaves_no_temporary_file(tmp_path):
+    import time
+    helper = Painter()
+    process = helper._process
+    heavy = {**spec(), "lines": spec()["lines"] * 400}            # long enough to draw to be caught at it
+    process.stdin.write(painter.pickle.dumps(("paper", str(tmp_path / "figure.png"), heavy)))
+    process.stdin.close()
+    deadline = time.monotonic() + 60
+    while not list(tmp_path.glob(".figure.png.*.tmp")) and process.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.001)
+    assert list(tmp_path.glob(".figure.png.*.tmp")), "the helper was not caught writing"
+    helper.close()                                        # SIGTERM while it writes
+    assert process.returncode is not None
+    assert list(tmp_path.iterdir()) == []                 # neither the temporary file nor a figure

@@ -2,24 +2,27 @@
 
 Importing matplotlib costs a ``vcyto paper`` run ~0.4 s of one core (its artists build their docstrings as
 their classes are created), and drawing and writing the PNG ~0.25 s more, both after the run, while the user
-waits. ``Painter`` starts ``python -m vcyto.painter`` when the command starts: the helper imports matplotlib on
+waits. ``Painter`` starts this module as a helper process when the command starts: it imports matplotlib on
 the core the command's own imports leave idle, then waits for one figure on its standard input (a pickled
 name, path and plain data: arrays, lines, texts), draws it with the Agg backend and writes the PNG whole
 (``vcyto.outputs.write_whole``: a temporary file moved in place). The command meanwhile runs; at its end it
 hands over the figure's data and waits for the helper to finish, so the PNG exists when the command reports
 it (docs/numerics.md, "Round 11").
 
-The helper imports only numpy, matplotlib and ``vcyto.outputs`` (no ``sim``). Whatever happens to it (it could
-not start, died, or failed to draw), the command draws the same figure itself with the same function, as it
-did before, so an error (a full disk) is reported exactly as then; the helper only ever saves time. The PNG's
-bytes are the same either way (tested). It ends with the command: on Ctrl-C, an error or the normal exit
-``close`` stops it, and a helper whose command died sees its standard input close and exits.
+The helper imports only numpy, matplotlib and ``vcyto.outputs`` (no ``sim``), the same ``vcyto`` as the command
+(its package's directory first on the helper's path). Whatever happens to it (it could not start, died, failed
+to draw or left no figure), the command draws the same figure itself with the same function, as it did before,
+so an error (a full disk) is reported exactly as then; the helper only ever saves time. Its output is
+discarded. The PNG's bytes are the same either way (tested). It ends with the command: on Ctrl-C, an error or
+the normal exit ``close`` stops it (SIGTERM, which it takes as Ctrl-C so that a figure being written leaves no
+temporary file; SIGKILL after 2 s), and a helper whose command died sees its standard input close and exits.
 """
 
 from __future__ import annotations
 
 import os
 import pickle
+import signal
 import subprocess
 import sys
 from pathlib import Path
@@ -82,15 +85,17 @@ class Painter:
 
     def __init__(self, start: bool = True):
         self._process = None
-        if not start:
+        if not start or not sys.executable:
             return
-        package_parent = str(Path(__file__).resolve().parents[1])      # this vcyto, installed or not
-        path = os.environ.get("PYTHONPATH")
-        environment = {**os.environ, "PYTHONPATH": package_parent + (os.pathsep + path if path else "")}
+        # this vcyto, installed or not, first on the helper's path: ``python -m`` would put the current directory
+        # there, where another ``vcyto`` (or a ``numpy.py``) could stand
+        package_parent = str(Path(__file__).resolve().parents[1])
         try:
-            self._process = subprocess.Popen([sys.executable, "-m", "vcyto.painter"], stdin=subprocess.PIPE,
-                                             stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, env=environment)
-        except OSError:                   # no helper: the figure is drawn here
+            self._process = subprocess.Popen(
+                [sys.executable, "-c", "import runpy, sys; sys.path[0] = sys.argv.pop(1); "
+                 "runpy.run_module('vcyto.painter', run_name='__main__', alter_sys=True)", package_parent],
+                stdin=subprocess.PIPE, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        except (OSError, ValueError):     # no helper: the figure is drawn here
             self._process = None
 
     def paint(self, name: str, path, spec: dict) -> str:
@@ -100,7 +105,7 @@ class Painter:
             try:
                 process.communicate(pickle.dumps((name, str(path), spec), protocol=pickle.HIGHEST_PROTOCOL),
                                     timeout=WAIT_S)
-                if process.returncode == 0:
+                if process.returncode == 0 and os.path.getsize(path) > 0:
                     return "helper"
             except (OSError, subprocess.TimeoutExpired):       # it died before reading, or hangs
                 pass
@@ -123,24 +128,32 @@ class Painter:
 
 
 def _stop(process: subprocess.Popen) -> None:
-    if process.poll() is None:
-        process.kill()
-    try:
-        process.communicate(timeout=10)
-    except (OSError, ValueError, subprocess.TimeoutExpired):
-        pass
+    """End the helper: asked first (SIGTERM: a figure being written removes its temporary file), then killed."""
+    for end in (process.terminate, process.kill):
+        if process.poll() is not None:
+            break
+        end()
+        try:
+            process.wait(timeout=2)
+        except subprocess.TimeoutExpired:
+            pass
+
+
+def _interrupt(signum, frame):
+    raise KeyboardInterrupt
 
 
 def _main() -> int:
     """The helper: import matplotlib, read one figure, draw it; exit 0 when it is written, 1 otherwise (the
-    command then draws it itself and reports any error), quietly when the command went away."""
+    command then draws it itself and reports any error), quietly when the command went away or stopped it."""
+    signal.signal(signal.SIGTERM, _interrupt)      # as Ctrl-C: ``write_whole`` removes its temporary file
     try:
         plt = pyplot()
         name, path, spec = pickle.load(sys.stdin.buffer)
         draw(name, path, spec, plt)
     except (EOFError, KeyboardInterrupt, BrokenPipeError):
         return 1
-    except Exception as error:            # told on stderr, which the command keeps; it draws the figure itself
+    except Exception as error:            # the command draws the figure itself and reports its own error, if any
         print(f"vcyto painter: {type(error).__name__}: {error}", file=sys.stderr)
         return 1
     return 0

@@ -38,8 +38,8 @@ def floor_probe(rounds: int = ROUNDS) -> dict:
     solves["default"] = (_block_ms, base.backsolve, f"the default: {_describe(base._constant.factor)}")
     timed = [{name: block(lambda: solve(rhs)) for name, (block, solve, _) in solves.items()} for _ in range(rounds)]
     result = {"dofs": int(base.space.dofs), "dt_us": scenario.numerics.dt * 1e6, "rounds": rounds,
-              "backsolves": {label: round(statistics.median(row[name] for row in timed), 3)
-                             for name, (_, _, label) in solves.items()},
+              "backsolves": {name: round(statistics.median(row[name] for row in timed), 3) for name in solves},
+              "labels": {name: label for name, (_, _, label) in solves.items()},
               "floor_ms": round(statistics.median(min(row.values()) for row in timed), 3),
               # the default is the reproducible back-solve (bit for bit; PARDISO's parallel ones are not)
               "reproducible_ms": round(statistics.median(row["default"] for row in timed), 3)}

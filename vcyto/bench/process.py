@@ -125,7 +125,9 @@ def run_command(command: Command, directory: Path) -> Timed:
     steps = None
     if "--json" in arguments:
         try:
-            steps = int(json.loads(done.stdout)["steps"])
+            printed = json.loads(done.stdout)
+            # a stream's "steps" are its control periods; its FE-IB steps are in "time_steps" (equal at fixed dt)
+            steps = int((printed.get("time_steps") or printed)["steps"])
         except (ValueError, KeyError, TypeError):
             raise CommandFailed(f"{shown} printed no result with its steps ({last})") from None
     return Timed(wall, steps)
@@ -188,15 +190,16 @@ def bench_process(rounds: int = 3, commands=COMMANDS, pairs=PAIRS, warm_up: bool
         result["floor"] = {"per_round_ms": [probe["floor_ms"] for probe in floors],
                            "median_ms": float(np.median([probe["floor_ms"] for probe in floors])),
                            "reproducible_ms": float(np.median([probe["reproducible_ms"] for probe in floors])),
-                           "backsolves_ms": {label: float(np.median([probe["backsolves"][label] for probe in floors]))
-                                             for label in floors[0]["backsolves"]}}
+                           "backsolves_ms": {name: float(np.median([probe["backsolves"][name] for probe in floors]))
+                                             for name in floors[0]["backsolves"]},
+                           "labels": floors[-1].get("labels", {})}
     return result
 
 
 def _floor_of(times: list[float], steps: list[int | None], floors: list[dict]) -> dict:
     """A fixed-step command's floor in each round (its steps x that round's fastest back-solve) and the medians of
     the floor and of wall / floor; nothing for a command whose steps are unknown or without floor probes."""
-    if not floors or not steps or any(count is None for count in steps):
+    if not floors or not steps or any(count is None or count <= 0 for count in steps):
         return {}
     floor_s = [count * probe["floor_ms"] / 1e3 for count, probe in zip(steps, floors)]
     reproducible_s = [count * probe["reproducible_ms"] / 1e3 for count, probe in zip(steps, floors)]
@@ -209,10 +212,10 @@ def process_lines(result: dict) -> list[str]:
     rounds = f"{result['rounds']} round" + ("" if result["rounds"] == 1 else "s")
     lines = [f"whole processes, warm set-up cache, headless; {rounds}, median [lowest-highest]:"]
     for row in result["rows"]:
-        target = f"  {row['note']}" if row["target_s"] is None else f"  target <= {row['target_s']:g} s: " + (
+        verdict = f"  {row['note']}" if row["target_s"] is None else f"  target <= {row['target_s']:g} s: " + (
             "met" if row["median_s"] <= row["target_s"] else "not met")
         times = row["times_s"]
-        lines.append(f"  {row['name']:<40} {row['median_s']:6.2f} s [{min(times):.2f}-{max(times):.2f}]{target}")
+        lines.append(f"  {row['name']:<40} {row['median_s']:6.2f} s [{min(times):.2f}-{max(times):.2f}]{verdict}")
         if "floor_median_s" in row:
             steps = sorted(set(row["steps"]))
             counted = f"{steps[0]:,}" if len(steps) == 1 else f"{steps[0]:,}-{steps[-1]:,}"
@@ -234,5 +237,5 @@ def process_lines(result: dict) -> list[str]:
         lines.append(f"this machine's fastest back-solve at the paper's mesh (python -m vcyto.bench.floor, once a "
                      f"round): {floor['median_ms']:.2f} ms [{min(per_round):.2f}-{max(per_round):.2f}], the fastest "
                      f"reproducible one (the default's) {floor['reproducible_ms']:.2f} ms; medians:")
-        lines += [f"  {ms:6.2f} ms  {label}" for label, ms in floor["backsolves_ms"].items()]
+        lines += [f"  {ms:6.2f} ms  {floor['labels'].get(name, name)}" for name, ms in floor["backsolves_ms"].items()]
     return lines

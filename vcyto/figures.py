@@ -7,6 +7,7 @@ import numpy as np
 from sim.scenario import UM, Scenario
 from sim.transfer import PointLocator
 
+from . import painter
 from .painter import pyplot, save_figure  # noqa: F401 - the figures' commands take them from here
 
 
@@ -22,8 +23,7 @@ def speed_image(locator: PointLocator, velocity: np.ndarray, scenario: Scenario,
 
 
 def show_speed(axis, locator, velocity, scenario):
-    speed, extent = speed_image(locator, velocity, scenario)
-    return axis.imshow(speed, origin="lower", extent=extent, cmap="viridis", interpolation="bilinear")
+    return painter.show_speed(axis, *speed_image(locator, velocity, scenario))
 
 
 def device_lines(scenario: Scenario) -> list[tuple]:
@@ -38,8 +38,4 @@ def device_lines(scenario: Scenario) -> list[tuple]:
 
 def draw_device(axis, scenario: Scenario):
     """``device_lines`` drawn on ``axis``, at equal scales, with the axes' labels."""
-    for xs, ys, colour, width in device_lines(scenario):
-        axis.plot(xs, ys, color=colour, lw=width)
-    axis.set_aspect("equal")
-    axis.set_xlabel("x (um)")
-    axis.set_ylabel("y (um)")
+    painter.draw_lines(axis, device_lines(scenario))

@@ -96,24 +96,30 @@ def headless_environment() -> dict:
     return environment
 
 
-def run_command(command: Command, directory: Path) -> Timed:
-    """Run ``command`` in a new process: its wall time in seconds (the probe's: to the first step) and, when it
-    prints its result (``--json``), its FE-IB steps."""
-    arguments = [part.replace("{dir}", str(directory)) for part in command.arguments]
-    shown = f"`vcyto {' '.join(arguments)}`"
-    module = "vcyto.startprobe" if command.probe else "vcyto"
-    started = time.perf_counter()
+def _run(module: str, arguments: list[str], directory: Path, shown: str) -> tuple[subprocess.CompletedProcess, str]:
+    """``python -m module arguments`` in ``directory``, headless: the finished process and its last stderr line; a
+    timeout, a signal or a non-zero status is a ``CommandFailed`` naming ``shown``."""
     try:
         done = subprocess.run([sys.executable, "-m", module, *arguments], capture_output=True, text=True,
                               env=headless_environment(), cwd=directory, timeout=TIMEOUT_S)
     except subprocess.TimeoutExpired:
         raise CommandFailed(f"{shown} took more than {TIMEOUT_S:.0f} s: stopped") from None
-    wall = time.perf_counter() - started
     last = (done.stderr.strip().splitlines() or ["(nothing on stderr)"])[-1]
     if done.returncode < 0:
         raise CommandFailed(f"{shown} was killed by signal {-done.returncode}: {last}")
     if done.returncode != 0:
         raise CommandFailed(f"{shown} exited with status {done.returncode}: {last}")
+    return done, last
+
+
+def run_command(command: Command, directory: Path) -> Timed:
+    """Run ``command`` in a new process: its wall time in seconds (the probe's: to the first step) and, when it
+    prints its result (``--json``), its FE-IB steps."""
+    arguments = [part.replace("{dir}", str(directory)) for part in command.arguments]
+    shown = f"`vcyto {' '.join(arguments)}`"
+    started = time.perf_counter()
+    done, last = _run("vcyto.startprobe" if command.probe else "vcyto", arguments, directory, shown)
+    wall = time.perf_counter() - started
     if command.probe:
         try:
             probed = json.loads(done.stdout.strip().splitlines()[-1])
@@ -135,19 +141,12 @@ def run_command(command: Command, directory: Path) -> Timed:
 
 def run_floor(directory: Path) -> dict:
     """``vcyto.bench.floor`` in a new process (this machine's back-solves at the paper's mesh, now): its result."""
+    shown = "the floor probe (`python -m vcyto.bench.floor`)"
+    done, last = _run("vcyto.bench.floor", [], directory, shown)
     try:
-        done = subprocess.run([sys.executable, "-m", "vcyto.bench.floor"], capture_output=True, text=True,
-                              env=headless_environment(), cwd=directory, timeout=TIMEOUT_S)
-    except subprocess.TimeoutExpired:
-        raise CommandFailed(f"the floor probe took more than {TIMEOUT_S:.0f} s: stopped") from None
-    last = (done.stderr.strip().splitlines() or ["(nothing on stderr)"])[-1]
-    try:
-        if done.returncode != 0:
-            raise ValueError
         return json.loads(done.stdout.strip().splitlines()[-1])
     except (IndexError, ValueError):
-        raise CommandFailed(f"the floor probe (python -m vcyto.bench.floor) failed with status "
-                            f"{done.returncode}: {last}") from None
+        raise CommandFailed(f"{shown} printed no result ({last})") from None
 
 
 def bench_process(rounds: int = 3, commands=COMMANDS, pairs=PAIRS, warm_up: bool = True,

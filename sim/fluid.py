@@ -47,8 +47,8 @@ def solver_code_digest() -> str:
     """The code that computes a flow (this module, the kernels, the assembly, the linear solvers), as a key part
     of the flows stored through ``sim.store``: a changed kernel or solver, whose bits differ, misses instead of
     giving a warm run other bits than a cold one."""
-    from . import kernels, linalg, splitsolve, taylorhood
-    return module_digest(sys.modules[__name__], kernels, linalg, splitsolve, taylorhood)
+    from . import kernels, linalg, splitsolve, supernodal, taylorhood
+    return module_digest(sys.modules[__name__], kernels, linalg, splitsolve, supernodal, taylorhood)
 
 log = logging.getLogger(__name__)
 

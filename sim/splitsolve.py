@@ -44,6 +44,7 @@ from __future__ import annotations
 
 import ctypes
 import math
+import os
 import queue
 import threading
 
@@ -51,7 +52,7 @@ import numpy as np
 import scipy.linalg as sla
 import scipy.sparse as sp
 
-from . import kernels
+from . import kernels, supernodal
 from .linalg import Pardiso, SolverError, _aligned_empty, _mkl_runtime, mkl_version, narrow
 from .store import code_digest, digest, reuse
 
@@ -75,6 +76,12 @@ def separator_split(matrix: sp.csr_matrix, x: np.ndarray, band=(0.35, 0.65)):
     smallest = min(c[0] for c in candidates)
     size, _, cut, separator, left = min((c for c in candidates if c[0] <= 1.1 * smallest), key=lambda c: c[1])
     return np.flatnonzero(left & ~separator), np.flatnonzero(~left), np.flatnonzero(separator)
+
+
+def own_substitutions_wanted() -> bool:
+    """Whether a single-precision split solve substitutes with our own kernels (``sim.supernodal``: compiled at
+    install) instead of PARDISO's; ``VCYTO_OWN_SUBSTITUTIONS=0`` keeps PARDISO's (the benchmark compares both)."""
+    return os.environ.get("VCYTO_OWN_SUBSTITUTIONS", "1") != "0" and supernodal.available()
 
 
 def _one_mkl_thread():
@@ -134,6 +141,20 @@ class _Half:
         block = matrix[unknowns][:, unknowns].tocsr() if block is None else block
         return cls(Pardiso(block, symmetric=True, reproducible=True, single=single, matching=matched, kept=kept),
                    moved, matched)
+
+    @classmethod
+    def own(cls, matrix: sp.csr_matrix, unknowns: np.ndarray, moved=()):
+        """The half of ``unknowns`` with our own single-precision factor and substitutions (``sim.supernodal``),
+        restored from ``sim.store`` or built and kept there; ``SolverError`` when the factor cannot take it."""
+        block = matrix[unknowns][:, unknowns].tocsr()
+        built = []
+
+        def build():
+            built.append(True)
+            return supernodal.factor_arrays(block)
+        factor = supernodal.SupernodalLDL(reuse("supernodal-factor", supernodal.stored_key(block), build))
+        factor.restored = not built
+        return cls(factor, moved, matched=False)
 
     @classmethod
     def search(cls, matrix: sp.csr_matrix, unknowns: np.ndarray, single: bool):
@@ -322,9 +343,13 @@ class SplitPardiso:
         def factored(stored):
             moved, matched = np.asarray(stored["moved"], dtype=np.int64), stored["matched"]
             parts = (np.setdiff1d(left, moved), np.setdiff1d(right, moved), np.union1d(separator, moved))
-            halves = tuple(searched) or self._both(
-                lambda: _Half.factored(matrix, parts[0], single, bool(matched[0]), np.intersect1d(left, moved)),
-                lambda: _Half.factored(matrix, parts[1], single, bool(matched[1]), np.intersect1d(right, moved)))
+            sides = [(parts[i], bool(matched[i]), np.intersect1d(side, moved)) for i, side in enumerate((left, right))]
+            if searched:       # just factored by PARDISO (to find the moved unknowns): ours replace the unmatched ones
+                halves = self._both(lambda: self._own_or(searched[0], matrix, *sides[0]),
+                                    lambda: self._own_or(searched[1], matrix, *sides[1]))
+            else:
+                halves = self._both(lambda: self._own_or(None, matrix, *sides[0]),
+                                    lambda: self._own_or(None, matrix, *sides[1]))
             return halves, parts
 
         halves, parts = factored(reuse("split-pivots", key, search))
@@ -339,6 +364,20 @@ class SplitPardiso:
             searched.clear()
             halves, parts = factored(again())
         return halves, parts
+
+    def _own_or(self, half: _Half | None, matrix: sp.csr_matrix, unknowns: np.ndarray, matched: bool, moved):
+        """The half of ``unknowns`` with our own substitutions when they are wanted and can take it (single precision,
+        factored without matching), else ``half`` (PARDISO's), factored here when it is None."""
+        if self.single and not matched and own_substitutions_wanted():
+            try:
+                own = _Half.own(matrix, unknowns, moved)
+            except SolverError:
+                pass
+            else:
+                if half is not None:
+                    half.factor.release()
+                return own
+        return half if half is not None else _Half.factored(matrix, unknowns, self.single, matched, moved)
 
     def _couple(self):
         """H of each half and the separator's Schur complement: from the store (sim.store) or computed."""

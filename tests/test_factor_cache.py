@@ -136,12 +136,18 @@ def test_a_bad_factor_budget_is_a_one_line_error(tmp_path, value):
     assert run.stderr.count("\n") == 1 and f"VCYTO_CACHE_FACTORS_MB='{value}'" in run.stderr
 
 
-def test_the_split_solve_restores_both_halves_to_the_same_bits(cache):
-    """The fluid's default solver (two halves factored on two threads) on a mesh large enough for the split: a second
-    set-up restores both halves, and its back-solves give the bits of a set-up without a cache."""
+@pytest.mark.parametrize("own", ["1", "0"])
+def test_the_split_solve_restores_both_halves_to_the_same_bits(cache, own, monkeypatch):
+    """The fluid's default solver (two halves factored on two threads) on a mesh large enough for the split, with our
+    own substitutions and with PARDISO's: a second set-up restores both halves, and its back-solves give the bits of a
+    set-up without a cache."""
     from sim.fluid import NavierStokes
     from sim.scenario import UM, Scenario
     from sim.splitsolve import SplitPardiso
+    from sim.supernodal import SupernodalLDL, available
+    if own == "1" and not available():
+        pytest.skip("vcyto was installed without its compiled substitution kernels")
+    monkeypatch.setenv("VCYTO_OWN_SUBSTITUTIONS", own)
     scenario = Scenario().with_numerics(mesh_h=5 * UM)
     store.install(None)
     cold = NavierStokes(scenario)
@@ -150,6 +156,7 @@ def test_the_split_solve_restores_both_halves_to_the_same_bits(cache):
     warm = NavierStokes(scenario, cold.space)
     split = getattr(warm._constant.factor, "inner", warm._constant.factor)
     assert isinstance(split, SplitPardiso) and all(half.factor.restored for half in split.halves)
+    assert all(isinstance(half.factor, SupernodalLDL) == (own == "1") for half in split.halves)
     rhs = np.random.default_rng(5).standard_normal(len(cold.free))
     assert np.array_equal(warm.backsolve(rhs), cold.backsolve(rhs))
 

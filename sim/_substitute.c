@@ -2,8 +2,9 @@
    single-precision supernodal L D L^T, in a fixed order (equal inputs give equal bits).
 
    The layout, per supernode s (columns c0 = starts[s] .. starts[s + 1] - 1, width ns):
-   - its diagonal block, ns x ns column by column at dval + doff[s]: entry (k, j) = L[c0 + k, c0 + j] for k > j
-     (the unit diagonal and the upper part are not read);
+   - its diagonal block, ns x ns, column by column at dval + doff[s] (entry j * ns + k = L[c0 + k, c0 + j], k > j)
+     for the forward kernel and row by row at drow + doff[s] (entry i * ns + k = L[c0 + i, c0 + k], k < i) for the
+     backward one (the unit diagonal and the other triangle are not read);
    - the rows below it, nbp = roff[s + 1] - roff[s] of them (a multiple of LANES), column by column at
      bval + boff[s]; their indices at rows + roff[s], the padding rows pointing at the spare slot x[n], whose
      values are zero.
@@ -25,14 +26,14 @@
 #endif
 
 /* x <- L^-1 x */
-static inline void forward(int64_t nsn, const int64_t *restrict starts, const int64_t *restrict doff,
+static inline __attribute__((always_inline)) void forward(int64_t nsn, const int64_t *restrict starts, const int64_t *restrict doff,
                            const int64_t *restrict boff, const int64_t *restrict roff, const float *restrict dval,
-                           const float *restrict bval, const int32_t *restrict rows, float *restrict x)
+                           const float *restrict bval, const int32_t *restrict rows, float *x)
 {
     for (int64_t s = 0; s < nsn; s++) {
         const int64_t c0 = starts[s], ns = starts[s + 1] - c0;
         const float *restrict d = dval + doff[s];
-        float *restrict xs = x + c0;
+        float *xs = x + c0;
         for (int64_t j = 0; j < ns; j++) {
             const float xj = xs[j];
             const float *restrict column = d + j * ns;
@@ -66,7 +67,7 @@ static inline void forward(int64_t nsn, const int64_t *restrict starts, const in
 }
 
 /* the lanes' sum in a fixed tree order */
-static inline float lanes_sum(float *restrict a)
+static inline __attribute__((always_inline)) float lanes_sum(float *restrict a)
 {
     for (int w = 0; w < 8; w++) a[w] += a[w + 8];
     for (int w = 0; w < 4; w++) a[w] += a[w + 4];
@@ -76,9 +77,9 @@ static inline float lanes_sum(float *restrict a)
 }
 
 /* x <- L^-T x (g: scratch of the longest nbp) */
-static inline void backward(int64_t nsn, const int64_t *restrict starts, const int64_t *restrict doff,
-                            const int64_t *restrict boff, const int64_t *restrict roff, const float *restrict dval,
-                            const float *restrict bval, const int32_t *restrict rows, float *restrict x,
+static inline __attribute__((always_inline)) void backward(int64_t nsn, const int64_t *restrict starts, const int64_t *restrict doff,
+                            const int64_t *restrict boff, const int64_t *restrict roff, const float *restrict drow,
+                            const float *restrict bval, const int32_t *restrict rows, float *x,
                             float *restrict g)
 {
     for (int64_t s = nsn - 1; s >= 0; s--) {
@@ -86,7 +87,7 @@ static inline void backward(int64_t nsn, const int64_t *restrict starts, const i
         const int64_t nbp = roff[s + 1] - roff[s];
         const float *restrict b = bval + boff[s];
         const int32_t *restrict r = rows + roff[s];
-        float *restrict xs = x + c0;
+        float *xs = x + c0;
         for (int64_t i = 0; i < nbp; i++) g[i] = x[r[i]];
         int64_t j = 0;
         for (; j + 4 <= ns; j += 4) {                      /* four columns at a time share the gathered rows */
@@ -115,12 +116,11 @@ static inline void backward(int64_t nsn, const int64_t *restrict starts, const i
                 for (int w = 0; w < LANES; w++) a0[w] += c[q + w] * g[q + w];
             xs[j] -= lanes_sum(a0);
         }
-        const float *restrict d = dval + doff[s];
-        for (int64_t k = ns - 1; k >= 0; k--) {
-            const float *restrict column = d + k * ns;
-            float t = 0.0f;
-            for (int64_t i = k + 1; i < ns; i++) t += column[i] * xs[i];
-            xs[k] -= t;
+        const float *restrict d = drow + doff[s];      /* the block row by row: d[i * ns + k] = L[c0 + i, c0 + k] */
+        for (int64_t i = ns - 1; i > 0; i--) {          /* as the forward kernel: a vector update per unknown, no */
+            const float xi = xs[i];                      /* chain of dependent sums along a row (measured: the wide */
+            const float *restrict row = d + i * ns;      /* blocks' dot products took a third of the kernel) */
+            for (int64_t k = 0; k < i; k++) xs[k] -= row[k] * xi;
         }
     }
 }
@@ -139,13 +139,13 @@ CLONED void vcyto_forward(int64_t n, int64_t nsn, const int64_t *restrict starts
 
 /* PARDISO's phase 333 for one half: dst = P^T L^-T src; x: n + 1 floats, g: the longest nbp */
 CLONED void vcyto_backward(int64_t n, int64_t nsn, const int64_t *restrict starts, const int64_t *restrict doff,
-                           const int64_t *restrict boff, const int64_t *restrict roff, const float *restrict dval,
+                           const int64_t *restrict boff, const int64_t *restrict roff, const float *restrict drow,
                            const float *restrict bval, const int32_t *restrict rows, const int64_t *restrict order,
                            const float *restrict src, float *restrict x, float *restrict g, float *restrict dst)
 {
     memcpy(x, src, (size_t)n * sizeof(float));
     x[n] = 0.0f;
-    backward(nsn, starts, doff, boff, roff, dval, bval, rows, x, g);
+    backward(nsn, starts, doff, boff, roff, drow, bval, rows, x, g);
     for (int64_t i = 0; i < n; i++) dst[order[i]] = x[i];
 }
 

@@ -15,7 +15,9 @@ substitutions):
 - consecutive columns are grouped into supernodes (dense blocks that may hold zeros: at most ``SLACK`` of the true
   entries more, or any number while the group has at most ``SMALL`` columns, and at most ``WIDEST`` columns); the rows
   below a block's diagonal part are padded to a multiple of 16 and stored column by column, so the kernels' inner
-  loops are 16 contiguous values, one AVX-512 vector; the values are rounded to single precision once.
+  loops are 16 contiguous values, one AVX-512 vector; the diagonal blocks are kept twice, column by column for the
+  forward kernel and row by row for the backward one, so both update a vector per unknown; the values are rounded to
+  single precision once.
 
 The kernels take every sum in a fixed order (written out lane by lane in the C source) on the calling thread, and
 ctypes releases the GIL while they run: equal inputs give equal bits, and the split solve's two halves run at once.
@@ -37,10 +39,11 @@ LANES = 16        # rows a kernel handles in one vector (the C source's LANES)
 SLACK = 0.2       # zeros a supernode may hold beyond its true entries, as a fraction of them
 SMALL = 16        # a group of at most this many columns may hold as many zeros as true entries
 WIDEST = 64       # columns in a supernode at most
-LAYOUT = 1        # the stored arrays' layout (a key part of the stored factor)
+LAYOUT = 2        # the stored arrays' layout (a key part of the stored factor)
 CHECK = 1e-4      # a factor whose solve of a probe leaves a larger relative residual is refused (~1e-6 measured)
 
 _ARRAYS = ("starts", "diagonal_start", "below_start", "row_start", "diagonal_values", "below_values", "below_rows")
+_BACKWARD = ("starts", "diagonal_start", "below_start", "row_start", "diagonal_rows", "below_values", "below_rows")
 
 
 @lru_cache(maxsize=1)
@@ -146,7 +149,7 @@ def factor_arrays(block: sp.csr_matrix) -> dict:
         raise SolverError("a zero or non-finite pivot in the half: our own substitutions cannot take it")
     indptr, indices, values = lower.indptr, lower.indices, lower.data
     starts, node_rows = _supernodes(indptr, indices, n)
-    diagonal_parts, below_parts, row_parts = [], [], []
+    diagonal_parts, transposed_parts, below_parts, row_parts = [], [], [], []
     diagonal_start, below_start, row_start = [0], [0], [0]
     for node in range(len(starts) - 1):
         first, last = starts[node], starts[node + 1]
@@ -162,6 +165,7 @@ def factor_arrays(block: sp.csr_matrix) -> dict:
             square[column - first, place[inside]] = values[entries][inside]
             below[column - first, place[~inside] - width] = values[entries][~inside]
         diagonal_parts.append(square.ravel())
+        transposed_parts.append(square.T.ravel())      # row by row, for the backward kernel
         below_parts.append(below.ravel())
         row_parts.append(np.concatenate([below_rows, np.full(padded - len(below_rows), n)]))
         diagonal_start.append(diagonal_start[-1] + width * width)
@@ -171,6 +175,7 @@ def factor_arrays(block: sp.csr_matrix) -> dict:
             "diagonal_start": np.array(diagonal_start, dtype=np.int64),
             "below_start": np.array(below_start, dtype=np.int64), "row_start": np.array(row_start, dtype=np.int64),
             "diagonal_values": np.concatenate(diagonal_parts).astype(np.float32),
+            "diagonal_rows": np.concatenate(transposed_parts).astype(np.float32),
             "below_values": np.concatenate(below_parts).astype(np.float32),
             "below_rows": np.concatenate(row_parts).astype(np.int32),
             "pivots": (1.0 / diagonal).astype(np.float32), "true_entries": np.array(lower.nnz, dtype=np.int64)}
@@ -218,12 +223,14 @@ class SupernodalLDL:
         self.order = np.ascontiguousarray(arrays["order"], dtype=np.int64)
         n = len(self.order)
         self.shape = (n, n)
-        self._arrays = tuple(np.ascontiguousarray(arrays[name]) for name in _ARRAYS)
+        kept = {name: np.ascontiguousarray(arrays[name]) for name in set(_ARRAYS + _BACKWARD)}
+        self._arrays = tuple(kept.values())              # held for the kernels' pointers
         self.pivots = np.ascontiguousarray(arrays["pivots"], dtype=np.float32)
         self.factor_nonzeros = int(arrays["true_entries"])
         self.stored_values = int(len(arrays["diagonal_values"]) + len(arrays["below_values"]))
         self._supernodes = len(arrays["starts"]) - 1
-        self._pointers = [a.ctypes.data for a in self._arrays] + [self.order.ctypes.data]
+        self._forward = [kept[name].ctypes.data for name in _ARRAYS] + [self.order.ctypes.data]
+        self._backward = [kept[name].ctypes.data for name in _BACKWARD] + [self.order.ctypes.data]
         self._work = _aligned_empty(n + 1, dtype=np.float32)
         longest = int(np.diff(arrays["row_start"]).max()) if self._supernodes else 0
         self._gathered = _aligned_empty(max(longest, LANES), dtype=np.float32)
@@ -237,12 +244,12 @@ class SupernodalLDL:
                 or not (source.flags.c_contiguous and target.flags.c_contiguous):
             raise SolverError(f"a substitution takes contiguous float32 vectors of {n} values")
         if phase == 331:
-            self._library.vcyto_forward(n, self._supernodes, *self._pointers, source.ctypes.data,
+            self._library.vcyto_forward(n, self._supernodes, *self._forward, source.ctypes.data,
                                         self._work.ctypes.data, target.ctypes.data)
         elif phase == 332:
             np.multiply(self.pivots, source, out=target)
         elif phase == 333:
-            self._library.vcyto_backward(n, self._supernodes, *self._pointers, source.ctypes.data,
+            self._library.vcyto_backward(n, self._supernodes, *self._backward, source.ctypes.data,
                                          self._work.ctypes.data, self._gathered.ctypes.data, target.ctypes.data)
         else:
             raise SolverError(f"no partial substitution {phase}: 331, 332 or 333")

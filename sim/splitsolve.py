@@ -291,12 +291,15 @@ class _Worker(threading.Thread):
 class SplitPardiso:
     """A symmetric matrix solved by two sequential PARDISO halves on two threads (module docstring)."""
 
-    def __init__(self, matrix: sp.spmatrix, x: np.ndarray, single: bool = False, matching: bool = False):
+    def __init__(self, matrix: sp.spmatrix, x: np.ndarray, single: bool = False, matching: bool = False,
+                 own: bool | None = None):
         """``matching=True`` factors the halves with PARDISO's weighted matching, as they are (no unknown moved: the
-        split before round 6, kept for the benchmark's comparison)."""
+        split before round 6, kept for the benchmark's comparison). ``own``: whether single-precision halves use our
+        own substitutions (``sim.supernodal``) where they can; None: ``own_substitutions_wanted()``."""
         matrix = sp.csr_matrix(matrix)
         self.single = single
         self.matching = matching
+        self.own = own_substitutions_wanted() if own is None else bool(own) and supernodal.available()
         self.shape = matrix.shape
         self.symmetric = True
         self._worker = _Worker()
@@ -368,7 +371,7 @@ class SplitPardiso:
     def _own_or(self, half: _Half | None, matrix: sp.csr_matrix, unknowns: np.ndarray, matched: bool, moved):
         """The half of ``unknowns`` with our own substitutions when they are wanted and can take it (single precision,
         factored without matching), else ``half`` (PARDISO's), factored here when it is None."""
-        if self.single and not matched and own_substitutions_wanted():
+        if self.single and not matched and self.own:
             try:
                 own = _Half.own(matrix, unknowns, moved)
             except SolverError:

@@ -20,6 +20,7 @@ from sim.linalg import Pardiso, SuperLU, pardiso_available, spinning_openmp_thre
 from sim.mesh import channel_mesh
 from sim.scenario import UM, Scenario
 from sim.splitsolve import SplitPardiso
+from sim.supernodal import SupernodalLDL
 from sim.taylorhood import TaylorHood
 
 STEPS = {"imex": 40, "stokes": 40, "oseen": 4, "implicit": 4}
@@ -71,6 +72,7 @@ def _bench_fluid(scenario: Scenario, repeats: int, progress, rounds: int) -> dic
     fastest = _fastest_backsolves(base)
     double = _double_default(scenario, space, base)
     matched = _matched_default(base)
+    theirs = _pardiso_substitutions_default(base)
     factor = base._constant.factor
     counted = (getattr(factor, "solves", 0), getattr(factor, "corrections", 0))
     stepping = {"state": state}
@@ -83,6 +85,8 @@ def _bench_fluid(scenario: Scenario, repeats: int, progress, rounds: int) -> dic
         blocks["double"] = lambda: double(rhs)
     if matched is not None:
         blocks["matched"] = lambda: matched(rhs)
+    if theirs is not None:
+        blocks["theirs"] = lambda: theirs(rhs)
     blocks["step"] = step
     timed = [{name: (_hot_block_ms if name in fastest else _block_ms)(function) for name, function in blocks.items()}
              for _ in range(rounds)]
@@ -106,12 +110,16 @@ def _bench_fluid(scenario: Scenario, repeats: int, progress, rounds: int) -> dic
         result["matched_backsolve_ms"] = median("matched")
         result["matched_backsolve"] = matched.label
         result["backsolve_over_matched"] = median("default", "matched")
+    if theirs is not None:
+        result["pardiso_substitutions_backsolve_ms"] = median("theirs")
+        result["pardiso_substitutions_backsolve"] = theirs.label
+        result["backsolve_over_pardiso_substitutions"] = median("default", "theirs")
     result["imex_over_backsolve"] = median("step", "default")
     result["imex_over_fastest_backsolve"] = median("step", best)
     result["imex_over_fastest_backsolve_rounds"] = [round(r["step"] / r[best], 3) for r in timed]
     if hasattr(factor, "corrections"):          # mixed precision: refinement corrections per step
         result["corrections_per_step"] = (factor.corrections - counted[1]) / max(1, factor.solves - counted[0])
-    for solve in (*fastest.values(), matched):
+    for solve in (*fastest.values(), matched, theirs):
         getattr(solve, "release", lambda: None)()          # their factors: memory the next timings do not need
     result["steps_ms"] = {"imex": median("step")}
     result["load_ms"] = _load_ms(base, state, repeats)
@@ -247,6 +255,20 @@ def _matched_default(base: NavierStokes):
     return solve
 
 
+def _pardiso_substitutions_default(base: NavierStokes):
+    """The default's back-solve with PARDISO's substitutions in its halves instead of our own (before round 13), or
+    None when the default does not use our own (``sim.supernodal``)."""
+    factor = base._constant.factor
+    inner = getattr(factor, "inner", factor)
+    if not isinstance(inner, SplitPardiso) or not inner.own:
+        return None
+    twin = SplitPardiso(base.constant_matrix(), base.free_x, single=inner.single, own=False)
+    twin.solve(np.zeros(twin.shape[0]))         # its coupling
+    solve = _labelled(twin.solve, f"{_describe(twin)}{' in single precision' if inner.single else ''}")
+    solve.release = twin.release
+    return solve
+
+
 def _labelled(function, label):
     def solve(rhs):
         return function(rhs)
@@ -277,6 +299,8 @@ def _factor_size(factor) -> str:
         detail = "; halves with weighted matching" if matched == len(halves) else (
             f"; halves {'partly ' if matched else ''}without weighted matching, {moved} unknown{'s' * (moved != 1)}"
             " with perturbed pivots moved to the separator")
+        if all(isinstance(half.factor, SupernodalLDL) for half in halves):
+            detail += "; our own compiled substitutions"
     return f" ({size / 1e6:.2f} M factor entries{detail})"
 
 
@@ -303,8 +327,10 @@ def report_lines(result: dict) -> list[str]:
     slower = result["fastest_backsolve_ms"] > result["backsolve_ms"]
     lines.append(f"  fastest back-solve (the target's yardstick): {result['fastest_backsolve']}, "
                  f"{result['fastest_backsolve_ms']:.2f} ms"
-                 + (" (slower than the default in this run: the machine was busy, and a parallel substitution "
-                    "suffers most when another process holds a core; rerun on a quiet machine)" if slower else ""))
+                 + ((" (slower than the default in this run: the default's own compiled substitutions outrun it"
+                     if "our own" in result["default_solver"] else
+                     " (slower than the default in this run: the machine was busy, and a parallel substitution "
+                     "suffers most when another process holds a core; rerun on a quiet machine)") if slower else ""))
     if "fastest_single_backsolve_ms" in result:
         lines.append(f"  fastest single-precision back-solve: {result['fastest_single_backsolve']}, "
                      f"{result['fastest_single_backsolve_ms']:.2f} ms (imex step / it = "
@@ -312,6 +338,11 @@ def report_lines(result: dict) -> list[str]:
     if "matched_backsolve_ms" in result:
         lines.append(f"  the default with matched halves (before round 6): {result['matched_backsolve']}, back-solve "
                      f"{result['matched_backsolve_ms']:.2f} ms (default / it = {result['backsolve_over_matched']:.2f})")
+    if "pardiso_substitutions_backsolve_ms" in result:
+        lines.append(f"  the default with PARDISO's substitutions (before round 13): "
+                     f"{result['pardiso_substitutions_backsolve']}, back-solve "
+                     f"{result['pardiso_substitutions_backsolve_ms']:.2f} ms (default / it = "
+                     f"{result['backsolve_over_pardiso_substitutions']:.2f})")
     if "double_backsolve_ms" in result:
         lines.append(f"  the default in double precision: {result['double_backsolve']}, back-solve "
                      f"{result['double_backsolve_ms']:.2f} ms")

@@ -39,9 +39,10 @@ LANES = 16        # rows a kernel handles in one vector (the C source's LANES)
 SLACK = 0.2       # zeros a supernode may hold beyond its true entries, as a fraction of them
 SMALL = 16        # a group of at most this many columns may hold as many zeros as true entries
 WIDEST = 64       # columns in a supernode at most
-LAYOUT = 2        # the stored arrays' layout (a key part of the stored factor)
+LAYOUT = 3        # the stored arrays' layout (a key part of the stored factor)
 CHECK = 1e-4      # a factor whose solve of a probe leaves a larger relative residual is refused (~1e-6 measured)
 
+INDEX_TYPES = {"u16": np.uint16, "i32": np.int32}    # the kernels' row indices: 16-bit below 65,535 unknowns
 _ARRAYS = ("starts", "diagonal_start", "below_start", "row_start", "diagonal_values", "below_values", "below_rows")
 _BACKWARD = ("starts", "diagonal_start", "below_start", "row_start", "diagonal_rows", "below_values", "below_rows")
 
@@ -58,9 +59,10 @@ def _kernels():
     except (ImportError, OSError):
         return None
     pointer, size = ctypes.c_void_p, ctypes.c_int64
-    library.vcyto_forward.argtypes = [size, size] + [pointer] * 11
-    library.vcyto_backward.argtypes = [size, size] + [pointer] * 12
-    library.vcyto_forward.restype = library.vcyto_backward.restype = None
+    for index in INDEX_TYPES:
+        getattr(library, f"vcyto_forward_{index}").argtypes = [size, size] + [pointer] * 11
+        getattr(library, f"vcyto_backward_{index}").argtypes = [size, size] + [pointer] * 12
+        getattr(library, f"vcyto_forward_{index}").restype = getattr(library, f"vcyto_backward_{index}").restype = None
     return library
 
 
@@ -164,11 +166,13 @@ def factor_arrays(block: sp.csr_matrix) -> dict:
             inside = place < width
             square[column - first, place[inside]] = values[entries][inside]
             below[column - first, place[~inside] - width] = values[entries][~inside]
-        diagonal_parts.append(square.ravel())
-        transposed_parts.append(square.T.ravel())      # row by row, for the backward kernel
+        below_diagonal = np.tril_indices(width, -1)     # (row i, column k), k < i, row by row
+        by_rows = square.T                              # by_rows[i, k] = L[first + i, first + k]
+        diagonal_parts.append(square[np.triu_indices(width, 1)])     # column by column: (j, k), k > j
+        transposed_parts.append(by_rows[below_diagonal])           # row by row, for the backward kernel
         below_parts.append(below.ravel())
         row_parts.append(np.concatenate([below_rows, np.full(padded - len(below_rows), n)]))
-        diagonal_start.append(diagonal_start[-1] + width * width)
+        diagonal_start.append(diagonal_start[-1] + width * (width - 1) // 2)
         below_start.append(below_start[-1] + width * padded)
         row_start.append(row_start[-1] + padded)
     arrays = {"order": order, "starts": np.array(starts, dtype=np.int64),
@@ -177,7 +181,7 @@ def factor_arrays(block: sp.csr_matrix) -> dict:
             "diagonal_values": np.concatenate(diagonal_parts).astype(np.float32),
             "diagonal_rows": np.concatenate(transposed_parts).astype(np.float32),
             "below_values": np.concatenate(below_parts).astype(np.float32),
-            "below_rows": np.concatenate(row_parts).astype(np.int32),
+            "below_rows": np.concatenate(row_parts).astype(np.uint16 if n < 65535 else np.int32),
             "pivots": (1.0 / diagonal).astype(np.float32), "true_entries": np.array(lower.nnz, dtype=np.int64)}
     _check(block, SupernodalLDL(arrays))
     return arrays
@@ -219,7 +223,11 @@ class SupernodalLDL:
         if library is None:
             raise SolverError("our own substitutions are not available (vcyto was installed without its compiled "
                               "kernels, or without MKL)")
-        self._library = library
+        index = {np.dtype(t): name for name, t in INDEX_TYPES.items()}.get(np.asarray(arrays["below_rows"]).dtype)
+        if index is None:
+            raise SolverError(f"row indices of type {np.asarray(arrays['below_rows']).dtype}: uint16 or int32")
+        self._forward_kernel = getattr(library, f"vcyto_forward_{index}")
+        self._backward_kernel = getattr(library, f"vcyto_backward_{index}")
         self.order = np.ascontiguousarray(arrays["order"], dtype=np.int64)
         n = len(self.order)
         self.shape = (n, n)
@@ -244,12 +252,12 @@ class SupernodalLDL:
                 or not (source.flags.c_contiguous and target.flags.c_contiguous):
             raise SolverError(f"a substitution takes contiguous float32 vectors of {n} values")
         if phase == 331:
-            self._library.vcyto_forward(n, self._supernodes, *self._forward, source.ctypes.data,
+            self._forward_kernel(n, self._supernodes, *self._forward, source.ctypes.data,
                                         self._work.ctypes.data, target.ctypes.data)
         elif phase == 332:
             np.multiply(self.pivots, source, out=target)
         elif phase == 333:
-            self._library.vcyto_backward(n, self._supernodes, *self._backward, source.ctypes.data,
+            self._backward_kernel(n, self._supernodes, *self._backward, source.ctypes.data,
                                          self._work.ctypes.data, self._gathered.ctypes.data, target.ctypes.data)
         else:
             raise SolverError(f"no partial substitution {phase}: 331, 332 or 333")

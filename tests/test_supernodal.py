@@ -130,3 +130,15 @@ def test_the_split_solve_uses_them_or_pardisos(fluid, monkeypatch, way):
     assert np.linalg.norm(solution - exact) <= 1e-5 * np.linalg.norm(exact)
     assert np.array_equal(split.solve(rhs), solution)
     split.release()
+
+
+def test_both_kinds_of_row_index_give_the_same_bits():
+    """A half below 65,535 unknowns keeps 16-bit row indices (half the bytes); larger ones 32-bit: the same kernel."""
+    arrays = supernodal.factor_arrays(laplacian(40))
+    assert arrays["below_rows"].dtype == np.uint16
+    wide = supernodal.SupernodalLDL({**arrays, "below_rows": arrays["below_rows"].astype(np.int32)})
+    narrow = supernodal.SupernodalLDL(arrays)
+    rhs = np.random.default_rng(8).standard_normal(1600)
+    assert np.array_equal(solve(wide, rhs), solve(narrow, rhs))
+    with pytest.raises(SolverError, match="uint16 or int32"):
+        supernodal.SupernodalLDL({**arrays, "below_rows": arrays["below_rows"].astype(np.int64)})

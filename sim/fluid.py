@@ -33,6 +33,7 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 from skfem import ElementTriP2, FacetBasis, LinearForm, asm
 
+from . import kernels
 from .boundary import inflow_velocity, saw_jet_factor, saw_window_profile
 from .drive import lagged
 from .linalg import factorize, mkl_version, resolved_solver_name
@@ -51,6 +52,7 @@ def solver_code_digest() -> str:
     return module_digest(sys.modules[__name__], kernels, linalg, splitsolve, supernodal, taylorhood)
 
 log = logging.getLogger(__name__)
+_NOTHING = np.zeros(0)          # an absent load for ``kernels.free_rhs``
 
 
 class NumericalBlowUp(RuntimeError):
@@ -380,17 +382,18 @@ class NavierStokes:
     # ------------------------------------------------------------------ solves
     def _free_rhs(self, momentum=None, continuity=None):
         """A reduced right-hand side gathered from a momentum load (2, N) and a continuity load (P,)."""
-        rhs = np.zeros(len(self.free))
-        n_velocity = len(self.free_velocity)
-        if momentum is not None:
-            rhs[:n_velocity] = momentum.ravel()[self.free_velocity]
-        if continuity is not None:
-            rhs[n_velocity:] = continuity
+        rhs = np.empty(len(self.free))
+        kernels.free_rhs(_NOTHING if momentum is None else np.ascontiguousarray(momentum, dtype=float).ravel(),
+                         self.free_velocity, _NOTHING if continuity is None else np.asarray(continuity, dtype=float),
+                         rhs)
         return rhs
 
     def _free_solution(self, velocity, pressure) -> np.ndarray:
         """The reduced unknowns of a velocity (2, N) and pressure: the inverse of what ``_solve`` returns."""
-        return np.concatenate((velocity.ravel()[self.free_velocity], pressure / self.pressure_scale))
+        out = np.empty(len(self.free))
+        kernels.free_solution(np.ascontiguousarray(velocity, dtype=float).ravel(), self.free_velocity,
+                              np.asarray(pressure, dtype=float), float(self.pressure_scale), out)
+        return out
 
     def _solve(self, system, rhs, inflow_weight=1.0, jet_weight=0.0, near=None):
         """Solve ``system`` for the reduced ``rhs`` with boundary velocity inflow_weight * inflow + jet_weight * jet.
@@ -398,17 +401,18 @@ class NavierStokes:
         ``near`` (velocity, pressure) is a solution close to this one (the last step's): the mixed-precision
         solve refines from it (``sim.linalg.MixedPrecision``); direct solves ignore it."""
         if inflow_weight:
-            rhs -= inflow_weight * system.lift_inflow
+            kernels.subtract_scaled(rhs, float(inflow_weight), system.lift_inflow)
         if jet_weight:
-            rhs -= jet_weight * system.lift_jet
+            kernels.subtract_scaled(rhs, float(jet_weight), system.lift_jet)
         guess = None if near is None else self._free_solution(*near)
         started = clock.perf_counter()
         free_solution = system.factor.solve(rhs, guess)
         self.timings.solve += clock.perf_counter() - started
-        velocity = inflow_weight * self.inflow + jet_weight * self.jet if (inflow_weight or jet_weight) \
-            else np.zeros((2, self.space.N))
+        velocity = np.empty((2, self.space.N))
+        kernels.boundary_velocity(float(inflow_weight), np.ascontiguousarray(self.inflow, dtype=float).ravel(),
+                                  float(jet_weight), np.ascontiguousarray(self.jet, dtype=float).ravel(),
+                                  self.free_velocity, free_solution, velocity.ravel())
         n_velocity = len(self.free_velocity)
-        velocity.ravel()[self.free_velocity] = free_solution[:n_velocity]
         return velocity, free_solution[n_velocity:] * self.pressure_scale
 
     def _check(self, velocity, time, what):

@@ -32,6 +32,7 @@ from functools import lru_cache
 import numpy as np
 import scipy
 import scipy.sparse as sp
+from numba import njit
 
 from .linalg import SolverError, _aligned_empty, _mkl_runtime
 
@@ -110,24 +111,93 @@ def pardiso_ordering(block: sp.csr_matrix) -> np.ndarray:
     return permutation.astype(np.int64)
 
 
-def _supernodes(indptr: np.ndarray, indices: np.ndarray, n: int):
-    """Consecutive columns of L (CSC, sorted rows) grouped into supernodes: their first columns (and n) and each
-    group's rows (its diagonal part's columns first)."""
-    starts, node_rows, true_entries = [0], [indices[indptr[0]:indptr[1]]], [indptr[1] - indptr[0]]
+@njit(cache=True)
+def _group(indptr, indices, n, slack, small, widest):
+    """Consecutive columns of L (CSC, sorted rows) grouped into supernodes (module docstring): their first columns
+    (and n), and each group's rows (its diagonal part's columns first) at rows[row_ptr[s]:row_ptr[s + 1]]."""
+    starts = np.empty(n + 1, dtype=np.int64)
+    row_ptr = np.empty(n + 1, dtype=np.int64)
+    rows = np.empty(indices.shape[0], dtype=np.int64)      # a group's rows are at most its columns' entries
+    current = np.empty(n, dtype=np.int64)
+    merged = np.empty(n, dtype=np.int64)
+    count = indptr[1] - indptr[0]
+    current[:count] = indices[indptr[0]:indptr[1]]
+    true = count
+    groups = 0
+    starts[0] = 0
+    row_ptr[0] = 0
     for column in range(1, n):
-        rows, width = node_rows[-1], column - starts[-1]
-        pattern = indices[indptr[column]:indptr[column + 1]]
-        if width < WIDEST:
-            union = np.union1d(rows, pattern)
-            stored, true = (width + 1) * len(union), true_entries[-1] + len(pattern)
-            if stored <= (1 + SLACK) * true or (width + 1 <= SMALL and stored <= 2 * true):
-                node_rows[-1], true_entries[-1] = union, true
+        width = column - starts[groups]
+        a, b = indptr[column], indptr[column + 1]
+        if width < widest:
+            i, j, m = 0, a, 0                              # the union of the group's rows and the column's
+            while i < count or j < b:
+                if j >= b or (i < count and current[i] < indices[j]):
+                    merged[m] = current[i]
+                    i += 1
+                elif i >= count or indices[j] < current[i]:
+                    merged[m] = indices[j]
+                    j += 1
+                else:
+                    merged[m] = current[i]
+                    i += 1
+                    j += 1
+                m += 1
+            stored, grown = (width + 1) * m, true + (b - a)
+            if stored <= (1 + slack) * grown or (width + 1 <= small and stored <= 2 * grown):
+                current[:m] = merged[:m]
+                count, true = m, grown
                 continue
-        starts.append(column)
-        node_rows.append(pattern)
-        true_entries.append(len(pattern))
-    starts.append(n)
-    return starts, node_rows
+        rows[row_ptr[groups]:row_ptr[groups] + count] = current[:count]
+        row_ptr[groups + 1] = row_ptr[groups] + count
+        groups += 1
+        starts[groups] = column
+        count = b - a
+        current[:count] = indices[a:b]
+        true = count
+    rows[row_ptr[groups]:row_ptr[groups] + count] = current[:count]
+    row_ptr[groups + 1] = row_ptr[groups] + count
+    groups += 1
+    starts[groups] = n
+    return starts[:groups + 1].copy(), row_ptr[:groups + 1].copy(), rows[:row_ptr[groups]].copy()
+
+
+@njit(cache=True)
+def _blocks(starts, row_ptr, rows, indptr, indices, values, n, lanes):
+    """The supernodes' values in the kernels' layout (the C source's header): the diagonal blocks' strict lower
+    triangles column by column and row by row, the rows below them padded to a multiple of ``lanes`` (padding rows
+    index n) column by column, and the offsets of each."""
+    groups = starts.shape[0] - 1
+    diagonal_start = np.zeros(groups + 1, dtype=np.int64)
+    below_start = np.zeros(groups + 1, dtype=np.int64)
+    row_start = np.zeros(groups + 1, dtype=np.int64)
+    for s in range(groups):
+        width = starts[s + 1] - starts[s]
+        padded = -(-(row_ptr[s + 1] - row_ptr[s] - width) // lanes) * lanes
+        diagonal_start[s + 1] = diagonal_start[s] + width * (width - 1) // 2
+        below_start[s + 1] = below_start[s] + width * padded
+        row_start[s + 1] = row_start[s] + padded
+    by_columns = np.zeros(diagonal_start[groups])
+    by_rows = np.zeros(diagonal_start[groups])
+    below = np.zeros(below_start[groups])
+    below_rows = np.full(row_start[groups], n, dtype=np.int64)
+    place = np.empty(n, dtype=np.int64)                    # a row's place in the current group's rows
+    for s in range(groups):
+        first, width = starts[s], starts[s + 1] - starts[s]
+        group = rows[row_ptr[s]:row_ptr[s + 1]]
+        padded = row_start[s + 1] - row_start[s]
+        for p in range(group.shape[0]):
+            place[group[p]] = p
+        below_rows[row_start[s]:row_start[s] + group.shape[0] - width] = group[width:]
+        for j in range(width):
+            for e in range(indptr[first + j], indptr[first + j + 1]):
+                k = place[indices[e]]                      # L[group[k], first + j]
+                if k >= width:
+                    below[below_start[s] + j * padded + (k - width)] = values[e]
+                elif k > j:                                # strict lower: (k, j) column j at j (2 width - j - 1) / 2
+                    by_columns[diagonal_start[s] + j * (2 * width - j - 1) // 2 + (k - j - 1)] = values[e]
+                    by_rows[diagonal_start[s] + k * (k - 1) // 2 + j] = values[e]
+    return diagonal_start, below_start, row_start, by_columns, by_rows, below, below_rows
 
 
 def factor_arrays(block: sp.csr_matrix) -> dict:
@@ -149,40 +219,15 @@ def factor_arrays(block: sp.csr_matrix) -> dict:
     diagonal = lu.U.diagonal()
     if not np.all(np.isfinite(diagonal)) or np.any(diagonal == 0) or not np.all(np.isfinite(lower.data)):
         raise SolverError("a zero or non-finite pivot in the half: our own substitutions cannot take it")
-    indptr, indices, values = lower.indptr, lower.indices, lower.data
-    starts, node_rows = _supernodes(indptr, indices, n)
-    diagonal_parts, transposed_parts, below_parts, row_parts = [], [], [], []
-    diagonal_start, below_start, row_start = [0], [0], [0]
-    for node in range(len(starts) - 1):
-        first, last = starts[node], starts[node + 1]
-        width, rows = last - first, node_rows[node]
-        below_rows = rows[width:]
-        padded = -(-len(below_rows) // LANES) * LANES
-        square = np.zeros((width, width))           # square[j, k] = L[first + k, first + j]: column j's values
-        below = np.zeros((width, padded))           # below[j, i] = L[below_rows[i], first + j]
-        for column in range(first, last):
-            entries = slice(indptr[column], indptr[column + 1])
-            place = np.searchsorted(rows, indices[entries])
-            inside = place < width
-            square[column - first, place[inside]] = values[entries][inside]
-            below[column - first, place[~inside] - width] = values[entries][~inside]
-        below_diagonal = np.tril_indices(width, -1)     # (row i, column k), k < i, row by row
-        by_rows = square.T                              # by_rows[i, k] = L[first + i, first + k]
-        diagonal_parts.append(square[np.triu_indices(width, 1)])     # column by column: (j, k), k > j
-        transposed_parts.append(by_rows[below_diagonal])           # row by row, for the backward kernel
-        below_parts.append(below.ravel())
-        row_parts.append(np.concatenate([below_rows, np.full(padded - len(below_rows), n)]))
-        diagonal_start.append(diagonal_start[-1] + width * (width - 1) // 2)
-        below_start.append(below_start[-1] + width * padded)
-        row_start.append(row_start[-1] + padded)
-    arrays = {"order": order, "starts": np.array(starts, dtype=np.int64),
-            "diagonal_start": np.array(diagonal_start, dtype=np.int64),
-            "below_start": np.array(below_start, dtype=np.int64), "row_start": np.array(row_start, dtype=np.int64),
-            "diagonal_values": np.concatenate(diagonal_parts).astype(np.float32),
-            "diagonal_rows": np.concatenate(transposed_parts).astype(np.float32),
-            "below_values": np.concatenate(below_parts).astype(np.float32),
-            "below_rows": np.concatenate(row_parts).astype(np.uint16 if n < 65535 else np.int32),
-            "pivots": (1.0 / diagonal).astype(np.float32), "true_entries": np.array(lower.nnz, dtype=np.int64)}
+    indptr, indices = lower.indptr.astype(np.int64), lower.indices.astype(np.int64)
+    starts, row_ptr, rows = _group(indptr, indices, n, SLACK, SMALL, WIDEST)
+    diagonal_start, below_start, row_start, by_columns, by_rows, below, below_rows = _blocks(
+        starts, row_ptr, rows, indptr, indices, lower.data, n, LANES)
+    arrays = {"order": order, "starts": starts, "diagonal_start": diagonal_start, "below_start": below_start,
+              "row_start": row_start, "diagonal_values": by_columns.astype(np.float32),
+              "diagonal_rows": by_rows.astype(np.float32), "below_values": below.astype(np.float32),
+              "below_rows": below_rows.astype(np.uint16 if n < 65535 else np.int32),
+              "pivots": (1.0 / diagonal).astype(np.float32), "true_entries": np.array(lower.nnz, dtype=np.int64)}
     _check(block, SupernodalLDL(arrays))
     return arrays
 
@@ -204,7 +249,7 @@ def stored_key(block: sp.csr_matrix) -> dict:
     from .linalg import mkl_version
     from .store import code_digest, digest
     return {"layout": LAYOUT, "block": digest(block.data, block.indices, block.indptr), "mkl": mkl_version(),
-            "scipy": scipy.__version__, "code": code_digest(factor_arrays, _supernodes, pardiso_ordering),
+            "scipy": scipy.__version__, "code": code_digest(factor_arrays, _group, _blocks, pardiso_ordering),
             "grouping": (SLACK, SMALL, WIDEST, LANES)}
 
 

@@ -20,7 +20,10 @@ K = A_S - sum_i (F_i C_i)^T H_i (kept as its inverse: a dense product per solve)
 Every operation runs in a fixed order on one thread with one MKL thread, so equal inputs give equal bits,
 whatever the machine's load; the two halves stream their factors through memory at the same time. With
 ``single=True`` the factors, H and the halves' vectors are single precision (the inner solve of
-``sim.linalg.MixedPrecision``); the separator's solve stays double.
+``sim.linalg.MixedPrecision``); the separator's solve stays double. Single-precision halves factored without
+matching substitute with our own compiled kernels where they are installed (``sim.supernodal``: a supernodal
+factor in PARDISO's ordering, kept in ``sim.store``; ~1.6x faster than PARDISO's sequential substitutions), else
+with PARDISO's; ``VCYTO_OWN_SUBSTITUTIONS=0`` keeps PARDISO's.
 
 The halves are factored at once when the solver is built; the coupling (H_i and K: one forward and one
 diagonal substitution per separator unknown) on the first solve, through ``sim.store`` so an application

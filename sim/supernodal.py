@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import ctypes
 import importlib
+import logging
 from functools import lru_cache
 
 import numpy as np
@@ -44,6 +45,7 @@ LAYOUT = 3        # the stored arrays' layout (a key part of the stored factor)
 CHECK = 1e-4      # a factor whose solve of a probe leaves a larger relative residual is refused (~1e-6 measured)
 
 INDEX_TYPES = {"u16": np.uint16, "i32": np.int32}    # the kernels' row indices: 16-bit below 65,535 unknowns
+log = logging.getLogger(__name__)
 _ARRAYS = ("starts", "diagonal_start", "below_start", "row_start", "diagonal_values", "below_values", "below_rows")
 _BACKWARD = ("starts", "diagonal_start", "below_start", "row_start", "diagonal_rows", "below_values", "below_rows")
 
@@ -57,7 +59,14 @@ def _kernels():
     try:
         module = importlib.import_module("sim._substitute")
         library = ctypes.CDLL(module.__file__)
-    except (ImportError, OSError):
+        library.vcyto_substitute_layout.restype = ctypes.c_int64
+        built_for = library.vcyto_substitute_layout()
+    except (ImportError, OSError, AttributeError):
+        return None
+    if built_for != LAYOUT:         # built from an older source: the split solve keeps PARDISO's substitutions
+        log.warning("vcyto's compiled substitution kernels were built from another version of sim/_substitute.c "
+                    "(layout %d, this code reads %d): run 'pip install -e .' again to rebuild them; using PARDISO's "
+                    "substitutions meanwhile", built_for, LAYOUT)
         return None
     pointer, size = ctypes.c_void_p, ctypes.c_int64
     for index in INDEX_TYPES:

@@ -172,3 +172,29 @@ def test_pardisos_half_factors_are_kept_only_where_they_are_used(fluid, own):
         store.install(previous)
     assert ("supernodal-factor" in memory.fetched) == own
     assert memory.directories.count(Pardiso.KIND) == (0 if own else 2)
+
+
+def test_a_library_built_from_another_source_is_not_used(monkeypatch, caplog):
+    """After an update without a rebuild the library may read another layout: a warning that says how to rebuild,
+    and PARDISO's substitutions meanwhile (never a crash or wrong results)."""
+    import ctypes
+
+    real = ctypes.CDLL
+
+    class Stale:
+        def __init__(self, path):
+            self._library = real(path)
+            self.vcyto_substitute_layout = lambda: supernodal.LAYOUT - 1
+
+        def __getattr__(self, name):
+            return getattr(self._library, name)
+    monkeypatch.setattr(ctypes, "CDLL", Stale)
+    supernodal._kernels.cache_clear()
+    try:
+        with caplog.at_level("WARNING", logger="sim.supernodal"):
+            assert not supernodal.available()
+        assert "pip install -e ." in caplog.text and f"this code reads {supernodal.LAYOUT}" in caplog.text
+    finally:
+        monkeypatch.undo()
+        supernodal._kernels.cache_clear()
+    assert supernodal.available()

@@ -241,32 +241,30 @@ def _double_default(scenario: Scenario, space: TaylorHood, base: NavierStokes):
     return _labelled(twin.backsolve, f"{_describe(twin._constant.factor)}, double precision")
 
 
-def _matched_default(base: NavierStokes):
-    """The default's back-solve with its halves factored with weighted matching (the split before round 6), or
-    None when the default is not the split solve."""
+def _split_variant(base: NavierStokes, wanted, **options):
+    """The default split solve built again with ``options`` (``SplitPardiso``'s), its coupling computed, as a
+    labelled back-solve with a ``release``; None unless the default is the split solve and ``wanted(split)``."""
     factor = base._constant.factor
     inner = getattr(factor, "inner", factor)
-    if not isinstance(inner, SplitPardiso):
+    if not isinstance(inner, SplitPardiso) or not wanted(inner):
         return None
-    twin = SplitPardiso(base.constant_matrix(), base.free_x, single=inner.single, matching=True)
+    twin = SplitPardiso(base.constant_matrix(), base.free_x, single=inner.single, **options)
     twin.solve(np.zeros(twin.shape[0]))         # its coupling
     solve = _labelled(twin.solve, f"{_describe(twin)}{' in single precision' if inner.single else ''}")
     solve.release = twin.release
     return solve
+
+
+def _matched_default(base: NavierStokes):
+    """The default's back-solve with its halves factored with weighted matching (the split before round 6), or
+    None when the default is not the split solve."""
+    return _split_variant(base, lambda split: True, matching=True)
 
 
 def _pardiso_substitutions_default(base: NavierStokes):
     """The default's back-solve with PARDISO's substitutions in its halves instead of our own (before round 13), or
     None when the default does not use our own (``sim.supernodal``)."""
-    factor = base._constant.factor
-    inner = getattr(factor, "inner", factor)
-    if not isinstance(inner, SplitPardiso) or not inner.own:
-        return None
-    twin = SplitPardiso(base.constant_matrix(), base.free_x, single=inner.single, own=False)
-    twin.solve(np.zeros(twin.shape[0]))         # its coupling
-    solve = _labelled(twin.solve, f"{_describe(twin)}{' in single precision' if inner.single else ''}")
-    solve.release = twin.release
-    return solve
+    return _split_variant(base, lambda split: split.own, own=False)
 
 
 def _labelled(function, label):

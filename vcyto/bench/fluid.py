@@ -325,7 +325,7 @@ def report_lines(result: dict) -> list[str]:
     slower = result["fastest_backsolve_ms"] > result["backsolve_ms"]
     lines.append(f"  fastest back-solve (the target's yardstick): {result['fastest_backsolve']}, "
                  f"{result['fastest_backsolve_ms']:.2f} ms"
-                 + ((" (slower than the default in this run: the default's own compiled substitutions outrun it"
+                 + ((" (slower than the default in this run: the default's own compiled substitutions outrun it)"
                      if "our own" in result["default_solver"] else
                      " (slower than the default in this run: the machine was busy, and a parallel substitution "
                      "suffers most when another process holds a core; rerun on a quiet machine)") if slower else ""))

@@ -11,8 +11,10 @@
      values are zero.
    The row indices are 16-bit where the half has fewer than 65,535 unknowns (half the bytes), else 32-bit: the
    kernels are compiled for both (the _u16 and _i32 functions). Every loop over LANES is written out lane by lane, and every sum is taken in the order written here, so the
-   compiler vectorises without reordering a sum: the bits do not depend on how it vectorises. target_clones
-   compiles each kernel for AVX-512, AVX2 and the baseline and picks one when the library is loaded. */
+   compiler vectorises without reordering a sum: the AVX-512 and AVX2 builds give the same bits. target_clones
+   compiles each kernel for AVX-512, AVX2 and the baseline and picks one when the library is loaded; the first two
+   fuse multiply-adds (FMA) and the baseline does not, so a machine without AVX2 gets other last bits (measured;
+   -ffp-contract=off would make them equal at ~4 % of the kernels' time). On one machine the bits never change. */
 
 #define PY_SSIZE_T_CLEAN
 #include <Python.h>

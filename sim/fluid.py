@@ -43,11 +43,16 @@ from .store import code_digest, digest, module_digest, reuse
 from .taylorhood import TaylorHood, mass_form
 
 
-@lru_cache(maxsize=1)
 def solver_code_digest() -> str:
-    """The code that computes a flow (this module, the kernels, the assembly, the linear solvers), as a key part
-    of the flows stored through ``sim.store``: a changed kernel or solver, whose bits differ, misses instead of
-    giving a warm run other bits than a cold one."""
+    """The code that computes a flow (this module, the kernels, the assembly, the linear solvers, and which
+    substitutions the split solve runs: ours or PARDISO's), as a key part of the flows stored through ``sim.store``:
+    a changed kernel or solver, whose bits differ, misses instead of giving a warm run other bits than a cold one."""
+    from .splitsolve import substitutions
+    return f"{_python_code_digest()}:{substitutions()}"
+
+
+@lru_cache(maxsize=1)
+def _python_code_digest() -> str:
     from . import kernels, linalg, splitsolve, supernodal, taylorhood
     return module_digest(sys.modules[__name__], kernels, linalg, splitsolve, supernodal, taylorhood)
 

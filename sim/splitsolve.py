@@ -87,6 +87,12 @@ def own_substitutions_wanted() -> bool:
     return os.environ.get("VCYTO_OWN_SUBSTITUTIONS", "1") != "0" and supernodal.available()
 
 
+def substitutions() -> str:
+    """Which substitutions a default split solve runs, for the keys of results computed through it: ``own-<layout>``
+    (``sim.supernodal``) or ``pardiso``."""
+    return f"own-{supernodal.LAYOUT}" if own_substitutions_wanted() else "pardiso"
+
+
 def _one_mkl_thread():
     library = _mkl_runtime()
     library.MKL_Set_Num_Threads_Local.restype = ctypes.c_int
@@ -383,6 +389,10 @@ class SplitPardiso:
                 own = _Half.own(matrix, unknowns, moved)
             except SolverError:
                 pass
+            except BaseException:           # anything else (an interrupt, memory): PARDISO's half is freed first
+                if half is not None:
+                    half.factor.release()
+                raise
             else:
                 if half is not None:
                     half.factor.release()

@@ -214,8 +214,10 @@ def factor_arrays(block: sp.csr_matrix) -> dict:
     takes (and ``sim.store`` keeps). ``SolverError`` when it needs a pivot off the diagonal or has a zero one."""
     from scipy.sparse.linalg import splu
 
-    order = pardiso_ordering(block)
     n = block.shape[0]
+    if n == 0:
+        raise SolverError("an empty half: nothing for our own substitutions to factor")
+    order = pardiso_ordering(block)
     permuted = sp.csr_matrix(block)[order][:, order].tocsc()
     try:
         lu = splu(permuted, permc_spec="NATURAL", diag_pivot_thresh=0.0, options={"SymmetricMode": True})

@@ -188,3 +188,13 @@ def test_a_library_built_from_another_source_is_not_used(monkeypatch, caplog):
         monkeypatch.undo()
         supernodal._kernels.cache_clear()
     assert supernodal.available()
+
+
+def test_stored_flows_name_the_substitutions_that_computed_them(monkeypatch):
+    """Ours and PARDISO's give other last bits, so a flow stored by one must not be restored by the other: the key
+    part of stored flows (``solver_code_digest``) names them."""
+    from sim.fluid import solver_code_digest
+    ours = solver_code_digest()
+    monkeypatch.setenv("VCYTO_OWN_SUBSTITUTIONS", "0")
+    theirs = solver_code_digest()
+    assert ours != theirs and ours.endswith(f"own-{supernodal.LAYOUT}") and theirs.endswith("pardiso")

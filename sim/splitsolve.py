@@ -360,12 +360,10 @@ class SplitPardiso:
             moved, matched = np.asarray(stored["moved"], dtype=np.int64), stored["matched"]
             parts = (np.setdiff1d(left, moved), np.setdiff1d(right, moved), np.union1d(separator, moved))
             sides = [(parts[i], bool(matched[i]), np.intersect1d(side, moved)) for i, side in enumerate((left, right))]
-            if searched:       # just factored by PARDISO (to find the moved unknowns): ours replace the unmatched ones
-                halves = self._both(lambda: self._own_or(searched[0], matrix, *sides[0]),
-                                    lambda: self._own_or(searched[1], matrix, *sides[1]))
-            else:
-                halves = self._both(lambda: self._own_or(None, matrix, *sides[0]),
-                                    lambda: self._own_or(None, matrix, *sides[1]))
+            # PARDISO's halves just factored by the search, if any: ours replace the unmatched ones
+            pardiso = tuple(searched) or (None, None)
+            halves = self._both(lambda: self._own_or(pardiso[0], matrix, *sides[0]),
+                                lambda: self._own_or(pardiso[1], matrix, *sides[1]))
             return halves, parts
 
         halves, parts = factored(reuse("split-pivots", key, search))

@@ -291,7 +291,6 @@ class SupernodalLDL:
         self._arrays = tuple(kept.values())              # held for the kernels' pointers
         self.pivots = np.ascontiguousarray(arrays["pivots"], dtype=np.float32)
         self.factor_nonzeros = int(arrays["true_entries"])
-        self.stored_values = int(len(arrays["diagonal_values"]) + len(arrays["below_values"]))
         self._supernodes = len(arrays["starts"]) - 1
         self._forward = [kept[name].ctypes.data for name in _ARRAYS] + [self.order.ctypes.data]
         self._backward = [kept[name].ctypes.data for name in _BACKWARD] + [self.order.ctypes.data]
@@ -308,13 +307,13 @@ class SupernodalLDL:
                 or not (source.flags.c_contiguous and target.flags.c_contiguous):
             raise SolverError(f"a substitution takes contiguous float32 vectors of {n} values")
         if phase == 331:
-            self._forward_kernel(n, self._supernodes, *self._forward, source.ctypes.data,
-                                        self._work.ctypes.data, target.ctypes.data)
+            self._forward_kernel(n, self._supernodes, *self._forward, source.ctypes.data, self._work.ctypes.data,
+                                 target.ctypes.data)
         elif phase == 332:
             np.multiply(self.pivots, source, out=target)
         elif phase == 333:
-            self._backward_kernel(n, self._supernodes, *self._backward, source.ctypes.data,
-                                         self._work.ctypes.data, self._gathered.ctypes.data, target.ctypes.data)
+            self._backward_kernel(n, self._supernodes, *self._backward, source.ctypes.data, self._work.ctypes.data,
+                                  self._gathered.ctypes.data, target.ctypes.data)
         else:
             raise SolverError(f"no partial substitution {phase}: 331, 332 or 333")
         return target

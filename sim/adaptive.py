@@ -153,11 +153,11 @@ class AdaptiveSteps:
         level = self.choose(state, active, until, actuation)
         samples = [self._sample(state.flow.velocity, cell.membrane.points) for cell in active] \
             if self.order == 1 else None
-        new = self.plant.fixed_step(state, actuation, self.fluid(level))
+        new = self.plant.fixed_step(state, actuation, self.fluid(level), ahead=False)
         if level > 0 and _redistributed(active, new):
             self.retaken += 1
             level = 0
-            new = self.plant.fixed_step(state, actuation, self.fluid(level))
+            new = self.plant.fixed_step(state, actuation, self.fluid(level), ahead=False)
         dt = self.levels[level]
         if self.order == 2:
             ids = {cell.id for cell in active}
@@ -174,7 +174,18 @@ class AdaptiveSteps:
         if not self.history or self.history[-1][1] != dt:
             self.history.append((state.time, dt))
         self.steps[level] += 1
+        self._prefetch(new)
         return new
+
+    def _prefetch(self, state):
+        """Start the next step's momentum integrals (``NavierStokes.prefetch``) at the level ``choose`` will most
+        likely pick (all it knows now: not the end of a control period, nor a new cell or a changed drive), when
+        that level's solver exists."""
+        active = [cell for cell in state.cells if cell.in_channel]
+        level = LEVELS - 1 if not active else self.level
+        level = min(level, self.stable_level(active), self._before_redistribution(active, state.time))
+        if level in self._fluids:
+            self._fluids[level].prefetch(state.flow)
 
     def _next_level(self, level: int, ratio: float, ceiling: int | None = None) -> int:
         """The coarsest level up to ``ceiling`` (default: one above ``level``, the level the step took) whose

@@ -139,13 +139,15 @@ class ImmersedBoundary:
             return self.adaptive.step(state, actuation, until)
         return self.fixed_step(state, actuation)
 
-    def fixed_step(self, state: State, actuation: float = 0.0, fluid: NavierStokes | None = None) -> State:
+    def fixed_step(self, state: State, actuation: float = 0.0, fluid: NavierStokes | None = None,
+                   ahead: bool = True) -> State:
         """One step of ``fluid``'s dt (default: this plant's fluid, dt = ``numerics.dt``) in its time scheme.
 
         euler (the paper's): the force at X^m, X^{m+1} = X^m + dt v^{m+1}(X^m). bdf2: the force at
         X* = 2 X^m - X^{m-1}, X^{m+1} = (4 X^m - X^{m-1}) / 3 + 2 dt / 3 v^{m+1}(X*), X^{m-1} the points at
         t - dt from the cell's history (``sim.fluid.value_back``; a redistribution carries the history to the new
-        points' spline parameters); a new cell takes X* = X^m and the Euler update."""
+        points' spline parameters); a new cell takes X* = X^m and the Euler update. ``ahead``: the fluid starts the
+        next step's momentum integrals (``NavierStokes.prefetch``) while the membranes move."""
         fluid = fluid or self.fluid
         dt = fluid.scenario.numerics.dt
         bdf2 = fluid.scenario.numerics.scheme == "bdf2"
@@ -156,7 +158,7 @@ class ImmersedBoundary:
               for cell, old in zip(active, before)]
         load, located = self.membrane_load(active, at)
         fluid_started = clock.perf_counter()
-        flow = fluid.step(state.flow, actuation, load if active else None)
+        flow = fluid.step(state.flow, actuation, load if active else None, ahead=ahead)
         membrane_started = clock.perf_counter()
         moved = {}
         for cell, old, (elements, reference) in zip(active, before, located):

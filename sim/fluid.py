@@ -22,8 +22,10 @@ is scaled inside the saddle-point matrix so both blocks have comparable entries;
 from __future__ import annotations
 
 import logging
+import os
 import sys
 import time as clock
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from functools import lru_cache
 
@@ -58,6 +60,18 @@ def _python_code_digest() -> str:
 
 log = logging.getLogger(__name__)
 _NOTHING = np.zeros(0)          # an absent load for ``kernels.free_rhs``
+
+
+def prefetch_wanted() -> bool:
+    """Whether a step computes the next step's momentum integrals ahead on a helper thread (``NavierStokes.step``);
+    ``VCYTO_PREFETCH=0`` computes them in the step itself (the same bits: for measurements and tests)."""
+    return os.environ.get("VCYTO_PREFETCH", "1") != "0"
+
+
+@lru_cache(maxsize=1)
+def _helper() -> ThreadPoolExecutor:
+    """The one helper thread the fluid steps of a process share (``NavierStokes.step``)."""
+    return ThreadPoolExecutor(max_workers=1, thread_name_prefix="vcyto-momentum")
 
 
 class NumericalBlowUp(RuntimeError):
@@ -243,6 +257,8 @@ class NavierStokes:
         again; ~25 ms a level less at the paper's mesh)."""
         started = clock.perf_counter()
         self.scenario = scenario
+        self._ahead = None                  # (flow, future): the next step's element integrals (``_prefetch``)
+        self._ahead_buffer = self._inline_buffer = None
         if like is not None:
             if (like.scenario.channel, like.scenario.saw, like.scenario.fluid, like.scenario.numerics.mesh_h) != \
                     (scenario.channel, scenario.saw, scenario.fluid, scenario.numerics.mesh_h):
@@ -425,13 +441,15 @@ class NavierStokes:
             raise NumericalBlowUp(f"non-finite fluid velocity at t = {time:.6g} s after the {what} solve: "
                                   "the time step is too large for this flow; reduce numerics.dt")
 
-    def step(self, state: Flow, actuation: float = 0.0, load: np.ndarray | None = None) -> Flow:
+    def step(self, state: Flow, actuation: float = 0.0, load: np.ndarray | None = None, ahead: bool = True) -> Flow:
         """Advance one step of size ``numerics.dt`` from ``state``: backward Euler, or BDF2 (``numerics.scheme``).
+        ``ahead``: start the next step's momentum integrals from the result (``prefetch``: a caller that knows the
+        next step is another solver's asks that one).
 
         BDF2 takes rho (3 v^{m+1} - 4 v^m + v^{m-1}) / (2 dt) for the time derivative and the convection of
         2 v^m - v^{m-1} (imex); v^{m-1} is the velocity at t - dt from ``state.history`` (``value_back``); a
         state without history (a start) takes v^{m-1} = v^m."""
-        numerics, density = self.scenario.numerics, self.scenario.fluid.density
+        numerics = self.scenario.numerics
         dt = numerics.dt
         new_time = state.time + dt
         treatment = numerics.convection
@@ -440,15 +458,8 @@ class NavierStokes:
         if level:
             load = level * self.streaming_unit_load if load is None else load + level * self.streaming_unit_load
         rhs = self._free_rhs(load)
-        explicit = density if treatment == "imex" else 0.0
         bdf2 = numerics.scheme == "bdf2"
-        before = value_back(state.time, state.velocity, [t for t, _ in state.history],
-                            [v for _, v in state.history], state.time - dt) if bdf2 else None
-        if before is not None:        # one pass: the mass of (4 v^m - v^{m-1}) / 3, the convection of 2 v^m - v^{m-1}
-            self.space.momentum_load(2 * state.velocity - before, self.mass_coefficient, explicit, self.positions,
-                                     rhs, carried=(4 * state.velocity - before) / 3)
-        else:
-            self.space.momentum_load(state.velocity, self.mass_coefficient, explicit, self.positions, rhs)
+        self.space.scatter_momentum(self._element_momentum(state), self.positions, rhs)
         self.timings.load += clock.perf_counter() - started
         jet = self.jet_weight(new_time, actuation)
         iterations = 1
@@ -461,10 +472,62 @@ class NavierStokes:
             velocity, pressure, iterations = self._implicit(state, rhs, jet, new_time)
         self._check(velocity, new_time, treatment)
         self.timings.steps += 1
-        if bdf2:
-            history = ((state.time, state.velocity),) + state.history[:1]
-            return Flow(new_time, velocity, pressure, level, iterations, history)
-        return Flow(new_time, velocity, pressure, level, iterations)
+        velocity.flags.writeable = pressure.flags.writeable = False     # a step's result stays as it was computed
+        history = ((state.time, state.velocity),) + state.history[:1] if bdf2 else ()
+        flow = Flow(new_time, velocity, pressure, level, iterations, history)
+        if ahead:
+            self.prefetch(flow)
+        return flow
+
+    # ------------------------------------------------------------------ the momentum integrals, computed ahead
+    def _momentum_fields(self, state: Flow):
+        """The velocity the momentum integrals convect and the field their mass term carries (None: the same) for a
+        step of this solver from ``state``: v^m; with bdf2 (one pass) 2 v^m - v^{m-1} and (4 v^m - v^{m-1}) / 3."""
+        numerics = self.scenario.numerics
+        if numerics.scheme != "bdf2":
+            return state.velocity, None
+        before = value_back(state.time, state.velocity, [t for t, _ in state.history],
+                            [v for _, v in state.history], state.time - numerics.dt)
+        if before is None:
+            return state.velocity, None
+        return 2 * state.velocity - before, (4 * state.velocity - before) / 3
+
+    def _element_integrals(self, state: Flow, out: np.ndarray, threads: int | None = None) -> np.ndarray:
+        explicit = self.scenario.fluid.density if self.scenario.numerics.convection == "imex" else 0.0
+        velocity, carried = self._momentum_fields(state)
+        return self.space.element_momentum(velocity, self.mass_coefficient, explicit, out, carried, threads)
+
+    def _element_momentum(self, state: Flow) -> np.ndarray:
+        """The element integrals of the momentum load of a step from ``state``: the ones ``prefetch`` computed
+        ahead when they are of this state, else computed here."""
+        ahead, self._ahead = self._ahead, None
+        if ahead is not None:
+            flow, future = ahead
+            if flow is not state and future.cancel():       # a speculation for another state, not started
+                local = None
+            else:
+                try:
+                    local = future.result()     # (one for another state that runs is waited for: its buffer)
+                except Exception:               # computed here again below, where an error is reported as usual
+                    local = None
+            if flow is state and local is not None:
+                return local
+        if self._inline_buffer is None:
+            self._inline_buffer = self.space.element_buffer()
+        return self._element_integrals(state, self._inline_buffer)
+
+    def prefetch(self, flow: Flow):
+        """Start computing the element integrals of the step from ``flow`` on the helper thread, on one of numba's
+        threads, while the caller moves the membranes, runs the controller and records (~1 ms of the other core a
+        step; ``kernels.element_momentum``: the same bits as computed in the step). A speculation: a next step
+        from another state or by another solver (an adaptive run's other level) computes its own."""
+        if not prefetch_wanted():
+            return
+        if self._ahead_buffer is None:
+            self._ahead_buffer = self.space.element_buffer()
+        buffer = self._ahead_buffer
+        self._ahead = (flow, _helper().submit(self._element_integrals, flow, buffer, 1))
+        clock.sleep(0)      # lets the helper take the GIL now, to start its kernel (which runs without it)
 
     def _linearised(self, velocity, newton, with_mass):
         """The factored system linearised about ``velocity`` (Oseen, or Newton's Jacobian)."""

@@ -8,9 +8,13 @@ computed in parallel into a per-element buffer, then scattered serially (no writ
 
 from __future__ import annotations
 
+import threading
+
+import numba
 import numpy as np
 from numba import njit, prange
 
+_LAUNCH = threading.Lock()   # one launch of the parallel momentum kernel at a time (``element_momentum``)
 BLOCK = 128    # elements a thread takes at a time in ``_element_momentum``: its scratch stays in the L1 cache
 
 
@@ -18,7 +22,7 @@ def _momentum_kernel(carrying: bool):
     """The element kernel of the momentum load; ``carrying``: the mass term acts on a field of its own (BDF2),
     else on the convected velocity (its values taken once: no second gather)."""
 
-    @njit(cache=True, parallel=True, fastmath=True, boundscheck=False)
+    @njit(cache=True, parallel=True, fastmath=True, boundscheck=False, nogil=True)
     def kernel(element_dofs, jacobian_rows, areas, phi, dphi, weights, ux, uy, cx, cy, mass_coefficient,
                convection_coefficient, local):
         """local[e, c, i] = integral over element e of (m w_c - k ((u . grad) u)_c) phi_i, u = (ux, uy) and the
@@ -115,6 +119,36 @@ def _scatter(element_dofs, local, positions, out):
                     out[position] += local[e, c, i]
 
 
+def element_momentum(element_dofs, jacobian_rows, areas, phi, dphi, weights, velocity, mass_coefficient,
+                     convection_coefficient, out, carried=None, threads: int | None = None):
+    """Each element's integrals (m w - k (v . grad) v) . phi_i into ``out`` (ne, 2, 6), w = ``carried`` (2, N),
+    default the velocity v itself; ``jacobian_rows`` and ``areas`` as ``_element_momentum`` takes them.
+
+    ``threads``: numba's threads for this call (default: numba's setting; a caller's own thread may run it on one
+    while the others work). Each block of elements is computed alone, whichever thread takes it, so the values
+    are the same bits with any number. The GIL is released while it runs; a lock keeps two threads from launching
+    it at once (numba's threading layers need not allow concurrent launches)."""
+    kernel = _element_momentum if carried is None else _element_momentum_carrying
+    carried = velocity if carried is None else carried
+    with _LAUNCH:
+        previous = numba.get_num_threads()
+        if threads is not None:
+            numba.set_num_threads(threads)
+        try:
+            kernel(element_dofs, jacobian_rows, areas, phi, dphi, weights, velocity[0], velocity[1], carried[0],
+                   carried[1], mass_coefficient, convection_coefficient, out)
+        finally:
+            if threads is not None:
+                numba.set_num_threads(previous)
+    return out
+
+
+def scatter_momentum(element_dofs, local, positions, out):
+    """Add ``element_momentum``'s values to ``out[positions[c, i]]`` for each P2 node i, component c (-1: skipped),
+    element by element in order (the same sums, in the same order, however they were computed)."""
+    _scatter(element_dofs, local, positions, out)
+
+
 def momentum_load(element_dofs, jacobian_rows, areas, phi, dphi, weights, velocity,
                   mass_coefficient, convection_coefficient, positions, out, scratch, carried=None):
     """Add integral (m w - k (v . grad) v) . phi_i to ``out[positions[c, i]]`` for each P2 node i, component c;
@@ -124,11 +158,9 @@ def momentum_load(element_dofs, jacobian_rows, areas, phi, dphi, weights, veloci
     load can land directly in a reduced (Dirichlet-free) right-hand side. ``scratch`` is (ne, 2, 6);
     ``jacobian_rows`` and ``areas`` as ``_element_momentum`` takes them.
     """
-    kernel = _element_momentum if carried is None else _element_momentum_carrying
-    carried = velocity if carried is None else carried
-    kernel(element_dofs, jacobian_rows, areas, phi, dphi, weights, velocity[0], velocity[1], carried[0], carried[1],
-           mass_coefficient, convection_coefficient, scratch)
-    _scatter(element_dofs, scratch, positions, out)
+    element_momentum(element_dofs, jacobian_rows, areas, phi, dphi, weights, velocity, mass_coefficient,
+                     convection_coefficient, scratch, carried)
+    scatter_momentum(element_dofs, scratch, positions, out)
 
 
 @njit(cache=True)
@@ -292,8 +324,9 @@ def linearised_convection(element_dofs, inverse_jacobians, determinants, phi, dp
 # A row's sum is a chain of dependent additions (its order is fixed, so it cannot be vectorised): H^T's rows are
 # long (~780 entries at the paper's mesh), so its chains bound the product by the adder's latency, and
 # ``transposed_products`` runs four rows' chains side by side, each in its own order (``_four_rows``: the same
-# bits, 1.3-1.7x faster in three in-process A/B runs). A's rows (~18 entries) and H's (mostly empty) gained
-# nothing that way (the processor already overlaps such short chains): they sum one row at a time.
+# bits, 1.3-1.7x faster in three in-process A/B runs). A's rows (~18 entries) gained nothing that way (the
+# processor already overlaps such short chains): they sum one row at a time. H w is summed from H^T by columns
+# (``minus_product``): each row's sum still runs in index order, and the solve keeps one copy of H.
 
 @njit(cache=True, nogil=True, inline="always")
 def _row(data, indices, indptr, v, r, zero):
@@ -364,10 +397,20 @@ def transposed_products(y, dinv, z, data, indices, indptr, g, zero):
 
 
 @njit(cache=True, nogil=True)
-def minus_product(z, data, indices, indptr, w, out, zero):
-    """out = z - H w, H given in CSR (``zero``: the sums' type)."""
+def minus_product(z, data, indices, indptr, w, sums, out, zero):
+    """out = z - H w, H given by its transpose in CSR (H's columns; ``sums``: scratch of z's length, ``zero``: the
+    sums' type). Each (H w)_r is summed in increasing column order from ``zero``, as scipy's CSR product of H with
+    sorted indices sums it (the same bits), but the products are scattered column by column: H^T, which
+    ``transposed_products`` reads, is the only copy of H the split solve keeps (~2 MB a half at the paper's mesh)."""
+    for r in range(sums.shape[0]):
+        sums[r] = zero
+    for c in range(w.shape[0]):
+        weight = w[c]
+        for jj in range(np.uint64(indptr[c]), np.uint64(indptr[c + 1])):
+            row = np.uint64(indices[jj])
+            sums[row] += data[jj] * weight
     for r in range(z.shape[0]):
-        out[r] = z[r] - _row(data, indices, indptr, w, r, zero)
+        out[r] = z[r] - sums[r]
 
 
 @njit(cache=True, nogil=True)

@@ -50,6 +50,7 @@ import math
 import os
 import queue
 import threading
+from typing import NamedTuple
 
 import numpy as np
 import scipy.linalg as sla
@@ -136,7 +137,8 @@ class _Half:
         # fixed aligned buffers handed to PARDISO directly (its results can depend on the alignment)
         self.source, self.y, self.z, self.x = (_aligned_empty(n, dtype=self.dtype) for _ in range(4))
         self.zero = self.dtype(0)
-        self.h = self.h_t = None
+        self.h_t = self.sums = None
+        self.h_nonzeros = 0
         self.w = self.g = None         # the separator's solution and H^T y, in the factor's precision
         self.rows = None               # (this half's unknowns, A's rows of them in CSR): set by SplitPardiso
         self.dinv = self._diagonal(n)
@@ -223,9 +225,14 @@ class _Half:
         return h, (sp.hstack(columns_e, format="csc").T @ h).toarray()
 
     def use(self, h: sp.csr_matrix):
+        """Keep H for the solves: as H^T in CSR only (``kernels.minus_product`` reads H w from it), with 16-bit
+        indices when H has fewer than 65,536 rows (fewer bytes streamed a solve; the same bits)."""
         h = h.astype(self.dtype)
-        self.h, self.h_t = h, h.T.tocsr()
+        h.sort_indices()
+        self.h_t = narrow_indices(h.T.tocsr())
+        self.h_nonzeros = h.nnz
         self.w, self.g = np.zeros(h.shape[1], dtype=self.dtype), np.zeros(h.shape[1], dtype=self.dtype)
+        self.sums = np.zeros(h.shape[0], dtype=self.dtype)
 
     def forward(self, rhs: np.ndarray, x: np.ndarray | None) -> np.ndarray:
         """y = F (rhs - A x) on this half's rows (rhs alone without x), z = D^{-1} y; returns H^T y (a buffer
@@ -247,14 +254,28 @@ class _Half:
         """This half's unknowns of the solve, written into (``accumulate``: added to) ``solution``; the largest
         |change| and |solution| there (``kernels.scatter_add``)."""
         narrow(self.w, separator_solution)
-        h = self.h
-        kernels.minus_product(self.z, h.data, h.indices, h.indptr, self.w, self.source, self.zero)
+        h_t = self.h_t
+        kernels.minus_product(self.z, h_t.data, h_t.indices, h_t.indptr, self.w, self.sums, self.source, self.zero)
         self.factor.substitute(333, self.source, self.x)
         return kernels.scatter_add(solution, self.rows[0], self.x, accumulate)
 
 
 _NONE = np.zeros(0)
 _NO_INDICES = np.zeros(1, dtype=np.int32)
+
+
+class Compressed(NamedTuple):
+    """A CSR matrix's arrays as the vector kernels read them (``sim.kernels``)."""
+    data: np.ndarray
+    indices: np.ndarray
+    indptr: np.ndarray
+
+
+def narrow_indices(matrix: sp.csr_matrix) -> Compressed:
+    """``matrix``'s CSR arrays, with 16-bit column indices when it has at most 65,536 columns: a sixth fewer bytes
+    for a double-precision entry, a third for a single-precision one, which the kernels stream every solve."""
+    indices = matrix.indices.astype(np.uint16) if matrix.shape[1] <= 65536 else matrix.indices
+    return Compressed(matrix.data, indices, matrix.indptr)
 
 
 class _Worker(threading.Thread):
@@ -325,7 +346,7 @@ class SplitPardiso:
         self._rows = [matrix[p] for p in self.parts]      # for residuals computed where they are used
         couplings = [matrix[p][:, separator].tocsc() for p in (left, right)]
         for half, unknowns, rows in zip(self.halves, self.parts, self._rows):
-            half.rows = (unknowns, rows)
+            half.rows = (unknowns, narrow_indices(rows))
         # the calling thread, which also runs the Python between the phases, takes the half with the smaller
         # factor (the halves' factors differ by ~4 % at the paper's mesh: a step 0.7-0.9 % faster, three
         # in-process A/B runs); which thread runs a half does not change its bits
@@ -408,7 +429,7 @@ class SplitPardiso:
             half.use(sp.csr_matrix((stored[f"h{i}_data"], stored[f"h{i}_indices"], stored[f"h{i}_indptr"]),
                                    shape=(len(self.parts[i]), self.separator_size)))
         self._schur = stored["schur_inverse"]
-        self.factor_nonzeros += sum(h.h.nnz for h in self.halves)
+        self.factor_nonzeros += sum(h.h_nonzeros for h in self.halves)
         self._pending = None
 
     def _coupling(self, matrix, couplings) -> dict:

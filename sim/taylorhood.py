@@ -116,10 +116,25 @@ class TaylorHood:
         """Add (m w - k (v . grad) v, phi_i) to ``out[positions[c, i]]``, w = ``carried`` (default v) (numba
         kernel, see ``kernels``)."""
         if self._scratch is None:
-            self._scratch = np.empty((self.element_dofs.shape[1], 2, 6))
-        kernels.momentum_load(self.element_dofs, self.jacobian_rows, self.areas, self.q_phi, self.q_dphi,
-                              self.q_weights, velocity, mass_coefficient, convection_coefficient, positions, out,
-                              self._scratch, carried)
+            self._scratch = self.element_buffer()
+        self.element_momentum(velocity, mass_coefficient, convection_coefficient, self._scratch, carried)
+        return self.scatter_momentum(self._scratch, positions, out)
+
+    def element_buffer(self) -> np.ndarray:
+        """A buffer for ``element_momentum``: (elements, 2, 6)."""
+        return np.empty((self.element_dofs.shape[1], 2, 6))
+
+    def element_momentum(self, velocity, mass_coefficient, convection_coefficient, out, carried=None,
+                         threads: int | None = None) -> np.ndarray:
+        """``momentum_load``'s element integrals into ``out`` (``element_buffer``), on ``threads`` of numba's
+        (``kernels.element_momentum``: the same bits with any number)."""
+        return kernels.element_momentum(self.element_dofs, self.jacobian_rows, self.areas, self.q_phi, self.q_dphi,
+                                        self.q_weights, velocity, mass_coefficient, convection_coefficient, out,
+                                        carried, threads)
+
+    def scatter_momentum(self, local, positions, out):
+        """Add ``element_momentum``'s values ``local`` to ``out[positions[c, i]]`` (element by element, in order)."""
+        kernels.scatter_momentum(self.element_dofs, local, positions, out)
         return out
 
     def convection_load(self, velocity: np.ndarray) -> np.ndarray:

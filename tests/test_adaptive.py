@@ -87,8 +87,9 @@ def test_a_cell_without_an_estimate_holds_the_level_and_reset_forgets():
     steps = steps_of(scenario)
     estimates = iter([[0.01, None], [0.01, 0.01], [6.0, None]])      # 6 at level 2: level 1 at 6/16 x 3 > 1
     steps._ratio_bdf2 = lambda cell, time: next(current)
-    steps.plant = SimpleNamespace(fixed_step=lambda state, actuation, fluid: state, scenario=scenario)
+    steps.plant = SimpleNamespace(fixed_step=lambda state, actuation, fluid, ahead=True: state, scenario=scenario)
     steps.fluid = lambda level: None
+    steps._fluids = {}                # no solver: nothing to compute ahead (``_prefetch``)
     cells = [cell("RBC", k, scenario) for k in (1, 2)]
     state = SimpleNamespace(time=0.0, cells=cells)
     steps._known, steps._actuation, steps.level = {1, 2}, 0.0, 1
@@ -164,6 +165,46 @@ def test_a_coarse_step_that_redistributes_is_retaken_at_the_finest_level():
     new = plant.step(state, 0.0)
     assert new.cells[0].membrane.redistributions == rbc.membrane.redistributions and steps.retaken == 0
     assert math.isclose(new.time - state.time, steps.levels[2]) and steps.steps == [0, 0, 1, 0]
+
+
+def test_an_adaptive_run_computes_ahead_at_the_level_it_will_take(monkeypatch):
+    """After each step the next one's momentum integrals start on the helper thread at the level ``choose`` will
+    most likely pick (``AdaptiveSteps._prefetch``), not the level just taken: the steps find their own integrals
+    computed ahead across level changes, with the same bits as when each step computes them."""
+    from sim.feib import ImmersedBoundary, State, new_cell
+    from sim.fluid import NavierStokes
+
+    scenario = Scenario().with_numerics(mesh_h=10 * UM / 3, tolerance=1e-6)        # the RBC resolved: levels climb
+    plant = ImmersedBoundary(scenario)
+
+    def run(prefetch: bool):
+        monkeypatch.setenv("VCYTO_PREFETCH", "1" if prefetch else "0")
+        plant.adaptive.reset()                                 # a new run on the same plant (its levels kept)
+        used, original = [], NavierStokes._element_momentum
+
+        def counted(solver, state):
+            pending = solver._ahead
+            used.append(pending is not None and pending[0] is state)
+            return original(solver, state)
+        monkeypatch.setattr(NavierStokes, "_element_momentum", counted)
+        state = plant.step(plant.start(), 0.0)                 # an empty channel: the coarsest level
+        rbc = new_cell(scenario, scenario.cell_type("RBC"), 1, state.time, warn=False,
+                       centre=np.array([0.4 * scenario.channel.length, 0.5 * scenario.channel.height]))
+        state = State(state.flow, (rbc,), state.step)          # a new cell: the finest, then up level by level
+        for _ in range(9):
+            state = plant.step(state, 0.0)
+        monkeypatch.setattr(NavierStokes, "_element_momentum", original)
+        return state, used, plant.adaptive.history
+
+    ahead, used, history = run(True)
+    here, used_here, history_here = run(False)
+    assert [dt for _, dt in history] == [20e-6, 2.5e-6, 5e-6, 10e-6, 20e-6]        # four level changes
+    # computed in the step: the first, the new cell's (its level no step could know), and the first at a level not
+    # set up before (levels are built when first taken: here 5 and 10 us); every other step found its own ahead
+    assert used == [False, False, True, True, True, False, False, True, True, True] and not any(used_here)
+    assert history == history_here
+    assert np.array_equal(ahead.cells[0].membrane.points, here.cells[0].membrane.points)
+    assert np.array_equal(ahead.flow.velocity, here.flow.velocity)
 
 
 def paper_pair(number, mesh_h, tolerance):

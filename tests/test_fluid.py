@@ -238,3 +238,37 @@ def test_a_solver_like_another_steps_as_one_built_alone_and_refuses_another_devi
     assert not np.array_equal(one.velocity, base.step(start, actuation=1.0).velocity)    # another dt: it can fail
     with pytest.raises(ValueError, match="another device or mesh"):
         NavierStokes(scenario.with_inlets_shut(), like=base)
+
+
+@pytest.mark.parametrize("scheme", ["euler", "bdf2"])
+def test_steps_are_the_same_bits_with_the_momentum_computed_ahead_or_in_the_step(scheme, monkeypatch):
+    """Each step starts the next one's element integrals on a helper thread (``NavierStokes._prefetch``): a
+    speculation on the state it returned. Stepping on from it, stepping again from an earlier state (a retaken
+    step: the speculation is not of it), and with the helper switched off (``VCYTO_PREFETCH=0``) give the same
+    bits; a step's velocity and pressure are read-only, so the state a speculation read cannot change."""
+    from sim import fluid as fluid_module
+
+    def run(prefetch: bool):
+        monkeypatch.setenv("VCYTO_PREFETCH", "1" if prefetch else "0")
+        solver = NavierStokes(Scenario().with_numerics(mesh_h=6 * UM, time_scheme=scheme))
+        computed = []
+        original = solver._element_integrals
+        solver._element_integrals = lambda state, out, threads=None: (computed.append(threads),
+                                                                       original(state, out, threads))[1]
+        start = solver.steady(0.0)
+        first = solver.step(start, actuation=1.0)
+        second = solver.step(first, actuation=1.0)
+        retaken = solver.step(first, actuation=1.0)        # from an earlier state: not the speculated one
+        third = solver.step(retaken, actuation=1.0)
+        return [s.velocity for s in (first, second, retaken, third)] + [third.pressure], computed
+
+    ahead, computed_ahead = run(True)
+    here, computed_here = run(False)
+    assert all(np.array_equal(a, b) for a, b in zip(ahead, here))
+    assert np.array_equal(ahead[1], ahead[2])                # the retaken step is the same step
+    # ahead: the start and the retaken step here, every other step's integrals on the helper (plus the last one's)
+    assert computed_ahead.count(1) == 4 and computed_ahead.count(None) == 2
+    assert computed_here == [None] * 4
+    with pytest.raises(ValueError):
+        ahead[0][0, 0] = 1.0
+    assert fluid_module.prefetch_wanted() is False

@@ -192,11 +192,12 @@ def test_an_interrupt_while_waiting_for_the_other_half_leaves_the_solver_in_step
 
 
 def test_split_solve_vector_kernels_give_scipys_bits():
-    """The fused kernels sum in scipy's order: a residual, H^T y and z - H w bit for bit equal to scipy's (rows of
-    uneven lengths, some empty, counts not a multiple of the four rows the kernels run side by side)."""
+    """The fused kernels sum in scipy's order: a residual, H^T y and z - H w (from H^T) bit for bit equal to scipy's
+    (rows of uneven lengths, some empty, counts not a multiple of the four rows the kernels run side by side), with
+    32- or 16-bit indices."""
     import scipy.sparse as sp
 
-    from sim import kernels
+    from sim import kernels, splitsolve
     rng = np.random.default_rng(4)
     a = sp.random(301, 400, density=0.05, format="csr", random_state=5)
     rows = rng.permutation(500)[:301]
@@ -216,8 +217,16 @@ def test_split_solve_vector_kernels_give_scipys_bits():
     w = rng.standard_normal(31).astype(np.float32)
     minus = np.empty(403, np.float32)
     assert np.diff(h.indptr).min() == 0 and len(set(np.diff(h.indptr))) > 3       # empty and uneven rows
-    kernels.minus_product(z, h.data, h.indices, h.indptr, w, minus, np.float32(0))
-    assert np.array_equal(minus, z - h @ w)
+    kernels.minus_product(z, h_t.data, h_t.indices, h_t.indptr, w, np.empty(403, np.float32), minus, np.float32(0))
+    assert np.array_equal(minus, z - h @ w)                 # from H^T, summed as H's rows
+    narrow = splitsolve.narrow_indices(h_t)                  # 16-bit indices: the same bits
+    assert narrow.indices.dtype == np.uint16
+    kernels.transposed_products(y, dinv, z_out, narrow.data, narrow.indices, narrow.indptr, g, np.float32(0))
+    kernels.minus_product(z, narrow.data, narrow.indices, narrow.indptr, w, np.empty(403, np.float32), minus,
+                          np.float32(0))
+    assert np.array_equal(g, h_t @ y) and np.array_equal(minus, z - h @ w)
+    wide = sp.csr_matrix((np.ones(2), [3, 70_000], [0, 2]), shape=(1, 70_001))
+    assert splitsolve.narrow_indices(wide).indices.dtype == wide.indices.dtype      # too many columns for 16 bits
 
 
 SCRIPT = """

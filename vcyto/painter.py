@@ -99,7 +99,9 @@ class Painter:
             self._process = subprocess.Popen(
                 [sys.executable, "-c", "import runpy, sys; sys.path[0] = sys.argv.pop(1); "
                  "runpy.run_module('vcyto.painter', run_name='__main__', alter_sys=True)", package_parent],
-                stdin=subprocess.PIPE, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+                # its standard output (nothing is written there) is read to its end: ``communicate`` then returns
+                # as the helper exits, where with none to read it polls for the exit (up to 50 ms late)
+                stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL)
         except (OSError, ValueError):     # no helper: the figure is drawn here
             self._process = None
 

@@ -249,3 +249,13 @@ def test_a_lead_beyond_the_delay_is_run_but_never_silently():
 def test_arrival_options_that_contradict_each_other_are_refused(args, message):
     result = vcyto("stream", "--model", "rom", *args, "--no-viewer", "--output", "")
     assert result.returncode == 2 and result.stderr.startswith(f"vcyto: error: {message}")
+
+
+def test_a_command_makes_threads_take_turns_with_the_interpreter_lock_often(monkeypatch, capsys):
+    """The recording sinks, the loop and the solvers' helper threads run Python between their kernels: a command
+    sets the interpreter's switch interval to 0.2 ms (Python's default 5 ms made the loop wait for the sinks)."""
+    from vcyto.cli import SWITCH_INTERVAL_S, main
+    monkeypatch.setattr(sys, "setswitchinterval", lambda seconds: calls.append(seconds))
+    calls = []
+    assert main(["cache", "--json"]) == 0 and json.loads(capsys.readouterr().out)
+    assert calls == [SWITCH_INTERVAL_S] and SWITCH_INTERVAL_S < 5e-3

@@ -56,9 +56,17 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+# Python's threads take turns with the interpreter lock at least this often (Python's default: 5 ms). A command's
+# threads that run Python (the loop; the recording sinks; the split solve's and the momentum's helpers between their
+# kernels) then wait ~0.2 ms, not up to 5 ms, for one that holds it: the README stream 3.5 % faster (median of four
+# alternating pairs; docs/numerics.md, "Round 14").
+SWITCH_INTERVAL_S = 2e-4
+
+
 def main(argv=None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
+    sys.setswitchinterval(SWITCH_INTERVAL_S)
     try:
         install_cache()
         with runfiles.signals_as_interrupt(signals_seen):     # SIGTERM ends every command as Ctrl-C does

@@ -24,6 +24,7 @@ from __future__ import annotations
 import logging
 import os
 import sys
+import threading
 import time as clock
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
@@ -68,10 +69,27 @@ def prefetch_wanted() -> bool:
     return os.environ.get("VCYTO_PREFETCH", "1") != "0"
 
 
-@lru_cache(maxsize=1)
+_HELPER: dict = {}                   # the process's helper executor (``_helper``), by process id
+_HELPER_LOCK = threading.Lock()
+
+
 def _helper() -> ThreadPoolExecutor:
-    """The one helper thread the fluid steps of a process share (``NavierStokes.step``)."""
-    return ThreadPoolExecutor(max_workers=1, thread_name_prefix="vcyto-momentum")
+    """The one helper thread the fluid steps of a process share (``NavierStokes.prefetch``): one worker, so its
+    tasks run one at a time, in order. A forked child builds its own (the parent's thread is not in it)."""
+    with _HELPER_LOCK:
+        pid = os.getpid()
+        if pid not in _HELPER:
+            _HELPER.clear()
+            _HELPER[pid] = ThreadPoolExecutor(max_workers=1, thread_name_prefix="vcyto-momentum")
+        return _HELPER[pid]
+
+
+def _new_helper_lock():
+    global _HELPER_LOCK
+    _HELPER_LOCK = threading.Lock()
+
+
+os.register_at_fork(after_in_child=_new_helper_lock)
 
 
 class NumericalBlowUp(RuntimeError):
@@ -500,34 +518,44 @@ class NavierStokes:
     def _element_momentum(self, state: Flow) -> np.ndarray:
         """The element integrals of the momentum load of a step from ``state``: the ones ``prefetch`` computed
         ahead when they are of this state, else computed here."""
-        ahead, self._ahead = self._ahead, None
-        if ahead is not None:
-            flow, future = ahead
-            if flow is not state and future.cancel():       # a speculation for another state, not started
-                local = None
-            else:
-                try:
-                    local = future.result()     # (one for another state that runs is waited for: its buffer)
-                except Exception:               # computed here again below, where an error is reported as usual
-                    local = None
-            if flow is state and local is not None:
-                return local
+        flow, local = self._finish_ahead()
+        if flow is state and local is not None:
+            return local
         if self._inline_buffer is None:
             self._inline_buffer = self.space.element_buffer()
         return self._element_integrals(state, self._inline_buffer)
 
     def prefetch(self, flow: Flow):
-        """Start computing the element integrals of the step from ``flow`` on the helper thread, on one of numba's
-        threads, while the caller moves the membranes, runs the controller and records (~1 ms of the other core a
+        """Start computing the element integrals of the step from ``flow`` on the helper thread (alone: one of numba's
+        threads), while the caller moves the membranes, runs the controller and records (~1 ms of the other core a
         step; ``kernels.element_momentum``: the same bits as computed in the step). A speculation: a next step
         from another state or by another solver (an adaptive run's other level) computes its own."""
+        self._finish_ahead()                   # an earlier one not taken (its buffer is this one's)
         if not prefetch_wanted():
             return
         if self._ahead_buffer is None:
             self._ahead_buffer = self.space.element_buffer()
-        buffer = self._ahead_buffer
-        self._ahead = (flow, _helper().submit(self._element_integrals, flow, buffer, 1))
+        try:
+            future = _helper().submit(self._element_integrals, flow, self._ahead_buffer, 1)
+        except RuntimeError:                   # the interpreter is shutting down: the next step computes them
+            return
+        self._ahead = (flow, future, os.getpid())
         clock.sleep(0)      # lets the helper take the GIL now, to start its kernel (which runs without it)
+
+    def _finish_ahead(self):
+        """(flow, integrals) of the pending ``prefetch`` (integrals None when there are none to take: not started,
+        so cancelled, and computed faster by the step on all threads; failed; or inherited through a fork, whose
+        helper thread the child does not have), and none pending after it. (None, None) without one."""
+        ahead, self._ahead = self._ahead, None
+        if ahead is None:
+            return None, None
+        flow, future, pid = ahead
+        if pid != os.getpid() or future.cancel():
+            return flow, None
+        try:
+            return flow, future.result()        # (one for another state is waited for too: it writes the buffer)
+        except Exception:                       # computed again by the step, where an error is reported as usual
+            return flow, None
 
     def _linearised(self, velocity, newton, with_mass):
         """The factored system linearised about ``velocity`` (Oseen, or Newton's Jacobian)."""

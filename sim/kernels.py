@@ -8,6 +8,7 @@ computed in parallel into a per-element buffer, then scattered serially (no writ
 
 from __future__ import annotations
 
+import os
 import threading
 
 import numba
@@ -15,6 +16,15 @@ import numpy as np
 from numba import njit, prange
 
 _LAUNCH = threading.Lock()   # one launch of the parallel momentum kernel at a time (``element_momentum``)
+
+
+def _new_launch_lock():
+    """A forked child's own lock: the parent's may have been held by a thread the child does not have."""
+    global _LAUNCH
+    _LAUNCH = threading.Lock()
+
+
+os.register_at_fork(after_in_child=_new_launch_lock)
 BLOCK = 128    # elements a thread takes at a time in ``_element_momentum``: its scratch stays in the L1 cache
 
 
@@ -124,10 +134,11 @@ def element_momentum(element_dofs, jacobian_rows, areas, phi, dphi, weights, vel
     """Each element's integrals (m w - k (v . grad) v) . phi_i into ``out`` (ne, 2, 6), w = ``carried`` (2, N),
     default the velocity v itself; ``jacobian_rows`` and ``areas`` as ``_element_momentum`` takes them.
 
-    ``threads``: numba's threads for this call (default: numba's setting; a caller's own thread may run it on one
-    while the others work). Each block of elements is computed alone, whichever thread takes it, so the values
-    are the same bits with any number. The GIL is released while it runs; a lock keeps two threads from launching
-    it at once (numba's threading layers need not allow concurrent launches)."""
+    ``threads``: numba's threads for this call (default: numba's setting; 1: the calling thread alone, while the
+    process's other threads work; numba's setting is per thread and is restored). Each block of elements is
+    computed alone, whichever thread takes it, so the values are the same bits with any number. The GIL is released
+    while it runs; a lock keeps two threads from launching it at once (numba's threading layers need not allow
+    concurrent launches)."""
     kernel = _element_momentum if carried is None else _element_momentum_carrying
     carried = velocity if carried is None else carried
     with _LAUNCH:

@@ -226,7 +226,7 @@ class _Half:
 
     def use(self, h: sp.csr_matrix):
         """Keep H for the solves: as H^T in CSR only (``kernels.minus_product`` reads H w from it), with 16-bit
-        indices when H has fewer than 65,536 rows (fewer bytes streamed a solve; the same bits)."""
+        indices when H has at most 65,536 rows (fewer bytes streamed a solve; the same bits)."""
         h = h.astype(self.dtype)
         h.sort_indices()
         self.h_t = narrow_indices(h.T.tocsr())

@@ -225,7 +225,9 @@ def test_split_solve_vector_kernels_give_scipys_bits():
     kernels.minus_product(z, narrow.data, narrow.indices, narrow.indptr, w, np.empty(403, np.float32), minus,
                           np.float32(0))
     assert np.array_equal(g, h_t @ y) and np.array_equal(minus, z - h @ w)
-    wide = sp.csr_matrix((np.ones(2), [3, 70_000], [0, 2]), shape=(1, 70_001))
+    widest = sp.csr_matrix((np.ones(2), [3, 65_535], [0, 2]), shape=(1, 65_536))  # the last index 16 bits hold
+    assert np.array_equal(splitsolve.narrow_indices(widest).indices, [3, 65_535])
+    wide = sp.csr_matrix((np.ones(2), [3, 65_536], [0, 2]), shape=(1, 65_537))
     assert splitsolve.narrow_indices(wide).indices.dtype == wide.indices.dtype      # too many columns for 16 bits
 
 

@@ -146,6 +146,12 @@ def _stop(process: subprocess.Popen) -> None:
             process.wait(timeout=2)
         except subprocess.TimeoutExpired:
             pass
+    for pipe in (process.stdin, process.stdout):
+        if pipe is not None:
+            try:
+                pipe.close()
+            except OSError:            # (a pipe whose reader went away)
+                pass
 
 
 def _interrupt(signum, frame):

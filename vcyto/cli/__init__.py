@@ -66,7 +66,15 @@ SWITCH_INTERVAL_S = 2e-4
 def main(argv=None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
+    interval = sys.getswitchinterval()
     sys.setswitchinterval(SWITCH_INTERVAL_S)
+    try:
+        return _main(args)
+    finally:
+        sys.setswitchinterval(interval)      # as it was (``main`` may be called in a process that goes on)
+
+
+def _main(args) -> int:
     try:
         install_cache()
         with runfiles.signals_as_interrupt(signals_seen):     # SIGTERM ends every command as Ctrl-C does

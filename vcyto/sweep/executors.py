@@ -16,7 +16,10 @@ from .model import SweepError, one_line
 
 SCHEDULER_SCHEMES = ("tcp", "tls", "ucx", "ws", "wss")
 CONNECT_TIMEOUT_S = 10
-THREAD_VARIABLES = ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS", "NUMBA_NUM_THREADS")
+# one thread per worker process: the libraries' thread pools, and no helper thread for the next fluid step's
+# momentum integrals (``VCYTO_PREFETCH``, ``sim.fluid``: 0 computes them in the step)
+THREAD_VARIABLES = {"OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1",
+                    "NUMBA_NUM_THREADS": "1", "VCYTO_PREFETCH": "0"}
 STOP_WAIT_S = 2.0               # how long terminated workers get to end before they are killed
 
 
@@ -37,8 +40,8 @@ def executor(scheduler: str | None, workers: int):
 @contextlib.contextmanager
 def _one_thread_per_process():
     saved = {name: os.environ.get(name) for name in THREAD_VARIABLES}
-    for name in THREAD_VARIABLES:
-        os.environ.setdefault(name, "1")
+    for name, value in THREAD_VARIABLES.items():
+        os.environ.setdefault(name, value)
     try:
         yield
     finally:

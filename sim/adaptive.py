@@ -97,14 +97,19 @@ class AdaptiveSteps:
         switched = actuation is not None and self._actuation is not None and actuation != self._actuation
         if active and (ids - self._known or switched):
             self.level = 0           # and it stays there until an estimate lets it up (bdf2: after three steps)
-        level = LEVELS - 1 if not active else self.level
         self._known, self._actuation = ids, actuation
-        level = min(level, self.stable_level(active), self._before_redistribution(active, state.time))
+        level = self._estimated_level(active, state.time)
         if until is not None:
             room = until - state.time
             while level > 0 and self.levels[level] > room + 1e-6 * self.levels[0]:
                 level -= 1
         return level
+
+    def _estimated_level(self, active, time: float) -> int:
+        """The estimate's level (the coarsest with nobody in the channel) capped by stability and by a predicted
+        redistribution: ``choose``'s level but for a new cell, a changed drive and the end of a control period."""
+        level = LEVELS - 1 if not active else self.level
+        return min(level, self.stable_level(active), self._before_redistribution(active, time))
 
     def _before_redistribution(self, active, time: float) -> int:
         """The coarsest level whose step ends before any cell's point spacing is predicted to leave the band
@@ -181,9 +186,7 @@ class AdaptiveSteps:
         """Start the next step's momentum integrals (``NavierStokes.prefetch``) at the level ``choose`` will most
         likely pick (all it knows now: not the end of a control period, nor a new cell or a changed drive), when
         that level's solver exists."""
-        active = [cell for cell in state.cells if cell.in_channel]
-        level = LEVELS - 1 if not active else self.level
-        level = min(level, self.stable_level(active), self._before_redistribution(active, state.time))
+        level = self._estimated_level([cell for cell in state.cells if cell.in_channel], state.time)
         if level in self._fluids:
             self._fluids[level].prefetch(state.flow)
 

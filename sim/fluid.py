@@ -69,27 +69,27 @@ def prefetch_wanted() -> bool:
     return os.environ.get("VCYTO_PREFETCH", "1") != "0"
 
 
-_HELPER: dict = {}                   # the process's helper executor (``_helper``), by process id
+_HELPER: ThreadPoolExecutor | None = None      # the process's helper executor (``_helper``)
 _HELPER_LOCK = threading.Lock()
 
 
 def _helper() -> ThreadPoolExecutor:
     """The one helper thread the fluid steps of a process share (``NavierStokes.prefetch``): one worker, so its
-    tasks run one at a time, in order. A forked child builds its own (the parent's thread is not in it)."""
+    tasks run one at a time, in order."""
+    global _HELPER
     with _HELPER_LOCK:
-        pid = os.getpid()
-        if pid not in _HELPER:
-            _HELPER.clear()
-            _HELPER[pid] = ThreadPoolExecutor(max_workers=1, thread_name_prefix="vcyto-momentum")
-        return _HELPER[pid]
+        if _HELPER is None:
+            _HELPER = ThreadPoolExecutor(max_workers=1, thread_name_prefix="vcyto-momentum")
+        return _HELPER
 
 
-def _new_helper_lock():
-    global _HELPER_LOCK
-    _HELPER_LOCK = threading.Lock()
+def _forget_helper():
+    """A forked child builds its own helper (the parent's thread is not in it), under a lock of its own."""
+    global _HELPER, _HELPER_LOCK
+    _HELPER, _HELPER_LOCK = None, threading.Lock()
 
 
-os.register_at_fork(after_in_child=_new_helper_lock)
+os.register_at_fork(after_in_child=_forget_helper)
 
 
 class NumericalBlowUp(RuntimeError):

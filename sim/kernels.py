@@ -118,8 +118,10 @@ _element_momentum_carrying = _momentum_kernel(True)
 
 
 @njit(cache=True)
-def _scatter(element_dofs, local, positions, out):
-    """out[positions[c, dof]] += local[e, c, i] for dof = element_dofs[i, e], skipping positions < 0."""
+def scatter_momentum(element_dofs, local, positions, out):
+    """Add ``element_momentum``'s values ``local`` to ``out[positions[c, dof]]`` for dof = element_dofs[i, e], each
+    component c, element by element in order (the same sums in the same order, however ``local`` was computed);
+    positions < 0 are skipped."""
     for e in range(element_dofs.shape[1]):
         for i in range(element_dofs.shape[0]):
             dof = element_dofs[i, e]
@@ -152,26 +154,6 @@ def element_momentum(element_dofs, jacobian_rows, areas, phi, dphi, weights, vel
             if threads is not None:
                 numba.set_num_threads(previous)
     return out
-
-
-def scatter_momentum(element_dofs, local, positions, out):
-    """Add ``element_momentum``'s values to ``out[positions[c, i]]`` for each P2 node i, component c (-1: skipped),
-    element by element in order (the same sums, in the same order, however they were computed)."""
-    _scatter(element_dofs, local, positions, out)
-
-
-def momentum_load(element_dofs, jacobian_rows, areas, phi, dphi, weights, velocity,
-                  mass_coefficient, convection_coefficient, positions, out, scratch, carried=None):
-    """Add integral (m w - k (v . grad) v) . phi_i to ``out[positions[c, i]]`` for each P2 node i, component c;
-    w = ``carried`` (2, N), default the velocity v itself.
-
-    ``positions`` (2, N) maps a velocity component of a node to its row in ``out`` (-1: skip), so the
-    load can land directly in a reduced (Dirichlet-free) right-hand side. ``scratch`` is (ne, 2, 6);
-    ``jacobian_rows`` and ``areas`` as ``_element_momentum`` takes them.
-    """
-    element_momentum(element_dofs, jacobian_rows, areas, phi, dphi, weights, velocity, mass_coefficient,
-                     convection_coefficient, scratch, carried)
-    scatter_momentum(element_dofs, scratch, positions, out)
 
 
 @njit(cache=True)

@@ -138,7 +138,6 @@ class _Half:
         self.source, self.y, self.z, self.x = (_aligned_empty(n, dtype=self.dtype) for _ in range(4))
         self.zero = self.dtype(0)
         self.h_t = self.sums = None
-        self.h_nonzeros = 0
         self.w = self.g = None         # the separator's solution and H^T y, in the factor's precision
         self.rows = None               # (this half's unknowns, A's rows of them in CSR): set by SplitPardiso
         self.dinv = self._diagonal(n)
@@ -230,7 +229,6 @@ class _Half:
         h = h.astype(self.dtype)
         h.sort_indices()
         self.h_t = narrow_indices(h.T.tocsr())
-        self.h_nonzeros = h.nnz
         self.w, self.g = np.zeros(h.shape[1], dtype=self.dtype), np.zeros(h.shape[1], dtype=self.dtype)
         self.sums = np.zeros(h.shape[0], dtype=self.dtype)
 
@@ -429,7 +427,7 @@ class SplitPardiso:
             half.use(sp.csr_matrix((stored[f"h{i}_data"], stored[f"h{i}_indices"], stored[f"h{i}_indptr"]),
                                    shape=(len(self.parts[i]), self.separator_size)))
         self._schur = stored["schur_inverse"]
-        self.factor_nonzeros += sum(h.h_nonzeros for h in self.halves)
+        self.factor_nonzeros += sum(len(h.h_t.data) for h in self.halves)
         self._pending = None
 
     def _coupling(self, matrix, couplings) -> dict:

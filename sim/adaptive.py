@@ -1,4 +1,5 @@
-"""Time steps chosen by a tolerance: each FE-IB step takes dt from the levels dt0, 2 dt0, 4 dt0, 8 dt0.
+"""Time steps chosen by a tolerance: each FE-IB step takes dt from the levels dt0, 2 dt0, 4 dt0, 8 dt0 and, per cell
+type, the largest multiple of dt0 within its stability cap where that lies between two of them (``level_multiples``).
 
 ``numerics.tolerance`` is a centroid path error per transit (m), against fixed steps of dt0 in the same time
 scheme. With the second-order scheme (bdf2, the default with a tolerance) the local error of a cell's area
@@ -15,9 +16,9 @@ centroid, whose path the tolerance is about; the largest over the cells in the c
 path, so a step is within budget when e <= SAFETY * tolerance * (distance the cell moved) / channel length:
 a transit then accumulates at most about SAFETY * tolerance. The tolerance is stated against the finest
 level (the reference dt0): since e / distance grows like dt^p (p the order), a ratio q measured at dt_k
-predicts q (2^(p j) - 1) / 2^(p k) for level j against the finest one; the next step takes the coarsest level
-(at most one up) where that is <= 1 (no step is repeated). A new cell, or a change of the IDT drive (the flow
-jumps before any estimate has seen it), starts from the finest level; with no cell in the channel the
+predicts q (m_j^p - 1) / m_k^p for level j (dt_j = m_j dt0) against the finest one; the next step takes the
+coarsest level (at most one up) where that is <= 1 (no step is repeated). A new cell, or a change of the IDT
+drive (the flow jumps before any estimate has seen it), starts from the finest level; with no cell in the channel the
 coarsest level is used. A step never ends after a redistribution of a cell's points that the trend of its
 spacing predicts (``_before_redistribution``), and a coarser step that redistributes anyway is retaken at the
 finest level: that event changes the membrane's forces at once, and only the finest level puts it where the
@@ -27,7 +28,8 @@ Never above the stability limit of the cells in the channel: STABLE_FRACTION tim
 (STABLE_FRACTION_BDF2 = 2 with bdf2, whose limit for the melanoma at the paper's mesh lies between 2.25x and
 2.6x) with C_cell = 1 (``sim.stability.paper_bound``). The measured limits are 4.2x (melanoma, 3.33 um mesh) and
 >= 5.6x (6.67 um) that bound, >= 100 us for the RBC (docs/results.md, "Stability"); 3.4x stays below all of them.
-Each level's fluid matrix is factored once, when first needed, on the same mesh.
+A capped cell's steps are held at its cap's own level (the melanoma at the paper's mesh with bdf2: 17.5 us), not at
+the power of two below it (10 us). Each level's fluid matrix is factored once, when first needed, on the same mesh.
 """
 
 from __future__ import annotations
@@ -40,7 +42,7 @@ from .fluid import NavierStokes, lagrange
 from .health import paper_bound, stable_fraction
 from .membrane import polygon_centroid
 
-LEVELS = 4
+LEVELS = 4                    # the powers of two: dt0, 2 dt0, 4 dt0, 8 dt0
 SAFETY = {1: 0.3, 2: 0.6}     # the share of the tolerance a transit's local errors may add up to, by the order
 LOOK_AHEAD = 1.0              # steps of a level over which a predicted redistribution keeps that level out
 
@@ -52,15 +54,16 @@ class AdaptiveSteps:
         self.plant = plant
         numerics = plant.scenario.numerics
         self.tolerance = numerics.tolerance
-        self.levels = [numerics.dt * 2 ** k for k in range(LEVELS)]
+        self.multiples = level_multiples(plant.scenario)
+        self.levels = [numerics.dt * m for m in self.multiples]
         self._fluids = {0: plant.fluid}
         self._limits: dict[str, float] = {}
         self._known: set[int] = set()
         self._actuation: float | None = None
-        self.level = LEVELS - 1
+        self.level = len(self.levels) - 1
         self.ratio = float("nan")
         self.history: list[tuple[float, float]] = []          # (time, dt) whenever dt changes
-        self.steps = [0] * LEVELS
+        self.steps = [0] * len(self.levels)
         self.order = 2 if numerics.scheme == "bdf2" else 1
         self._tracks: dict[int, list] = {}                    # bdf2: the last three (time, area centroid) per cell
         self._spacings: dict[int, list] = {}                  # the last two spacing extremes per cell
@@ -108,7 +111,7 @@ class AdaptiveSteps:
     def _estimated_level(self, active, time: float) -> int:
         """The estimate's level (the coarsest with nobody in the channel) capped by stability and by a predicted
         redistribution: ``choose``'s level but for a new cell, a changed drive and the end of a control period."""
-        level = LEVELS - 1 if not active else self.level
+        level = len(self.levels) - 1 if not active else self.level
         return min(level, self.stable_level(active), self._before_redistribution(active, time))
 
     def _before_redistribution(self, active, time: float) -> int:
@@ -119,9 +122,9 @@ class AdaptiveSteps:
         steps; a coarser step it misses is retaken at the finest level (``step``)."""
         numerics = self.plant.scenario.numerics
         if not numerics.redistribute:
-            return LEVELS - 1
+            return len(self.levels) - 1
         low, high = numerics.spacing_band
-        level = LEVELS - 1
+        level = len(self.levels) - 1
         for cell in active:
             trend = self._spacings.get(cell.id)
             if trend is None or len(trend) < 2:
@@ -158,11 +161,14 @@ class AdaptiveSteps:
         level = self.choose(state, active, until, actuation)
         samples = [self._sample(state.flow.velocity, cell.membrane.points) for cell in active] \
             if self.order == 1 else None
-        new = self.plant.fixed_step(state, actuation, self.fluid(level), ahead=False)
+        # the next step's momentum integrals start as the flow is known, at the level the estimate now gives
+        # (``_prefetch`` starts them again in the rare case the step's own estimate changes that level)
+        ahead = self._fluids.get(self._estimated_level(active, state.time), False)
+        new = self.plant.fixed_step(state, actuation, self.fluid(level), ahead=ahead)
         if level > 0 and _redistributed(active, new):
             self.retaken += 1
             level = 0
-            new = self.plant.fixed_step(state, actuation, self.fluid(level), ahead=False)
+            new = self.plant.fixed_step(state, actuation, self.fluid(level), ahead=ahead)
         dt = self.levels[level]
         if self.order == 2:
             ids = {cell.id for cell in active}
@@ -179,15 +185,15 @@ class AdaptiveSteps:
         if not self.history or self.history[-1][1] != dt:
             self.history.append((state.time, dt))
         self.steps[level] += 1
-        self._prefetch(new)
+        self._prefetch(new, ahead)
         return new
 
-    def _prefetch(self, state):
+    def _prefetch(self, state, started):
         """Start the next step's momentum integrals (``NavierStokes.prefetch``) at the level ``choose`` will most
         likely pick (all it knows now: not the end of a control period, nor a new cell or a changed drive), when
-        that level's solver exists."""
+        that level's solver exists and is not ``started``'s (the solver the step already started them on)."""
         level = self._estimated_level([cell for cell in state.cells if cell.in_channel], state.time)
-        if level in self._fluids:
+        if level in self._fluids and self._fluids[level] is not started:
             self._fluids[level].prefetch(state.flow)
 
     def _next_level(self, level: int, ratio: float, ceiling: int | None = None) -> int:
@@ -195,15 +201,15 @@ class AdaptiveSteps:
         error relative to the finest level's is within budget. A step held below the estimate's level (by a
         predicted redistribution, the end of a control period or the stability cap) may go back to it at once.
 
-        The error rate grows like dt^p: ``ratio`` measured at dt_k = 2^k dt0 predicts
-        ratio / 2^(p k) (2^(p j) - 1) for level j against the finest level (the reference the tolerance is
+        The error rate grows like dt^p: ``ratio`` measured at dt_k = m_k dt0 predicts
+        ratio / m_k^p (m_j^p - 1) for level j against the finest level (the reference the tolerance is
         stated against)."""
         if not math.isfinite(ratio):
             return 0
-        ceiling = min(LEVELS - 1, level + 1 if ceiling is None else ceiling)
-        growth = 2 ** self.order         # the error rate per distance grows like dt^order
-        rate = ratio / growth ** level
-        fitting = [j for j in range(ceiling + 1) if rate * (growth ** j - 1) <= 1]
+        ceiling = min(len(self.levels) - 1, level + 1 if ceiling is None else ceiling)
+        growth = [m ** self.order for m in self.multiples]   # the error rate per distance grows like dt^order
+        rate = ratio / growth[level]
+        fitting = [j for j in range(ceiling + 1) if rate * (growth[j] - 1) <= 1]
         return max(fitting)
 
     def _ratio_bdf2(self, cell, time: float) -> float:
@@ -269,20 +275,35 @@ class AdaptiveSteps:
     def reset(self):
         """Forget every cell, the IDT drive and the level (a new run on the same plant: ``FeibPlant.reset``)."""
         self._known, self._actuation, self._tracks, self._spacings = set(), None, {}, {}
-        self.level, self.ratio, self.history, self.steps = LEVELS - 1, float("nan"), [], [0] * LEVELS
+        self.level, self.ratio, self.history = len(self.levels) - 1, float("nan"), []
+        self.steps = [0] * len(self.levels)
         self.retaken = 0
 
     # ------------------------------------------------------------------ reporting
     def summary(self, end_time: float) -> dict:
         """The dt used over time: steps and simulated time per level, and the changes (time, dt)."""
         changes = self.history + [(end_time, math.nan)]
-        share = [0.0] * LEVELS
+        share = [0.0] * len(self.levels)
         for (start, dt), (stop, _) in zip(changes[:-1], changes[1:]):
             share[self.levels.index(dt)] += stop - start
         return {"tolerance_um": self.tolerance * 1e6, "scheme": self.plant.scenario.numerics.scheme,
                 "levels_us": [dt * 1e6 for dt in self.levels],
                 "steps": list(self.steps), "retaken": self.retaken, "time_ms": [t * 1e3 for t in share],
                 "changes": [(round(t * 1e3, 6), dt * 1e6) for t, dt in self.history]}
+
+
+def level_multiples(scenario) -> list[int]:
+    """The levels as multiples of dt0: the powers of two 1, 2, 4, 8 and, for each cell type of ``scenario``, the
+    largest multiple of dt0 within its stability cap (``stable_fraction`` x the paper's bound (33)) when that falls
+    between two of them (the melanoma at the paper's mesh with bdf2: 7, 17.5 us, where the powers of two would hold
+    it at 10 us)."""
+    multiples = {2 ** k for k in range(LEVELS)}
+    dt = scenario.numerics.dt
+    for cell_type in scenario.cell_types:
+        cap = math.floor(stable_fraction(scenario) * paper_bound(cell_type, scenario) / dt * (1 + 1e-9))
+        if 1 < cap < 2 ** (LEVELS - 1):
+            multiples.add(cap)
+    return sorted(multiples)
 
 
 def _redistributed(active, new) -> bool:

@@ -140,7 +140,7 @@ class ImmersedBoundary:
         return self.fixed_step(state, actuation)
 
     def fixed_step(self, state: State, actuation: float = 0.0, fluid: NavierStokes | None = None,
-                   ahead: bool = True) -> State:
+                   ahead: "bool | NavierStokes" = True) -> State:
         """One step of ``fluid``'s dt (default: this plant's fluid, dt = ``numerics.dt``) in its time scheme.
 
         euler (the paper's): the force at X^m, X^{m+1} = X^m + dt v^{m+1}(X^m). bdf2: the force at

@@ -113,12 +113,33 @@ def value_back(time: float, value: np.ndarray, times, values, target: float) -> 
     ``values`` at ``times`` (the latest first): an earlier value where its time is the target (equal steps, or
     one level up after two equal steps), else the parabola through the three (the line through two) there;
     None without history."""
-    if not len(values):
+    weights = back_weights(time, times, target)
+    if weights is None:
         return None
-    for known, earlier in zip(times, values):
+    nodes = [value, *values]
+    if weights.count(1.0) == 1 and weights.count(0.0) == len(weights) - 1:
+        return nodes[weights.index(1.0)]
+    return lagrange([time, *times], nodes, target)
+
+
+def back_weights(time: float, times, target: float) -> list[float] | None:
+    """The weights of (the value at ``time``, the earlier values at ``times``) that give ``value_back``'s value at
+    ``target``: one 1 and zeros where an earlier time is the target, else the Lagrange weights; None without
+    history."""
+    if not len(times):
+        return None
+    nodes = [time, *times]
+    for index, known in enumerate(times, start=1):
         if abs(known - target) <= 1e-9 * abs(time - target):
-            return earlier
-    return lagrange([time, *times], [value, *values], target)
+            return [1.0 if i == index else 0.0 for i in range(len(nodes))]
+    weights = []
+    for i, node in enumerate(nodes):
+        weight = 1.0
+        for j, other in enumerate(nodes):
+            if j != i:
+                weight *= (target - other) / (node - other)
+        weights.append(weight)
+    return weights
 
 
 def lagrange(nodes, values, target: float):
@@ -459,7 +480,8 @@ class NavierStokes:
             raise NumericalBlowUp(f"non-finite fluid velocity at t = {time:.6g} s after the {what} solve: "
                                   "the time step is too large for this flow; reduce numerics.dt")
 
-    def step(self, state: Flow, actuation: float = 0.0, load: np.ndarray | None = None, ahead: bool = True) -> Flow:
+    def step(self, state: Flow, actuation: float = 0.0, load: np.ndarray | None = None,
+             ahead: "bool | NavierStokes" = True) -> Flow:
         """Advance one step of size ``numerics.dt`` from ``state``: backward Euler, or BDF2 (``numerics.scheme``).
         ``ahead``: start the next step's momentum integrals from the result (``prefetch``: a caller that knows the
         next step is another solver's asks that one).
@@ -493,27 +515,29 @@ class NavierStokes:
         velocity.flags.writeable = pressure.flags.writeable = False     # a step's result stays as it was computed
         history = ((state.time, state.velocity),) + state.history[:1] if bdf2 else ()
         flow = Flow(new_time, velocity, pressure, level, iterations, history)
-        if ahead:
+        if ahead is True:
             self.prefetch(flow)
+        elif ahead:
+            ahead.prefetch(flow)
         return flow
 
     # ------------------------------------------------------------------ the momentum integrals, computed ahead
-    def _momentum_fields(self, state: Flow):
-        """The velocity the momentum integrals convect and the field their mass term carries (None: the same) for a
-        step of this solver from ``state``: v^m; with bdf2 (one pass) 2 v^m - v^{m-1} and (4 v^m - v^{m-1}) / 3."""
+    def _momentum_back(self, state: Flow):
+        """bdf2's velocity one step back for the momentum integrals of a step from ``state`` (``kernels.
+        element_momentum``'s ``back``: the weights of v^m and the earlier velocities, and those two); None for euler
+        or without history (a start: v^{m-1} = v^m, the euler integrals)."""
         numerics = self.scenario.numerics
-        if numerics.scheme != "bdf2":
-            return state.velocity, None
-        before = value_back(state.time, state.velocity, [t for t, _ in state.history],
-                            [v for _, v in state.history], state.time - numerics.dt)
-        if before is None:
-            return state.velocity, None
-        return 2 * state.velocity - before, (4 * state.velocity - before) / 3
+        if numerics.scheme != "bdf2" or not state.history:
+            return None
+        weights = back_weights(state.time, [t for t, _ in state.history], state.time - numerics.dt)
+        earlier = [v for _, v in state.history]
+        weights += [0.0] * (3 - len(weights))
+        return tuple(weights), (earlier[0], earlier[-1])
 
     def _element_integrals(self, state: Flow, out: np.ndarray, threads: int | None = None) -> np.ndarray:
         explicit = self.scenario.fluid.density if self.scenario.numerics.convection == "imex" else 0.0
-        velocity, carried = self._momentum_fields(state)
-        return self.space.element_momentum(velocity, self.mass_coefficient, explicit, out, carried, threads)
+        return self.space.element_momentum(state.velocity, self.mass_coefficient, explicit, out,
+                                           self._momentum_back(state), threads)
 
     def _element_momentum(self, state: Flow) -> np.ndarray:
         """The element integrals of the momentum load of a step from ``state``: the ones ``prefetch`` computed

@@ -28,21 +28,22 @@ os.register_at_fork(after_in_child=_new_launch_lock)
 BLOCK = 128    # elements a thread takes at a time in ``_element_momentum``: its scratch stays in the L1 cache
 
 
-def _momentum_kernel(carrying: bool):
-    """The element kernel of the momentum load; ``carrying``: the mass term acts on a field of its own (BDF2),
-    else on the convected velocity (its values taken once: no second gather)."""
+def _momentum_kernel(bdf2: bool):
+    """The element kernel of the momentum load; ``bdf2``: BDF2's one pass, whose mass term carries (4 v - b) / 3 and
+    whose convection is that of 2 v - b, with b the velocity one step back formed in the gather (no pass over the
+    whole fields before the kernel); else both act on the velocity v itself (its values taken once)."""
 
     @njit(cache=True, parallel=True, fastmath=True, boundscheck=False, nogil=True)
-    def kernel(element_dofs, jacobian_rows, areas, phi, dphi, weights, ux, uy, cx, cy, mass_coefficient,
-               convection_coefficient, local):
-        """local[e, c, i] = integral over element e of (m w_c - k ((u . grad) u)_c) phi_i, u = (ux, uy) and the
-        field the mass term carries w = (cx, cy) (the same arrays but for BDF2, whose mass and convection terms act
-        on different combinations of the earlier velocities: one pass for both).
+    def kernel(element_dofs, jacobian_rows, areas, phi, dphi, weights, ux, uy, ax, ay, bx, by, w0, w1, w2, general,
+               mass_coefficient, convection_coefficient, local):
+        """local[e, c, i] = integral over element e of (m w_c - k ((u . grad) u)_c) phi_i.
 
-        ``jacobian_rows`` (4, ne): the inverse Jacobians' entries a00, a01, a10, a11 per element; ``areas`` (ne,):
-        |det J|. The elements go in blocks of ``BLOCK``, each block's nodal values gathered into contiguous rows,
-        and every loop over a block's elements is one the compiler turns into vector instructions (measured:
-        2.2-2.4x faster than one element at a time)."""
+        euler: u = w = v = (ux, uy). BDF2: u = 2 v - b and w = (4 v - b) / 3 with b = a (a = (ax, ay)), or when
+        ``general`` b = (w0 v + w1 a) + w2 b' (b' = (bx, by)): the value one step back, an earlier velocity itself
+        or the parabola through the last three (``back_weights``). ``jacobian_rows`` (4, ne): the inverse Jacobians'
+        entries a00, a01, a10, a11 per element; ``areas`` (ne,): |det J|. The elements go in blocks of ``BLOCK``,
+        each block's nodal values gathered into contiguous rows, and every loop over a block's elements is one the
+        compiler turns into vector instructions (measured: 2.2-2.4x faster than one element at a time)."""
         n_elements = element_dofs.shape[1]
         n_blocks = (n_elements + BLOCK - 1) // BLOCK
         for b in prange(n_blocks):
@@ -50,19 +51,30 @@ def _momentum_kernel(carrying: bool):
             n = min(BLOCK, n_elements - start)
             xs = np.empty((6, BLOCK))
             ys = np.empty((6, BLOCK))
-            cxs = np.empty((6, BLOCK if carrying else 1))
-            cys = np.empty((6, BLOCK if carrying else 1))
+            cxs = np.empty((6, BLOCK if bdf2 else 1))
+            cys = np.empty((6, BLOCK if bdf2 else 1))
             fx = np.empty(BLOCK)
             fy = np.empty(BLOCK)
             sums = np.zeros((12, BLOCK))
             for i in range(6):
                 for j in range(n):
                     dof = element_dofs[i, start + j]
-                    xs[i, j] = ux[dof]
-                    ys[i, j] = uy[dof]
-                    if carrying:
-                        cxs[i, j] = cx[dof]
-                        cys[i, j] = cy[dof]
+                    vx = ux[dof]
+                    vy = uy[dof]
+                    if bdf2:
+                        if general:
+                            back_x = (w0 * vx + w1 * ax[dof]) + w2 * bx[dof]
+                            back_y = (w0 * vy + w1 * ay[dof]) + w2 * by[dof]
+                        else:
+                            back_x = ax[dof]
+                            back_y = ay[dof]
+                        xs[i, j] = 2.0 * vx - back_x
+                        ys[i, j] = 2.0 * vy - back_y
+                        cxs[i, j] = (4.0 * vx - back_x) / 3.0
+                        cys[i, j] = (4.0 * vy - back_y) / 3.0
+                    else:
+                        xs[i, j] = vx
+                        ys[i, j] = vy
             a00 = jacobian_rows[0, start:start + n]
             a01 = jacobian_rows[1, start:start + n]
             a10 = jacobian_rows[2, start:start + n]
@@ -91,7 +103,7 @@ def _momentum_kernel(carrying: bool):
                     ux_y = a01[j] * ux_r + a11[j] * ux_s
                     uy_x = a00[j] * uy_r + a10[j] * uy_s
                     uy_y = a01[j] * uy_r + a11[j] * uy_s
-                    if carrying:
+                    if bdf2:
                         carried_x = c0[j] * p0 + c1[j] * p1 + c2[j] * p2 + c3[j] * p3 + c4[j] * p4 + c5[j] * p5
                         carried_y = d0[j] * p0 + d1[j] * p1 + d2[j] * p2 + d3[j] * p3 + d4[j] * p4 + d5[j] * p5
                     else:
@@ -114,7 +126,7 @@ def _momentum_kernel(carrying: bool):
 
 
 _element_momentum = _momentum_kernel(False)
-_element_momentum_carrying = _momentum_kernel(True)
+_element_momentum_bdf2 = _momentum_kernel(True)
 
 
 @njit(cache=True)
@@ -132,24 +144,29 @@ def scatter_momentum(element_dofs, local, positions, out):
 
 
 def element_momentum(element_dofs, jacobian_rows, areas, phi, dphi, weights, velocity, mass_coefficient,
-                     convection_coefficient, out, carried=None, threads: int | None = None):
-    """Each element's integrals (m w - k (v . grad) v) . phi_i into ``out`` (ne, 2, 6), w = ``carried`` (2, N),
-    default the velocity v itself; ``jacobian_rows`` and ``areas`` as ``_element_momentum`` takes them.
+                     convection_coefficient, out, back=None, threads: int | None = None):
+    """Each element's integrals (m w - k (u . grad) u) . phi_i into ``out`` (ne, 2, 6); ``jacobian_rows`` and ``areas``
+    as ``_element_momentum`` takes them. Without ``back`` u = w = v (``velocity``, (2, N)); with ``back`` = (weights
+    (w0, w1, w2), (a, b)), BDF2's: u = 2 v - b^, w = (4 v - b^) / 3, b^ = w0 v + w1 a + w2 b the velocity one step
+    back (``sim.fluid.back_weights``; (0, 1, 0) takes a itself, with no arithmetic on its values).
 
     ``threads``: numba's threads for this call (default: numba's setting; 1: the calling thread alone, while the
     process's other threads work; numba's setting is per thread and is restored). Each block of elements is
     computed alone, whichever thread takes it, so the values are the same bits with any number. The GIL is released
     while it runs; a lock keeps two threads from launching it at once (numba's threading layers need not allow
     concurrent launches)."""
-    kernel = _element_momentum if carried is None else _element_momentum_carrying
-    carried = velocity if carried is None else carried
+    if back is None:
+        kernel, (w0, w1, w2), (a, b) = _element_momentum, (0.0, 0.0, 0.0), (velocity, velocity)
+    else:
+        kernel, (w0, w1, w2), (a, b) = _element_momentum_bdf2, back[0], back[1]
+    general = bool(w0 != 0.0 or w2 != 0.0 or w1 != 1.0)
     with _LAUNCH:
         previous = numba.get_num_threads()
         if threads is not None:
             numba.set_num_threads(threads)
         try:
-            kernel(element_dofs, jacobian_rows, areas, phi, dphi, weights, velocity[0], velocity[1], carried[0],
-                   carried[1], mass_coefficient, convection_coefficient, out)
+            kernel(element_dofs, jacobian_rows, areas, phi, dphi, weights, velocity[0], velocity[1], a[0], a[1], b[0],
+                   b[1], float(w0), float(w1), float(w2), general, mass_coefficient, convection_coefficient, out)
         finally:
             if threads is not None:
                 numba.set_num_threads(previous)

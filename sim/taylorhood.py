@@ -112,25 +112,25 @@ class TaylorHood:
         self._scratch = None
         self._pattern = None
 
-    def momentum_load(self, velocity, mass_coefficient, convection_coefficient, positions, out, carried=None):
-        """Add (m w - k (v . grad) v, phi_i) to ``out[positions[c, i]]``, w = ``carried`` (default v) (numba
-        kernel, see ``kernels``)."""
+    def momentum_load(self, velocity, mass_coefficient, convection_coefficient, positions, out, back=None):
+        """Add (m w - k (u . grad) u, phi_i) to ``out[positions[c, i]]``: u = w = v, or BDF2's fields from the velocity
+        one step back ``back`` (``kernels.element_momentum``)."""
         if self._scratch is None:
             self._scratch = self.element_buffer()
-        self.element_momentum(velocity, mass_coefficient, convection_coefficient, self._scratch, carried)
+        self.element_momentum(velocity, mass_coefficient, convection_coefficient, self._scratch, back)
         return self.scatter_momentum(self._scratch, positions, out)
 
     def element_buffer(self) -> np.ndarray:
         """A buffer for ``element_momentum``: (elements, 2, 6)."""
         return np.empty((self.element_dofs.shape[1], 2, 6))
 
-    def element_momentum(self, velocity, mass_coefficient, convection_coefficient, out, carried=None,
+    def element_momentum(self, velocity, mass_coefficient, convection_coefficient, out, back=None,
                          threads: int | None = None) -> np.ndarray:
         """``momentum_load``'s element integrals into ``out`` (``element_buffer``), on ``threads`` of numba's
         (``kernels.element_momentum``: the same bits with any number)."""
         return kernels.element_momentum(self.element_dofs, self.jacobian_rows, self.areas, self.q_phi, self.q_dphi,
                                         self.q_weights, velocity, mass_coefficient, convection_coefficient, out,
-                                        carried, threads)
+                                        back, threads)
 
     def scatter_momentum(self, local, positions, out):
         """Add ``element_momentum``'s values ``local`` to ``out[positions[c, i]]`` (element by element, in order)."""

@@ -25,25 +25,43 @@ def cell(kind, key, scenario):
 
 
 def test_levels_new_cells_empty_channel_and_the_stability_cap():
-    scenario = Scenario().with_numerics(dt=10e-6, tolerance=1e-6, time_scheme="euler")   # paper mesh; 10-80 us
+    scenario = Scenario().with_numerics(dt=10e-6, tolerance=1e-6, time_scheme="euler")   # paper mesh
     steps = steps_of(scenario)
     state = SimpleNamespace(time=0.0)
-    assert steps.levels == [10e-6, 20e-6, 40e-6, 80e-6]
-    assert steps.choose(state, [], None) == LEVELS - 1                      # nobody to be accurate for
+    # the powers of two, and the melanoma's cap (3.4 x 8.9 us = 30.2 us) as a level of its own
+    assert steps.levels == pytest.approx([10e-6, 20e-6, 30e-6, 40e-6, 80e-6], rel=1e-12)
+    top = len(steps.levels) - 1
+    assert steps.choose(state, [], None) == top                             # nobody to be accurate for
     rbc = cell("RBC", 1, scenario)
     assert steps.choose(state, [rbc], None) == 0                            # a new cell starts finest
-    steps.level = 3
-    assert steps.choose(state, [rbc], None) == 3                            # RBC: bound 409 us, no cap
+    steps.level = top
+    assert steps.choose(state, [rbc], None) == top                          # RBC: bound 409 us, no cap
     melanoma = cell("melanoma", 2, scenario)
-    steps.level = 3
-    # melanoma: 3.4 x 8.9 us = 30 us < 37.6 us measured: never above 20 us, whatever the estimate says
+    steps.level = top
+    # melanoma: 3.4 x 8.9 us = 30 us < 37.6 us measured: never above 30 us, whatever the estimate says
     assert steps.choose(state, [rbc, melanoma], None) == 0                 # the melanoma is new
-    steps.level = 3
-    assert steps.choose(state, [rbc, melanoma], None) == 1
+    steps.level = top
+    assert steps.choose(state, [rbc, melanoma], None) == 2
     assert steps.choose(state, [rbc], until=25e-6) == 1                     # never past `until`
-    steps.level = 3
-    assert steps.choose(state, [rbc], None, actuation=0.0) == 3
+    steps.level = top
+    assert steps.choose(state, [rbc], None, actuation=0.0) == top
     assert steps.choose(state, [rbc], None, actuation=1.0) == 0             # the IDT switched: the flow jumps
+
+
+def test_a_cell_types_stability_cap_is_a_level_when_it_falls_between_two():
+    """The levels are dt0 x 1, 2, 4, 8 and, per cell type, the largest multiple of dt0 within its cap when that lies
+    between two of them: the stability cap, not the powers of two, limits a capped cell's steps."""
+    from sim.adaptive import level_multiples
+    from sim.health import paper_bound, stable_fraction
+    bdf2 = Scenario().with_numerics(tolerance=1e-6)                              # dt0 2.5 us; cap 17.7 us
+    assert level_multiples(bdf2) == [1, 2, 4, 7, 8]
+    melanoma = bdf2.cell_type("melanoma")
+    cap = stable_fraction(bdf2) * paper_bound(melanoma, bdf2)
+    assert 7 * 2.5e-6 <= cap < 8 * 2.5e-6
+    assert level_multiples(bdf2.with_numerics(time_scheme="euler")) == [1, 2, 4, 8]     # cap 30 us: above 8 dt0
+    assert level_multiples(bdf2.with_numerics(dt=1e-6)) == [1, 2, 4, 8]                # 17 dt0: above 8 dt0
+    assert level_multiples(bdf2.with_numerics(dt=10e-6)) == [1, 2, 4, 8]               # cap under 2 dt0: no level
+    assert level_multiples(replace(bdf2, cell_types=(bdf2.cell_type("RBC"),))) == [1, 2, 4, 8]   # no cap below
 
 
 def test_next_level_against_the_finest_level():
@@ -57,15 +75,16 @@ def test_next_level_against_the_finest_level():
 
 def test_the_second_order_scheme_has_its_own_stability_cap():
     """bdf2 is less stable than euler (the melanoma at the paper's mesh: 2.25x its bound ran, 2.6x did not):
-    its cap is 2x the bound, so a melanoma never takes 20 us there; an RBC (bound 409 us) is not capped."""
+    its cap is 2x the bound, so a melanoma takes at most 17.5 us there; an RBC (bound 409 us) is not capped."""
     from sim.health import STABLE_FRACTION_BDF2, HealthLimits, paper_bound
-    scenario = Scenario().with_numerics(tolerance=1e-6)                  # bdf2; levels 2.5-20 us
+    scenario = Scenario().with_numerics(tolerance=1e-6)                  # bdf2; levels 2.5, 5, 10, 17.5, 20 us
     steps = steps_of(scenario)
     melanoma = scenario.cell_type("melanoma")
-    assert 10e-6 < STABLE_FRACTION_BDF2 * paper_bound(melanoma, scenario) < 20e-6
-    assert steps.stable_level([cell("melanoma", 1, scenario)]) == 2
-    assert steps.stable_level([cell("RBC", 1, scenario)]) == 3
-    euler = steps_of(scenario.with_numerics(time_scheme="euler"))
+    assert 17.5e-6 <= STABLE_FRACTION_BDF2 * paper_bound(melanoma, scenario) < 20e-6
+    assert steps.levels[3] == pytest.approx(17.5e-6, rel=1e-12)
+    assert steps.stable_level([cell("melanoma", 1, scenario)]) == 3
+    assert steps.stable_level([cell("RBC", 1, scenario)]) == 4
+    euler = steps_of(scenario.with_numerics(time_scheme="euler"))          # 2.5-20 us: no level of a cap
     assert euler.stable_level([cell("melanoma", 1, scenario)]) == 3
     # the failure hint of a bdf2 run suggests bdf2's stable dt
     limits = HealthLimits.of(scenario.with_numerics(tolerance=0.0, time_scheme="bdf2", dt=40e-6))
@@ -99,7 +118,7 @@ def test_a_cell_without_an_estimate_holds_the_level_and_reset_forgets():
         steps.step(state, 0.0, None)
         assert steps.level == expected
     steps.reset()
-    assert steps.level == LEVELS - 1 and steps._known == set() and steps.steps == [0] * LEVELS
+    assert steps.level == len(steps.levels) - 1 and steps._known == set() and steps.steps == [0] * len(steps.levels)
 
 
 def test_next_level_of_the_second_order_scheme():
@@ -158,13 +177,13 @@ def test_a_coarse_step_that_redistributes_is_retaken_at_the_finest_level():
     new = plant.step(state, 0.0)
     assert new.cells[0].membrane.redistributions == spread.membrane.redistributions + 1
     assert math.isclose(new.time - state.time, steps.levels[0]) and steps.retaken == 1
-    assert steps.steps == [1, 0, 0, 0] and steps.summary(new.time)["retaken"] == 1
+    assert steps.steps == [1, 0, 0, 0, 0] and steps.summary(new.time)["retaken"] == 1
     steps.reset()                                          # the cell as born (spacing inside the band): no retake
     steps._known, steps.level = {1}, 2
     state = plant.start(cells=(rbc,))
     new = plant.step(state, 0.0)
     assert new.cells[0].membrane.redistributions == rbc.membrane.redistributions and steps.retaken == 0
-    assert math.isclose(new.time - state.time, steps.levels[2]) and steps.steps == [0, 0, 1, 0]
+    assert math.isclose(new.time - state.time, steps.levels[2]) and steps.steps == [0, 0, 1, 0, 0]
 
 
 def test_an_adaptive_run_computes_ahead_at_the_level_it_will_take(monkeypatch):
@@ -198,10 +217,11 @@ def test_an_adaptive_run_computes_ahead_at_the_level_it_will_take(monkeypatch):
 
     ahead, used, history = run(True)
     here, used_here, history_here = run(False)
-    assert [dt for _, dt in history] == [20e-6, 2.5e-6, 5e-6, 10e-6, 20e-6]        # four level changes
+    # five level changes (one up a step: 17.5 us, the melanoma's cap, lies on the way to 20 us)
+    assert [dt for _, dt in history] == pytest.approx([20e-6, 2.5e-6, 5e-6, 10e-6, 17.5e-6, 20e-6], rel=1e-12)
     # computed in the step: the first, the new cell's (its level no step could know), and the first at a level not
-    # set up before (levels are built when first taken: here 5 and 10 us); every other step found its own ahead
-    assert used == [False, False, True, True, True, False, False, True, True, True] and not any(used_here)
+    # set up before (levels are built when first taken: here 5, 10 and 17.5 us); every other step found its own ahead
+    assert used == [False, False, True, True, True, False, False, False, True, True] and not any(used_here)
     assert history == history_here
     assert np.array_equal(ahead.cells[0].membrane.points, here.cells[0].membrane.points)
     assert np.array_equal(ahead.flow.velocity, here.flow.velocity)
@@ -272,7 +292,7 @@ def test_default_stream_within_tolerance():
         gap = np.hypot(path[keep, 1] - np.interp(path[keep, 0], ref[:, 0], ref[:, 1]),
                        path[keep, 2] - np.interp(path[keep, 0], ref[:, 0], ref[:, 2]))
         assert gap.max() <= 1e-6, (key, gap.max())
-    assert adaptive["time_steps"]["levels_us"] == [2.5, 5.0, 10.0, 20.0]
+    assert adaptive["time_steps"]["levels_us"] == pytest.approx([2.5, 5.0, 10.0, 17.5, 20.0])
 
 
 @pytest.mark.parametrize("arguments, message", [

@@ -16,14 +16,26 @@ def space(request):
     return TaylorHood(channel_mesh(Scenario().channel, request.param * UM))
 
 
-@pytest.mark.parametrize("carrying", [False, True], ids=["mass-of-the-velocity", "mass-of-another-field"])
-def test_momentum_load_matches_scikit_fem_assembly(space, carrying):
-    """(m w - k (v . grad) v, phi): w = v (euler) or a field of its own (BDF2's one pass)."""
+BACKS = {"euler": None,                                     # u = w = v
+         "bdf2-equal-steps": (0.0, 1.0, 0.0),               # b = the last earlier velocity itself
+         "bdf2-parabola": (0.375, 0.75, -0.125)}            # b = the parabola through three, as back_weights gives
+
+
+@pytest.mark.parametrize("weights", BACKS.values(), ids=BACKS.keys())
+def test_momentum_load_matches_scikit_fem_assembly(space, weights):
+    """(m w - k (u . grad) u, phi): u = w = v (euler), or BDF2's one pass: u = 2 v - b, w = (4 v - b) / 3 with b the
+    velocity one step back, formed in the kernel from v and two earlier velocities."""
     rng = np.random.default_rng(1)
-    velocity = rng.standard_normal((2, space.N))
-    carried = rng.standard_normal((2, space.N)) if carrying else velocity
+    velocity, first, second = (rng.standard_normal((2, space.N)) for _ in range(3))
+    if weights is None:
+        convected = carried = velocity
+        back = None
+    else:
+        before = weights[0] * velocity + weights[1] * first + weights[2] * second
+        convected, carried = 2 * velocity - before, (4 * velocity - before) / 3
+        back = (weights, (first, second))
     basis = space.velocity_basis
-    fields = {"ux": basis.interpolate(velocity[0]), "uy": basis.interpolate(velocity[1]),
+    fields = {"ux": basis.interpolate(convected[0]), "uy": basis.interpolate(convected[1]),
               "wx": basis.interpolate(carried[0]), "wy": basis.interpolate(carried[1])}
     mass, convection = 3.0, 2.0
 
@@ -38,7 +50,7 @@ def test_momentum_load_matches_scikit_fem_assembly(space, carrying):
     expected = np.array([component(0), component(1)])
     out = np.zeros(2 * space.N)
     positions = np.arange(2 * space.N).reshape(2, space.N)
-    space.momentum_load(velocity, mass, convection, positions, out, carried=carried if carrying else None)
+    space.momentum_load(velocity, mass, convection, positions, out, back=back)
     assert np.abs(out.reshape(2, -1) - expected).max() <= 1e-12 * np.abs(expected).max()
 
 
@@ -85,17 +97,17 @@ def test_linearised_convection_kernel_matches_scikit_fem_forms(space, newton):
             assert abs(fast[a][b] - reference[a][b]).max() <= 1e-12 * scale
 
 
-@pytest.mark.parametrize("carrying", [False, True], ids=["mass-of-the-velocity", "mass-of-another-field"])
-def test_element_integrals_are_the_same_bits_on_one_thread_or_all(space, carrying):
+@pytest.mark.parametrize("weights", BACKS.values(), ids=BACKS.keys())
+def test_element_integrals_are_the_same_bits_on_one_thread_or_all(space, weights):
     """The fluid step computes the next step's element integrals ahead on one helper thread, or here on all of
     numba's: each block of elements is computed alone, so the two give the same bits."""
     import numba
     rng = np.random.default_rng(5)
-    velocity = rng.standard_normal((2, space.N))
-    carried = rng.standard_normal((2, space.N)) if carrying else None
+    velocity, first, second = (rng.standard_normal((2, space.N)) for _ in range(3))
+    back = None if weights is None else (weights, (first, second))
     one, every = space.element_buffer(), space.element_buffer()
     threads = numba.get_num_threads()
-    space.element_momentum(velocity, 3.0, 2.0, one, carried, threads=1)
+    space.element_momentum(velocity, 3.0, 2.0, one, back, threads=1)
     assert numba.get_num_threads() == threads                   # the caller's setting restored
-    space.element_momentum(velocity, 3.0, 2.0, every, carried)
+    space.element_momentum(velocity, 3.0, 2.0, every, back)
     assert np.array_equal(one, every) and np.abs(every).max() > 0

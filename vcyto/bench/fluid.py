@@ -162,8 +162,8 @@ def _load_ms(base: NavierStokes, state, repeats: int) -> dict:
         space.momentum_load(now, base.mass_coefficient, density, base.positions, rhs)
 
     def bdf2():
-        space.momentum_load(2 * now - before, base.mass_coefficient, density, base.positions, rhs,
-                            carried=(4 * now - before) / 3)
+        space.momentum_load(now, base.mass_coefficient, density, base.positions, rhs,
+                            back=((0.0, 1.0, 0.0), (before, before)))
     count = max(10, repeats)
     return {"euler": _median_ms(euler, count), "bdf2": _median_ms(bdf2, count)}
 

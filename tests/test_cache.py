@@ -96,6 +96,26 @@ def test_a_corrupted_entry_is_detected_and_rebuilt(tmp_path):
     assert disk.fetch("kind", key, builder(calls))["y"].shape == (3, 3) and disk.hits == 1 and len(calls) == 3
 
 
+def test_no_flipped_byte_anywhere_in_an_entry_gives_wrong_arrays(tmp_path):
+    """The zip format's CRC-32 of each array (checked as it is read) and the stored key guard the entry: a flipped
+    byte at any of 400 places across the file (headers, arrays, directory) gives either the right arrays (a byte
+    no array depends on: a timestamp) or a rebuild, never other values."""
+    disk, calls = DiskCache(tmp_path), []
+    key = {"a": 1}
+    disk.fetch("kind", key, builder(calls))
+    path = disk.path("kind", key)
+    good = path.read_bytes()
+    expected = builder([])()
+    for position in np.linspace(0, len(good) - 1, 400).astype(int):
+        raw = bytearray(good)
+        raw[position] ^= 0xFF
+        path.write_bytes(bytes(raw))
+        arrays = disk.fetch("kind", key, builder(calls))
+        assert set(arrays) == set(expected), position
+        assert all(np.array_equal(arrays[name], expected[name]) for name in expected), position
+    assert disk.rebuilt >= 300 and disk.hits + disk.rebuilt == 400       # most bytes are arrays' or headers'
+
+
 def test_keys_name_everything(tmp_path):
     disk, calls = DiskCache(tmp_path), []
     disk.fetch("kind", {"a": 1, "b": 2.0}, builder(calls))

@@ -6,8 +6,11 @@ clear`` empties it; ``vcyto cache`` says where it is and how large.
 
 An entry is one ``.npz`` file named by the SHA-256 of its key: the kind, every field ``sim`` names (the
 whole scenario, the numerics, the matrix digest, MKL's version, ...), the vcyto and numpy versions and
-this file's format number. It holds its key again and a SHA-256 of its arrays: an entry whose checksum or
-key does not match (a torn or corrupted file, a hash collision) is rebuilt and rewritten. Writes go to a
+this file's format number. It holds its key and its arrays' names again, and the zip format keeps a CRC-32 of
+each array, which is checked as the array is read: an entry whose key or names do not match (a hash collision, a
+damaged directory of the zip file) or that fails a CRC or cannot be read (a torn or corrupted file) is rebuilt
+and rewritten. (Format 1 kept a SHA-256 of the arrays instead of their names: the CRCs see the same damage as
+they are read, where hashing took ~0.2 s of a tolerance run's start.) Writes go to a
 temporary file in the same directory and are moved in place with ``os.replace`` (atomic): concurrent runs
 never see half an entry; the last writer wins with identical content.
 
@@ -41,7 +44,7 @@ from sim.store import digest
 from . import __version__
 from .outputs import create_new
 
-FORMAT = 1
+FORMAT = 2          # 2 (round 15): the arrays' names stored and checked, no SHA-256 of the arrays
 LOG = logging.getLogger(__name__)
 
 
@@ -96,12 +99,12 @@ class DiskCache:
             if not quiet:
                 LOG.warning("cache entry %s is unreadable (%s): rebuilding it", path, error)
             return None
+        # every array was read to its end, so zipfile checked its CRC-32 (a mismatch raised BadZipFile above)
         stored_key = arrays.pop("_key", np.array("")).item()
-        checksum = arrays.pop("_checksum", np.array("")).item()
-        # a directory entry's file list (``_files``) is checked against the files themselves, not in the checksum
-        if stored_key != full_key or checksum != _checksum({k: v for k, v in arrays.items() if k != "_files"}):
+        names = arrays.pop("_names", np.array("")).item()
+        if stored_key != full_key or names != _names(arrays):
             if not quiet:
-                LOG.warning("cache entry %s does not match its checksum or key: rebuilding it", path)
+                LOG.warning("cache entry %s does not match its key or its list of arrays: rebuilding it", path)
             return None
         return arrays
 
@@ -111,7 +114,7 @@ class DiskCache:
             handle, temporary = tempfile.mkstemp(dir=path.parent, prefix=f".{path.stem}.", suffix=".tmp")
             try:
                 with os.fdopen(handle, "wb") as file:
-                    np.savez(file, _key=np.array(full_key), _checksum=np.array(_checksum(arrays)), **arrays)
+                    np.savez(file, _key=np.array(full_key), _names=np.array(_names(arrays)), **arrays)
                 os.replace(temporary, path)
             except BaseException:
                 Path(temporary).unlink(missing_ok=True)
@@ -173,8 +176,8 @@ class DiskCache:
             arrays = {name: np.asarray(value) for name, value in write(str(temporary)).items()}
             files = {item.name: _file_sum(item) for item in sorted(temporary.iterdir())}
             with open(temporary / ENTRY, "wb") as file:
-                np.savez(file, _key=np.array(full_key), _checksum=np.array(_checksum(arrays)),
-                         _files=np.array(json.dumps(files)), **arrays)
+                arrays["_files"] = np.array(json.dumps(files))
+                np.savez(file, _key=np.array(full_key), _names=np.array(_names(arrays)), **arrays)
             if path.exists():
                 if self._verified(path, full_key) is not None:
                     return                          # another run kept it meanwhile
@@ -304,9 +307,9 @@ def _file_sum(path: Path) -> tuple[int, int]:
     return size, crc
 
 
-def _checksum(arrays: dict) -> str:
-    return digest(*(np.frombuffer(name.encode(), dtype=np.uint8) for name in sorted(arrays)),
-                  *(arrays[name] for name in sorted(arrays)))
+def _names(arrays: dict) -> str:
+    """The arrays' names as an entry keeps them (``_key`` and ``_names`` themselves left out)."""
+    return json.dumps(sorted(arrays))
 
 
 def install_default() -> DiskCache | None:

@@ -71,6 +71,27 @@ def test_back_weights_pick_an_earlier_value_or_give_the_parabola():
     assert back_weights(10.0, [9.0], 9.5) == pytest.approx([0.5, 0.5])      # the line through two
 
 
+def test_the_momentum_kernel_gets_an_earlier_velocity_itself_or_the_parabolas_weights():
+    """``_momentum_back``: the step's v^{m-1} as the kernel forms it. An earlier velocity whose time is the target is
+    passed as it is (weights (0, 1, 0): no arithmetic on its values), the latest or the one before it; otherwise the
+    Lagrange weights of v^m and both earlier velocities; euler and a start (no history) get none."""
+    from types import SimpleNamespace
+    bdf2 = Scenario().with_numerics(time_scheme="bdf2", dt=1.0)
+    first, second = np.ones((2, 3)), 2 * np.ones((2, 3))
+    flow = SimpleNamespace(time=10.0, history=((9.0, first), (8.0, second)))
+
+    def back(flow, scenario=bdf2):
+        return NavierStokes._momentum_back(SimpleNamespace(scenario=scenario), flow)
+    weights, (a, _) = back(flow)                                                   # equal steps: the latest
+    assert weights == (0.0, 1.0, 0.0) and a is first
+    weights, (a, _) = back(flow, bdf2.with_numerics(dt=2.0))                       # one level up: the one before
+    assert weights == (0.0, 1.0, 0.0) and a is second
+    weights, (a, b) = back(flow, bdf2.with_numerics(dt=0.5))                       # between: the parabola's
+    assert weights == pytest.approx((0.375, 0.75, -0.125)) and a is first and b is second
+    assert back(SimpleNamespace(time=10.0, history=())) is None
+    assert back(flow, bdf2.with_numerics(time_scheme="euler")) is None
+
+
 def test_a_redistribution_carries_the_history_to_the_new_points():
     """The history (earlier points) is taken to the new points' spline parameters: a history equal to the
     points is carried to exactly the new points, and a translated one to the translated new points."""

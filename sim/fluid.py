@@ -113,13 +113,20 @@ def value_back(time: float, value: np.ndarray, times, values, target: float) -> 
     ``values`` at ``times`` (the latest first): an earlier value where its time is the target (equal steps, or
     one level up after two equal steps), else the parabola through the three (the line through two) there;
     None without history."""
-    weights = back_weights(time, times, target)
-    if weights is None:
+    if not len(values):
         return None
-    nodes = [value, *values]
-    if weights.count(1.0) == 1 and weights.count(0.0) == len(weights) - 1:
-        return nodes[weights.index(1.0)]
-    return lagrange([time, *times], nodes, target)
+    index = earlier_at(time, times, target)
+    if index is not None:
+        return values[index]
+    return lagrange([time, *times], [value, *values], target)
+
+
+def earlier_at(time: float, times, target: float) -> int | None:
+    """The index in ``times`` (earlier than ``time``, the latest first) of the one that is ``target``, else None."""
+    for index, known in enumerate(times):
+        if abs(known - target) <= 1e-9 * abs(time - target):
+            return index
+    return None
 
 
 def back_weights(time: float, times, target: float) -> list[float] | None:
@@ -128,10 +135,14 @@ def back_weights(time: float, times, target: float) -> list[float] | None:
     history."""
     if not len(times):
         return None
-    nodes = [time, *times]
-    for index, known in enumerate(times, start=1):
-        if abs(known - target) <= 1e-9 * abs(time - target):
-            return [1.0 if i == index else 0.0 for i in range(len(nodes))]
+    index = earlier_at(time, times, target)
+    if index is not None:
+        return [1.0 if i == index + 1 else 0.0 for i in range(len(times) + 1)]
+    return lagrange_weights([time, *times], target)
+
+
+def lagrange_weights(nodes, target: float) -> list[float]:
+    """The weights of the values at ``nodes`` in the polynomial through them, evaluated at ``target``."""
     weights = []
     for i, node in enumerate(nodes):
         weight = 1.0
@@ -145,11 +156,7 @@ def back_weights(time: float, times, target: float) -> list[float] | None:
 def lagrange(nodes, values, target: float):
     """The polynomial through ``values`` at ``nodes`` (numbers or arrays), evaluated at ``target``."""
     result = 0.0
-    for i, (node, point) in enumerate(zip(nodes, values)):
-        weight = 1.0
-        for j, other in enumerate(nodes):
-            if j != i:
-                weight *= (target - other) / (node - other)
+    for weight, point in zip(lagrange_weights(nodes, target), values):
         result = result + weight * point
     return result
 
@@ -529,12 +536,12 @@ class NavierStokes:
         numerics = self.scenario.numerics
         if numerics.scheme != "bdf2" or not state.history:
             return None
-        weights = back_weights(state.time, [t for t, _ in state.history], state.time - numerics.dt)
-        earlier = [v for _, v in state.history]
-        if weights[0] == 0.0 and weights.count(1.0) == 1 and weights.count(0.0) == len(weights) - 1:
-            exact = earlier[weights.index(1.0) - 1]       # an earlier velocity itself: taken as it is
-            return (0.0, 1.0, 0.0), (exact, exact)
-        weights += [0.0] * (3 - len(weights))
+        times, earlier = [t for t, _ in state.history], [v for _, v in state.history]
+        target = state.time - numerics.dt
+        index = earlier_at(state.time, times, target)
+        if index is not None:                                 # an earlier velocity itself: taken as it is
+            return (0.0, 1.0, 0.0), (earlier[index], earlier[index])
+        weights = lagrange_weights([state.time, *times], target) + [0.0] * (2 - len(times))
         return tuple(weights), (earlier[0], earlier[-1])
 
     def _element_integrals(self, state: Flow, out: np.ndarray, threads: int | None = None) -> np.ndarray:

@@ -114,7 +114,7 @@ class DiskCache:
             handle, temporary = tempfile.mkstemp(dir=path.parent, prefix=f".{path.stem}.", suffix=".tmp")
             try:
                 with os.fdopen(handle, "wb") as file:
-                    np.savez(file, _key=np.array(full_key), _names=np.array(_names(arrays)), **arrays)
+                    _write_entry(file, full_key, arrays)
                 os.replace(temporary, path)
             except BaseException:
                 Path(temporary).unlink(missing_ok=True)
@@ -176,8 +176,7 @@ class DiskCache:
             arrays = {name: np.asarray(value) for name, value in write(str(temporary)).items()}
             files = {item.name: _file_sum(item) for item in sorted(temporary.iterdir())}
             with open(temporary / ENTRY, "wb") as file:
-                arrays["_files"] = np.array(json.dumps(files))
-                np.savez(file, _key=np.array(full_key), _names=np.array(_names(arrays)), **arrays)
+                _write_entry(file, full_key, {**arrays, "_files": np.array(json.dumps(files))})
             if path.exists():
                 if self._verified(path, full_key) is not None:
                     return                          # another run kept it meanwhile
@@ -305,6 +304,11 @@ def _file_sum(path: Path) -> tuple[int, int]:
     except OSError:
         return -1, 0
     return size, crc
+
+
+def _write_entry(file, full_key: str, arrays: dict):
+    """An entry's ``.npz``: its key, its arrays' names (``_names``) and the arrays."""
+    np.savez(file, _key=np.array(full_key), _names=np.array(_names(arrays)), **arrays)
 
 
 def _names(arrays: dict) -> str:

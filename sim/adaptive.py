@@ -1,5 +1,6 @@
-"""Time steps chosen by a tolerance: each FE-IB step takes dt from the levels dt0, 2 dt0, 4 dt0, 8 dt0 and, per cell
-type, the largest multiple of dt0 within its stability cap where that lies between two of them (``level_multiples``).
+"""Time steps chosen by a tolerance: each FE-IB step takes dt from the levels dt0, 2 dt0, 4 dt0, 8 dt0, per cell type
+the largest multiple of dt0 within its stability cap where that lies between two of them, and 16 dt0 for cells
+far from their stability limit (``level_multiples``).
 
 ``numerics.tolerance`` is a centroid path error per transit (m), against fixed steps of dt0 in the same time
 scheme. With the second-order scheme (bdf2, the default with a tolerance) the local error of a cell's area
@@ -43,6 +44,7 @@ from .health import paper_bound, stable_fraction
 from .membrane import polygon_centroid
 
 LEVELS = 4                    # the powers of two: dt0, 2 dt0, 4 dt0, 8 dt0
+COARSE = 16                   # and 16 dt0, for cells whose paper bound lies above it (``level_multiples``)
 SAFETY = {1: 0.3, 2: 0.6}     # the share of the tolerance a transit's local errors may add up to, by the order
 LOOK_AHEAD = 1.0              # steps of a level over which a predicted redistribution keeps that level out
 
@@ -57,7 +59,7 @@ class AdaptiveSteps:
         self.multiples = level_multiples(plant.scenario)
         self.levels = [numerics.dt * m for m in self.multiples]
         self._fluids = {0: plant.fluid}
-        self._limits: dict[str, float] = {}
+        self._limits: dict[str, tuple[float, float]] = {}    # cell type: (its cap, its paper bound)
         self._known: set[int] = set()
         self._actuation: float | None = None
         self.level = len(self.levels) - 1
@@ -83,15 +85,17 @@ class AdaptiveSteps:
         return self._fluids[level]
 
     def stable_level(self, cells) -> int:
-        """The coarsest level within ``stable_fraction`` of every present cell type's stability bound."""
-        limit = math.inf
+        """The coarsest level within ``stable_fraction`` of every present cell type's stability bound; the coarse
+        level (``COARSE`` dt0) only within every present cell type's bound itself (``level_multiples``)."""
+        cap = bound = math.inf
         for cell in cells:
             cell_type = cell.membrane.cell_type
             if cell_type.name not in self._limits:
-                self._limits[cell_type.name] = stable_fraction(self.plant.scenario) * paper_bound(
-                    cell_type, self.plant.scenario)
-            limit = min(limit, self._limits[cell_type.name])
-        return max([0] + [k for k, dt in enumerate(self.levels) if dt <= limit])
+                own = paper_bound(cell_type, self.plant.scenario)
+                self._limits[cell_type.name] = (stable_fraction(self.plant.scenario) * own, own)
+            cap, bound = min(cap, self._limits[cell_type.name][0]), min(bound, self._limits[cell_type.name][1])
+        return max([0] + [k for k, (multiple, dt) in enumerate(zip(self.multiples, self.levels))
+                          if dt <= cap and (multiple < COARSE or dt <= bound)])
 
     def choose(self, state, active, until, actuation: float | None = None) -> int:
         """The level of the next step: the estimate's; the finest for a new cell or when the IDT drive changes
@@ -293,11 +297,18 @@ class AdaptiveSteps:
 
 
 def level_multiples(scenario) -> list[int]:
-    """The levels as multiples of dt0: the powers of two 1, 2, 4, 8 and, for each cell type of ``scenario``, the
-    largest multiple of dt0 within its stability cap (``stable_fraction`` x the paper's bound (33)) when that falls
-    between two of them (the melanoma at the paper's mesh with bdf2: 7, 17.5 us, where the powers of two would hold
-    it at 10 us)."""
-    multiples = {2 ** k for k in range(LEVELS)}
+    """The levels as multiples of dt0: the powers of two 1, 2, 4, 8, for each cell type of ``scenario`` the largest
+    multiple of dt0 within its stability cap (``stable_fraction`` x the paper's bound (33)) when that falls between
+    two of them (the melanoma at the paper's mesh with bdf2: 7, 17.5 us, where the powers of two would hold it at
+    10 us), and ``COARSE`` (16 dt0, 40 us by default).
+
+    The coarse level is taken only when every cell in the channel has its paper bound itself above it
+    (``AdaptiveSteps.stable_level``): an RBC alone (bound 409 us) or an empty channel. Near its cap a membrane's
+    stiff modes are weakly damped and the centroid's error estimate does not see them: Scenario II on the 6.67 um
+    mesh with the melanoma's cap as a level (35 us) came 1.22 um off at 1 um, against 0.51 um held at 20 us
+    (docs/numerics.md, "Round 16"). The flow alone is stable far above 16 dt0 (measured to 320 us, the IDT switched
+    every 1 ms)."""
+    multiples = {2 ** k for k in range(LEVELS)} | {COARSE}
     dt = scenario.numerics.dt
     for cell_type in scenario.cell_types:
         cap = math.floor(stable_fraction(scenario) * paper_bound(cell_type, scenario) / dt * (1 + 1e-9))

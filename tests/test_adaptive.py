@@ -29,7 +29,7 @@ def test_levels_new_cells_empty_channel_and_the_stability_cap():
     steps = steps_of(scenario)
     state = SimpleNamespace(time=0.0)
     # the powers of two, and the melanoma's cap (3.4 x 8.9 us = 30.2 us) as a level of its own
-    assert steps.levels == pytest.approx([10e-6, 20e-6, 30e-6, 40e-6, 80e-6], rel=1e-12)
+    assert steps.levels == pytest.approx([10e-6, 20e-6, 30e-6, 40e-6, 80e-6, 160e-6], rel=1e-12)
     top = len(steps.levels) - 1
     assert steps.choose(state, [], None) == top                             # nobody to be accurate for
     rbc = cell("RBC", 1, scenario)
@@ -49,19 +49,19 @@ def test_levels_new_cells_empty_channel_and_the_stability_cap():
 
 
 def test_a_cell_types_stability_cap_is_a_level_when_it_falls_between_two():
-    """The levels are dt0 x 1, 2, 4, 8 and, per cell type, the largest multiple of dt0 within its cap when that lies
+    """The levels are dt0 x 1, 2, 4, 8, 16 and, per cell type, the largest multiple of dt0 within its cap when that lies
     between two of them: the stability cap, not the powers of two, limits a capped cell's steps."""
     from sim.adaptive import level_multiples
     from sim.health import paper_bound, stable_fraction
     bdf2 = Scenario().with_numerics(tolerance=1e-6)                              # dt0 2.5 us; cap 17.7 us
-    assert level_multiples(bdf2) == [1, 2, 4, 7, 8]
+    assert level_multiples(bdf2) == [1, 2, 4, 7, 8, 16]
     melanoma = bdf2.cell_type("melanoma")
     cap = stable_fraction(bdf2) * paper_bound(melanoma, bdf2)
     assert 7 * 2.5e-6 <= cap < 8 * 2.5e-6
-    assert level_multiples(bdf2.with_numerics(time_scheme="euler")) == [1, 2, 4, 8]     # cap 30 us: above 8 dt0
-    assert level_multiples(bdf2.with_numerics(dt=1e-6)) == [1, 2, 4, 8]                # 17 dt0: above 8 dt0
-    assert level_multiples(bdf2.with_numerics(dt=10e-6)) == [1, 2, 4, 8]               # cap under 2 dt0: no level
-    assert level_multiples(replace(bdf2, cell_types=(bdf2.cell_type("RBC"),))) == [1, 2, 4, 8]   # no cap below
+    assert level_multiples(bdf2.with_numerics(time_scheme="euler")) == [1, 2, 4, 8, 16]   # cap 30 us: above 8 dt0
+    assert level_multiples(bdf2.with_numerics(dt=1e-6)) == [1, 2, 4, 8, 16]                # 17 dt0: above 16 dt0
+    assert level_multiples(bdf2.with_numerics(dt=10e-6)) == [1, 2, 4, 8, 16]               # cap under 2 dt0: no level
+    assert level_multiples(replace(bdf2, cell_types=(bdf2.cell_type("RBC"),))) == [1, 2, 4, 8, 16]   # cap 817 us
 
 
 def test_next_level_against_the_finest_level():
@@ -76,16 +76,30 @@ def test_next_level_against_the_finest_level():
 def test_the_second_order_scheme_has_its_own_stability_cap():
     """bdf2 is less stable than euler (the melanoma at the paper's mesh: 2.25x its bound ran, 2.6x did not):
     its cap is 2x the bound, so a melanoma takes at most 17.5 us there; an RBC (bound 409 us) is not capped."""
-    from sim.health import STABLE_FRACTION_BDF2, HealthLimits, paper_bound
-    scenario = Scenario().with_numerics(tolerance=1e-6)                  # bdf2; levels 2.5, 5, 10, 17.5, 20 us
+    from sim.health import STABLE_FRACTION, STABLE_FRACTION_BDF2, HealthLimits, paper_bound
+    scenario = Scenario().with_numerics(tolerance=1e-6)                  # bdf2; levels 2.5, 5, 10, 17.5, 20, 40 us
     steps = steps_of(scenario)
     melanoma = scenario.cell_type("melanoma")
     assert 17.5e-6 <= STABLE_FRACTION_BDF2 * paper_bound(melanoma, scenario) < 20e-6
     assert steps.levels[3] == pytest.approx(17.5e-6, rel=1e-12)
     assert steps.stable_level([cell("melanoma", 1, scenario)]) == 3
-    assert steps.stable_level([cell("RBC", 1, scenario)]) == 4
-    euler = steps_of(scenario.with_numerics(time_scheme="euler"))          # 2.5-20 us: no level of a cap
+    assert steps.stable_level([cell("RBC", 1, scenario)]) == 5               # 40 us: within the RBC's bound
+    assert steps.stable_level([cell("RBC", 1, scenario), cell("melanoma", 2, scenario)]) == 3
+    assert steps.stable_level([]) == 5
+    euler = steps_of(scenario.with_numerics(time_scheme="euler"))          # 2.5-20, 40 us: no level of a cap
     assert euler.stable_level([cell("melanoma", 1, scenario)]) == 3
+    # a cap above 8 dt0 is no level of its own: on the 6.67 um mesh the melanoma's cap (2 x 17.7 us) lies between
+    # 20 and 40 us, and it is held at 20 us
+    coarse = scenario.with_numerics(mesh_h=20 * UM / 3)
+    assert 20e-6 < STABLE_FRACTION_BDF2 * paper_bound(melanoma, coarse) < 40e-6
+    held = steps_of(coarse)
+    assert held.levels == pytest.approx([2.5e-6, 5e-6, 10e-6, 20e-6, 40e-6], rel=1e-12)
+    assert held.stable_level([cell("melanoma", 1, coarse)]) == 3 and held.stable_level([cell("RBC", 1, coarse)]) == 4
+    # the coarse level only within a cell's bound itself: with euler's cap (3.4 x the bound, 60 us there) the
+    # melanoma could take 40 us; its bound (17.7 us) holds it at 20 us
+    first = steps_of(coarse.with_numerics(time_scheme="euler"))
+    assert first.levels[-1] == pytest.approx(40e-6) and STABLE_FRACTION * paper_bound(melanoma, coarse) > 40e-6
+    assert first.stable_level([cell("melanoma", 1, coarse)]) == 3 and first.stable_level([cell("RBC", 1, coarse)]) == 4
     # the failure hint of a bdf2 run suggests bdf2's stable dt
     limits = HealthLimits.of(scenario.with_numerics(tolerance=0.0, time_scheme="bdf2", dt=40e-6))
     assert limits.suggested_dt(melanoma) == pytest.approx(STABLE_FRACTION_BDF2 * paper_bound(melanoma, scenario))
@@ -177,13 +191,14 @@ def test_a_coarse_step_that_redistributes_is_retaken_at_the_finest_level():
     new = plant.step(state, 0.0)
     assert new.cells[0].membrane.redistributions == spread.membrane.redistributions + 1
     assert math.isclose(new.time - state.time, steps.levels[0]) and steps.retaken == 1
-    assert steps.steps == [1, 0, 0, 0, 0] and steps.summary(new.time)["retaken"] == 1
+    assert steps.steps == [1] + [0] * (len(steps.levels) - 1) and steps.summary(new.time)["retaken"] == 1
     steps.reset()                                          # the cell as born (spacing inside the band): no retake
     steps._known, steps.level = {1}, 2
     state = plant.start(cells=(rbc,))
     new = plant.step(state, 0.0)
     assert new.cells[0].membrane.redistributions == rbc.membrane.redistributions and steps.retaken == 0
-    assert math.isclose(new.time - state.time, steps.levels[2]) and steps.steps == [0, 0, 1, 0, 0]
+    assert math.isclose(new.time - state.time, steps.levels[2])
+    assert steps.steps == [0, 0, 1] + [0] * (len(steps.levels) - 3)
 
 
 def test_an_adaptive_run_computes_ahead_at_the_level_it_will_take(monkeypatch):
@@ -217,11 +232,13 @@ def test_an_adaptive_run_computes_ahead_at_the_level_it_will_take(monkeypatch):
 
     ahead, used, history = run(True)
     here, used_here, history_here = run(False)
-    # five level changes (one up a step: 17.5 us, the melanoma's cap, lies on the way to 20 us)
-    assert [dt for _, dt in history] == pytest.approx([20e-6, 2.5e-6, 5e-6, 10e-6, 17.5e-6, 20e-6], rel=1e-12)
+    # six level changes, one up a step (17.5 us, the melanoma's cap, lies on the way to 20 us; 40 us: the RBC's bound
+    # is far above it)
+    assert [dt for _, dt in history] == pytest.approx([40e-6, 2.5e-6, 5e-6, 10e-6, 17.5e-6, 20e-6, 40e-6], rel=1e-12)
     # computed in the step: the first, the new cell's (its level no step could know), and the first at a level not
-    # set up before (levels are built when first taken: here 5, 10 and 17.5 us); every other step found its own ahead
-    assert used == [False, False, True, True, True, False, False, False, True, True] and not any(used_here)
+    # set up before (levels are built when first taken: here 5, 10, 17.5 and 20 us); every other step found its own
+    # ahead (the last, at 40 us, set up by the first)
+    assert used == [False, False, True, True, True, False, False, False, False, True] and not any(used_here)
     assert history == history_here
     assert np.array_equal(ahead.cells[0].membrane.points, here.cells[0].membrane.points)
     assert np.array_equal(ahead.flow.velocity, here.flow.velocity)
@@ -292,7 +309,7 @@ def test_default_stream_within_tolerance():
         gap = np.hypot(path[keep, 1] - np.interp(path[keep, 0], ref[:, 0], ref[:, 1]),
                        path[keep, 2] - np.interp(path[keep, 0], ref[:, 0], ref[:, 2]))
         assert gap.max() <= 1e-6, (key, gap.max())
-    assert adaptive["time_steps"]["levels_us"] == pytest.approx([2.5, 5.0, 10.0, 17.5, 20.0])
+    assert adaptive["time_steps"]["levels_us"] == pytest.approx([2.5, 5.0, 10.0, 17.5, 20.0, 40.0])
 
 
 @pytest.mark.parametrize("arguments, message", [

@@ -253,7 +253,8 @@ class Numerics:
     membrane's points equally along its spline, ``membrane_spacing`` apart, whenever a spacing leaves
     ``spacing_band`` (both in units of ``mesh_h``).
 
-    ``tolerance`` > 0 (m) lets the FE-IB plant pick each step from the levels dt, 2 dt, 4 dt, 8 dt by an
+    ``tolerance`` > 0 (m) lets the FE-IB plant pick each step from the levels dt, 2 dt, 4 dt, 8 dt (a cell type's
+    stability cap between them; 16 dt for cells far from it: ``sim.adaptive.level_multiples``) by an
     error estimate on the membrane positions, for at most that centroid path error per transit
     (``sim.adaptive``); 0 keeps the fixed step dt.
 

@@ -96,7 +96,7 @@ LADDER = (
     Level("feib", PAPER_H, 10e-6),
     Level("feib", PAPER_H, 2.5e-6, scheme="bdf2"),    # the second-order step at the reference's dt
     Level("feib", PAPER_H, 10e-6, scheme="bdf2"),
-    Level("feib", PAPER_H, 2.5e-6, tolerance=1e-6),   # dt from 2.5-20 us by the error estimate (bdf2)
+    Level("feib", PAPER_H, 2.5e-6, tolerance=1e-6),   # dt from 2.5-40 us by the error estimate (bdf2)
     Level("feib", PAPER_H, 2.5e-6, tolerance=3e-6),
     Level("feib", 2 * PAPER_H, 10e-6),
     Level("oneway", PAPER_H, 2.5e-6),

@@ -232,3 +232,37 @@ def test_an_unwritable_cache_says_so_once_and_the_run_goes_on(tmp_path, caplog):
     warnings = [r for r in caplog.records if "cannot be written" in r.getMessage()]
     assert len(warnings) == 1 and "VCYTO_CACHE_DIR" in warnings[0].getMessage()
     assert usage(blocked / "cache")["writable"] is False and usage(tmp_path / "ok")["writable"] is True
+
+
+def test_an_array_digest_hashes_dtype_shape_and_bytes_without_copying_them():
+    """``sim.store.digest`` (the key part of a matrix, a cut, a mesh) is the SHA-256 of each array's dtype, shape and
+    C-order bytes: the same for a strided view as for its copy, different when only the shape or dtype differs."""
+    import hashlib
+
+    from sim.store import digest
+
+    arrays = [np.arange(12.0).reshape(3, 4).T, np.zeros(0, np.int32), np.array([True, False]), np.array(3.0)]
+    expected = hashlib.sha256()
+    for array in map(np.ascontiguousarray, arrays):       # (which makes a 0-d array one of shape (1,))
+        expected.update(f"{array.dtype.str}{array.shape}".encode() + array.tobytes())
+    assert digest(*arrays) == expected.hexdigest()
+    assert digest(arrays[0]) == digest(arrays[0].copy())
+    assert digest(np.arange(6.0)) != digest(np.arange(6.0).reshape(2, 3)) != digest(np.arange(6))
+
+
+def test_a_stored_start_is_the_one_this_solver_computes_whatever_ran_first(cache):
+    """The steady start of a solver with another time step or scheme (whose systems are scaled otherwise, which sets
+    the last bits) is not another's stored start: with the cache it is its cold start bit for bit, whichever solver
+    filled the cache first (a --tolerance stream after a fixed-step one took the latter's start)."""
+    euler = scenario()
+    bdf2 = euler.with_numerics(time_scheme="bdf2", dt=4 * euler.numerics.dt)
+    store.install(None)
+    cold = {name: NavierStokes(scene).steady(1.0) for name, scene in (("euler", euler), ("bdf2", bdf2))}
+    assert not np.array_equal(cold["euler"].velocity, cold["bdf2"].velocity)      # the bits differ: it can fail
+    store.install(cache)
+    for order in (("euler", "bdf2"), ("bdf2", "euler")):
+        clear(cache.directory)
+        for name in order:
+            warm = NavierStokes({"euler": euler, "bdf2": bdf2}[name]).steady(1.0)
+            assert np.array_equal(warm.velocity, cold[name].velocity), (order, name)
+            assert np.array_equal(warm.pressure, cold[name].pressure), (order, name)

@@ -120,6 +120,17 @@ def _perturbed_unknown(block: sp.csr_matrix, factor: Pardiso) -> int:
         double.release()
 
 
+def moved_parts(cut, moved: np.ndarray):
+    """The cut's (left, right, separator) with the unknowns ``moved`` taken out of the halves and put into the
+    separator: each sorted, as ``np.setdiff1d`` and ``np.union1d`` give them (the same arrays), without sorting
+    the halves again (tens of thousands of unknowns against a few moved: ~15 ms of a level's set-up)."""
+    left, right, separator = cut
+    moved = np.unique(np.asarray(moved, dtype=np.int64))
+    extra = moved[~np.isin(moved, separator)]
+    return (left[~np.isin(left, moved)], right[~np.isin(right, moved)],
+            np.sort(np.concatenate([separator, extra])) if len(extra) else separator)
+
+
 class _Half:
     """One side of the cut: its sequential factorisation and H = D^{-1} F C."""
 
@@ -377,8 +388,9 @@ class SplitPardiso:
 
         def factored(stored):
             moved, matched = np.asarray(stored["moved"], dtype=np.int64), stored["matched"]
-            parts = (np.setdiff1d(left, moved), np.setdiff1d(right, moved), np.union1d(separator, moved))
-            sides = [(parts[i], bool(matched[i]), np.intersect1d(side, moved)) for i, side in enumerate((left, right))]
+            parts = moved_parts(cut, moved)
+            sides = [(parts[i], bool(matched[i]), np.unique(moved[np.isin(moved, side)]))
+                     for i, side in enumerate((left, right))]
             # PARDISO's halves just factored by the search, if any: ours replace the unmatched ones
             pardiso = tuple(searched) or (None, None)
             halves = self._both(lambda: self._own_or(pardiso[0], matrix, *sides[0]),

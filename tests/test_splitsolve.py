@@ -9,10 +9,13 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from sim.fluid import NavierStokes
 from sim.linalg import Pardiso, pardiso_available
 from sim.scenario import UM, Scenario
+from sim.splitsolve import moved_parts
 
 pytestmark = pytest.mark.skipif(not pardiso_available(), reason="the split solve runs on MKL PARDISO")
 ROOT = Path(__file__).resolve().parents[1]
@@ -300,3 +303,19 @@ def test_two_feib_streams_give_identical_recordings(tmp_path):
     first, second = (mcap_content(path) for path in recordings)
     assert len([m for m in first if m[0] == "/loop/step"]) == 20
     assert first == second
+
+
+@settings(max_examples=200, deadline=None)
+@given(st.lists(st.integers(0, 2), min_size=1, max_size=300), st.lists(st.integers(0, 299), max_size=6),
+       st.booleans())
+def test_moved_parts_are_numpys_set_operations(sides, picks, listed):
+    """``moved_parts`` (a level's split without sorting its halves again) gives the arrays ``np.setdiff1d`` and
+    ``np.union1d`` give: the halves without the moved unknowns, the separator with them, all sorted; unknowns moved
+    twice or already in the separator included."""
+    sides = np.array(sides)
+    cut = tuple(np.flatnonzero(sides == side) for side in range(3))
+    moved = np.array([pick % len(sides) for pick in picks], dtype=np.int64)
+    parts = moved_parts(cut, list(moved) if listed else moved)
+    expected = (np.setdiff1d(cut[0], moved), np.setdiff1d(cut[1], moved), np.union1d(cut[2], moved))
+    for got, want in zip(parts, expected):
+        assert got.dtype == want.dtype and np.array_equal(got, want)

@@ -272,3 +272,22 @@ def test_the_flow_colours_are_matplotlibs_viridis_and_a_warm_process_needs_no_ma
     imported = [subprocess.run([sys.executable, "-c", script, str(tmp_path / f"{n}.rrd")], capture_output=True,
                                text=True, env=environment, timeout=120).stdout.strip() for n in range(2)]
     assert imported == ["True", "False"]
+
+
+def test_a_rerun_recording_does_not_import_pandas_and_pandas_stays_usable(tmp_path):
+    """Opening a Rerun recording (its blueprint is pyarrow's first conversion) leaves pandas unimported where it is
+    installed (``vcyto.viewer.import_rerun``: 0.2-0.3 s of a recorded run); pandas then imports as usual, and pyarrow
+    converts to and from it; a process that had imported pandas keeps it."""
+    script = ("import sys\nif sys.argv[2] == 'first': import pandas\n"
+              "from sim.scenario import Scenario; from vcyto.rerunlog import RerunLogger\n"
+              "from controller.detector import DetectorSettings\n"
+              "logger = RerunLogger(Scenario(), DetectorSettings().window, ('save', sys.argv[1]))\n"
+              "logger.text('hello'); logger.close(); print('pandas' in sys.modules)\n"
+              "import pandas, pyarrow\n"
+              "print(pyarrow.table({'a': [1, 2]}).to_pandas()['a'].sum(), pyarrow.array(pandas.Series([3, 4])).type)")
+    for order, expected in (("after", "False"), ("first", "True")):
+        done = subprocess.run([sys.executable, "-c", script, str(tmp_path / f"{order}.rrd"), order],
+                              capture_output=True, text=True, timeout=120)
+        assert done.returncode == 0, done.stderr
+        assert done.stdout.split("\n")[:2] == [expected, "3 int64"], order
+    assert RrdReader(str(tmp_path / "after.rrd")) is not None

@@ -39,7 +39,7 @@ from sim.scenario import UM, Scenario
 
 from .classes import CLASS_COLOURS, CLASS_IDS, CLASS_NAMES, CellClasses
 from .foxglove import speed_grid
-from .viewer import blueprint, speed_scale_mm_s
+from .viewer import blueprint, import_rerun, speed_scale_mm_s
 
 RECENT_EVENTS = 16                     # markers shown with each new detector event
 PATH_SLOTS = 16                        # the paths of the last this many cells stay in the view
@@ -107,7 +107,7 @@ class RerunLogger:
 
     def __init__(self, scenario: Scenario, detection_window=None, target=("save", "run.rrd"), application_id="vcyto",
                  batch_rows: int = BATCH_ROWS, batch_seconds: float = BATCH_SECONDS):
-        import rerun as rr
+        rr = import_rerun()
         self.rr = rr
         self.height_um = scenario.channel.height / UM
         self.length_um = scenario.channel.length / UM

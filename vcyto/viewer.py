@@ -5,6 +5,7 @@ What a run logs to the viewer (entities, colours, batching) is ``vcyto.rerunlog`
 
 from __future__ import annotations
 
+import functools
 import math
 import os
 import socket
@@ -150,7 +151,40 @@ def start_viewer(bind: str = "127.0.0.1", port: int = VIEWER_PORT) -> tuple[str,
     return url, f"started the Rerun viewer (pid {process.pid}, listening on {bind}:{port})"
 
 
+class _NoPandasNow:
+    """An import finder that refuses pandas (``import_rerun``)."""
+
+    def find_spec(self, name, path=None, target=None):
+        if name == "pandas" or name.startswith("pandas."):
+            raise ImportError("pandas is not needed for this conversion (vcyto.viewer.import_rerun)")
+        return None
+
+
+@functools.lru_cache(maxsize=None)
+def import_rerun():
+    """The ``rerun`` module, with pyarrow told once that pandas is not there for it.
+
+    pyarrow's first conversion of a Python sequence (Rerun makes one for the first thing it logs: the blueprint)
+    imports pandas, where it is installed (FlowKit, a dev dependency, brings it), only to recognise pandas objects
+    among the values; vcyto gives it none. That import took 0.2-0.3 s of a recorded run (measured), on the sinks'
+    thread but holding the interpreter's lock the plant's set-up and steps need. Here pyarrow makes that first
+    conversion while pandas cannot be imported, notes that it has none (``_PandasAPIShim``: asked once per
+    process), and the finder is removed at once: pandas stays importable, and pyarrow's explicit pandas functions
+    (``Table.to_pandas``) import it when called. A process that imported pandas already keeps it."""
+    import pyarrow
+    if "pandas" not in sys.modules:
+        finder = _NoPandasNow()
+        sys.meta_path.insert(0, finder)
+        try:
+            pyarrow.array([""])
+        finally:
+            sys.meta_path.remove(finder)
+    import rerun
+    return rerun
+
+
 def blueprint():
+    import_rerun()
     import rerun.blueprint as rrb
     return rrb.Blueprint(
         rrb.Horizontal(

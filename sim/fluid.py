@@ -21,6 +21,7 @@ is scaled inside the saddle-point matrix so both blocks have comparable entries;
 
 from __future__ import annotations
 
+import atexit
 import logging
 import os
 import queue
@@ -77,29 +78,42 @@ class _Helper:
     A daemon, unlike ``ThreadPoolExecutor``'s workers: an idle helper must not hold the process open. The
     executable ends with ``os._exit`` once everything is written (``vcyto.cli.exit_now``), but only when no
     non-daemon thread is alive; a pool's idle worker sent every FE-IB run through the interpreter's teardown
-    instead (0.15 s; 0.4 s with a Rerun recording; measured). Nothing waits on a task after the steps end."""
+    instead (0.15 s; 0.4 s with a Rerun recording; measured). At exit (``atexit``: both the quick and the ordinary
+    exit run it) the helper finishes what it was given, at most a step's integrals (~1 ms), and stops, so the
+    interpreter's teardown never meets it inside a kernel."""
 
     def __init__(self):
         self._tasks: queue.SimpleQueue = queue.SimpleQueue()
-        threading.Thread(target=self._run, name="vcyto-momentum", daemon=True).start()
+        self._thread = threading.Thread(target=self._run, name="vcyto-momentum", daemon=True)
+        self._thread.start()
+        self._stopped = False
+        atexit.register(self.stop)
+
+    def stop(self, timeout: float = 10.0):
+        """Let the queued tasks finish, then end the thread (waiting at most ``timeout`` seconds); later
+        submissions are refused (``RuntimeError``: the caller computes them itself)."""
+        self._stopped = True
+        self._tasks.put(None)
+        if self._thread.is_alive() and self._thread is not threading.current_thread():
+            self._thread.join(timeout)
 
     def submit(self, function, *arguments) -> Future:
-        if sys.is_finalizing():     # as ThreadPoolExecutor: no new work while the interpreter shuts down
+        if self._stopped or sys.is_finalizing():     # as ThreadPoolExecutor: no new work at shutdown
             raise RuntimeError("cannot schedule new work after interpreter shutdown")
         future: Future = Future()
         self._tasks.put((future, function, arguments))
         return future
 
     def _run(self):
-        while True:
-            future, function, arguments = self._tasks.get()
+        while (task := self._tasks.get()) is not None:
+            future, function, arguments = task
             if future.set_running_or_notify_cancel():
                 try:
                     future.set_result(function(*arguments))
                 except BaseException as error:      # handed to the caller's ``result()``
                     future.set_exception(error)
             # hold nothing while waiting: the task's arguments (a solver's buffers) would stay alive here
-            future = function = arguments = None
+            task = future = function = arguments = None
 
 
 _HELPER: _Helper | None = None                 # the process's helper (``_helper``)
@@ -726,6 +740,10 @@ class NavierStokes:
         jet = self.jet_weight(0.0, actuation)
 
         def solve():
+            # Newton's first system analysed afresh, not refactored on an earlier steady solve's analysis (PARDISO's
+            # matching and ordering come from that matrix's values): a start's bits must not depend on what this
+            # solver solved before, or the stored start would depend on which run stored it
+            self._reusable.pop("newton", None)
             velocity, pressure = np.zeros((2, self.space.N)), np.zeros(self.space.P)
             velocity, pressure, iterations = self._newton(velocity, pressure, forcing, jet, 0.0, with_mass=False)
             return {"velocity": velocity, "pressure": pressure, "iterations": np.array(iterations)}

@@ -275,3 +275,27 @@ def test_steps_are_the_same_bits_with_the_momentum_computed_ahead_or_in_the_step
     for array in (ahead[0], pressures[0]):
         with pytest.raises(ValueError):
             array[0] = 1.0
+
+
+def test_the_helper_finishes_its_tasks_when_stopped_and_then_refuses_new_ones():
+    """The fluid's helper thread (a daemon: it holds no process open) finishes what it was given when stopped (at
+    exit, so the teardown never meets it inside a kernel), ends, and refuses later work; a cancelled task never
+    runs and an exception reaches the caller."""
+    import threading
+    import time
+
+    from sim.fluid import _Helper
+    helper = _Helper()
+    started = threading.Event()
+    slow = helper.submit(lambda: (started.set(), time.sleep(0.2), "done")[2])
+    started.wait(5)
+    skipped = helper.submit(lambda: "ran")
+    failing = helper.submit(lambda: 1 / 0)
+    assert skipped.cancel() and not slow.cancel()
+    helper.stop()
+    assert slow.result(timeout=0) == "done" and skipped.cancelled()
+    with pytest.raises(ZeroDivisionError):
+        failing.result(timeout=0)
+    assert not helper._thread.is_alive() and helper._thread.daemon
+    with pytest.raises(RuntimeError):
+        helper.submit(lambda: None)

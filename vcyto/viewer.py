@@ -170,7 +170,11 @@ def import_rerun():
     thread but holding the interpreter's lock the plant's set-up and steps need. Here pyarrow makes that first
     conversion while pandas cannot be imported, notes that it has none (``_PandasAPIShim``: asked once per
     process), and the finder is removed at once: pandas stays importable, and pyarrow's explicit pandas functions
-    (``Table.to_pandas``) import it when called. A process that imported pandas already keeps it."""
+    (``Table.to_pandas``, ``Table.from_pandas``) import it when called. Until one of them is, a pandas object given
+    to ``pyarrow.array`` converts as a plain sequence (a categorical Series to strings, not a dictionary array); no
+    vcyto code gives pyarrow pandas objects. While the finder is in place (one conversion of one string) another
+    thread's ``import pandas`` would fail; nothing of vcyto imports pandas. A process that imported pandas already
+    keeps it."""
     import pyarrow
     if "pandas" not in sys.modules:
         finder = _NoPandasNow()

@@ -93,7 +93,8 @@ class AdaptiveSteps:
             if cell_type.name not in self._limits:
                 own = paper_bound(cell_type, self.plant.scenario)
                 self._limits[cell_type.name] = (stable_fraction(self.plant.scenario) * own, own)
-            cap, bound = min(cap, self._limits[cell_type.name][0]), min(bound, self._limits[cell_type.name][1])
+            own_cap, own_bound = self._limits[cell_type.name]
+            cap, bound = min(cap, own_cap), min(bound, own_bound)
         return max([0] + [k for k, (multiple, dt) in enumerate(zip(self.multiples, self.levels))
                           if dt <= cap and (multiple < COARSE or dt <= bound)])
 

@@ -176,18 +176,6 @@ def earlier_at(time: float, times, target: float) -> int | None:
     return None
 
 
-def back_weights(time: float, times, target: float) -> list[float] | None:
-    """The weights of (the value at ``time``, the earlier values at ``times``) that give ``value_back``'s value at
-    ``target``: one 1 and zeros where an earlier time is the target, else the Lagrange weights; None without
-    history."""
-    if not len(times):
-        return None
-    index = earlier_at(time, times, target)
-    if index is not None:
-        return [1.0 if i == index + 1 else 0.0 for i in range(len(times) + 1)]
-    return lagrange_weights([time, *times], target)
-
-
 def lagrange_weights(nodes, target: float) -> list[float]:
     """The weights of the values at ``nodes`` in the polynomial through them, evaluated at ``target``."""
     weights = []

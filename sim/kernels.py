@@ -40,10 +40,11 @@ def _momentum_kernel(bdf2: bool):
 
         euler: u = w = v = (ux, uy). BDF2: u = 2 v - b and w = (4 v - b) / 3 with b = a (a = (ax, ay)), or when
         ``general`` b = (w0 v + w1 a) + w2 b' (b' = (bx, by)): the value one step back, an earlier velocity itself
-        or the parabola through the last three (``back_weights``). ``jacobian_rows`` (4, ne): the inverse Jacobians'
-        entries a00, a01, a10, a11 per element; ``areas`` (ne,): |det J|. The elements go in blocks of ``BLOCK``,
-        each block's nodal values gathered into contiguous rows, and every loop over a block's elements is one the
-        compiler turns into vector instructions (measured: 2.2-2.4x faster than one element at a time)."""
+        or the parabola through the last three (``NavierStokes._momentum_back``). ``jacobian_rows`` (4, ne): the
+        inverse Jacobians' entries a00, a01, a10, a11 per element; ``areas`` (ne,): |det J|. The elements go in
+        blocks of ``BLOCK``, each block's nodal values gathered into contiguous rows, and every loop over a block's
+        elements is one the compiler turns into vector instructions (measured: 2.2-2.4x faster than one element at a
+        time)."""
         n_elements = element_dofs.shape[1]
         n_blocks = (n_elements + BLOCK - 1) // BLOCK
         for b in prange(n_blocks):
@@ -148,7 +149,7 @@ def element_momentum(element_dofs, jacobian_rows, areas, phi, dphi, weights, vel
     """Each element's integrals (m w - k (u . grad) u) . phi_i into ``out`` (ne, 2, 6); ``jacobian_rows`` and ``areas``
     as ``_element_momentum`` takes them. Without ``back`` u = w = v (``velocity``, (2, N)); with ``back`` = (weights
     (w0, w1, w2), (a, b)), BDF2's: u = 2 v - b^, w = (4 v - b^) / 3, b^ = w0 v + w1 a + w2 b the velocity one step
-    back (``sim.fluid.back_weights``; (0, 1, 0) takes a itself, with no arithmetic on its values).
+    back (``sim.fluid.NavierStokes._momentum_back``; (0, 1, 0) takes a itself, with no arithmetic on its values).
 
     ``threads``: numba's threads for this call (default: numba's setting; 1: the calling thread alone, while the
     process's other threads work; numba's setting is per thread and is restored). Each block of elements is

@@ -72,7 +72,7 @@ def digest(*arrays: np.ndarray) -> str:
     for array in arrays:
         array = np.ascontiguousarray(array)
         hasher.update(f"{array.dtype.str}{array.shape}".encode())
-        hasher.update(array if array.size else b"")       # the buffer itself (the same bytes: no copy)
+        hasher.update(array)                     # its buffer: the same bytes as tobytes(), without the copy
     return hasher.hexdigest()
 
 

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from sim.feib import ImmersedBoundary
-from sim.fluid import NavierStokes, back_weights, value_back
+from sim.fluid import NavierStokes, earlier_at, lagrange_weights, value_back
 from sim.membrane import Membrane
 from sim.openloop import stepping, with_cells
 from sim.scenario import UM, Scenario, ScenarioError
@@ -57,18 +57,20 @@ def test_value_back_reuses_an_earlier_value_or_interpolates_to_second_order():
     assert np.allclose(line, (f(now) + f(9.0)) / 2)
 
 
-def test_back_weights_pick_an_earlier_value_or_give_the_parabola():
-    """The momentum kernel forms v^{m-1} from these weights of (v^m, earlier velocities): one-hot where an earlier
-    time is the target (no arithmetic on the values), else Lagrange weights that reproduce a parabola."""
-    assert back_weights(10.0, [], 9.0) is None
-    assert back_weights(10.0, [9.0, 8.0], 9.0) == [0.0, 1.0, 0.0]
-    assert back_weights(10.0, [9.0, 8.0], 8.0) == [0.0, 0.0, 1.0]
-    weights = back_weights(10.0, [9.0, 8.0], 9.5)
+def test_an_earlier_time_is_picked_or_the_parabolas_weights_given():
+    """The momentum kernel forms v^{m-1} from weights of (v^m, earlier velocities): an earlier velocity itself where
+    its time is the target (``earlier_at``: no arithmetic on the values), else Lagrange weights that reproduce a
+    parabola (``lagrange_weights``)."""
+    assert earlier_at(10.0, [], 9.0) is None
+    assert earlier_at(10.0, [9.0, 8.0], 9.0) == 0
+    assert earlier_at(10.0, [9.0, 8.0], 8.0) == 1
+    assert earlier_at(10.0, [9.0, 8.0], 9.5) is None
+    weights = lagrange_weights([10.0, 9.0, 8.0], 9.5)
     assert sum(weights) == pytest.approx(1.0) and weights == pytest.approx([0.375, 0.75, -0.125])
     times = (10.0, 9.0, 8.0)
     values = [1.0 + 2.0 * t - 3.0 * t * t for t in times]
     assert sum(w * v for w, v in zip(weights, values)) == pytest.approx(1.0 + 2.0 * 9.5 - 3.0 * 9.5 ** 2)
-    assert back_weights(10.0, [9.0], 9.5) == pytest.approx([0.5, 0.5])      # the line through two
+    assert lagrange_weights([10.0, 9.0], 9.5) == pytest.approx([0.5, 0.5])      # the line through two
 
 
 def test_the_momentum_kernel_gets_an_earlier_velocity_itself_or_the_parabolas_weights():

@@ -18,7 +18,7 @@ def space(request):
 
 BACKS = {"euler": None,                                     # u = w = v
          "bdf2-equal-steps": (0.0, 1.0, 0.0),               # b = the last earlier velocity itself
-         "bdf2-parabola": (0.375, 0.75, -0.125)}            # b = the parabola through three, as back_weights gives
+         "bdf2-parabola": (0.375, 0.75, -0.125)}            # b = the parabola through three, as lagrange_weights gives
 
 
 @pytest.mark.parametrize("weights", BACKS.values(), ids=BACKS.keys())

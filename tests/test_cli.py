@@ -245,6 +245,9 @@ def test_a_lead_beyond_the_delay_is_run_but_never_silently():
 @pytest.mark.parametrize("args, message", [
     (["--cells", "RBC,melanoma", "--count", "10"], "--cells: lists the cells one by one"),
     (["--count", "10", "--mix", "RBC:0.9,melanoma:0.1,RBC:0.5"], "--mix: RBC given more than once"),
+    # a tenth of melanoma cells meant, nothing but melanoma cells drawn when the shares were normalised
+    (["--count", "10", "--mix", "melanoma:0.1"], "--mix: the shares sum to 0.1, not 1"),
+    (["--count", "10", "--mix", "RBC:9,melanoma:1"], "--mix: the shares sum to 10, not 1"),
 ])
 def test_arrival_options_that_contradict_each_other_are_refused(args, message):
     result = vcyto("stream", "--model", "rom", *args, "--no-viewer", "--output", "")

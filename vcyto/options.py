@@ -114,7 +114,9 @@ def cell_list(text: str) -> tuple[str, ...]:
 
 
 def parse_mix(text: str) -> tuple[tuple[str, float], ...]:
-    """TYPE:WEIGHT pairs; every weight finite and >= 0, their sum positive."""
+    """TYPE:SHARE pairs: every share finite and >= 0, summing to 1 (to 1e-6). A mix that does not add up is refused
+    rather than normalised: ``--mix melanoma:0.1`` meant a tenth of melanoma cells, and normalised it drew nothing
+    but melanoma cells."""
     pairs = []
     for part in text.split(","):
         name, _, weight = part.partition(":")
@@ -129,6 +131,10 @@ def parse_mix(text: str) -> tuple[tuple[str, float], ...]:
     if repeated := sorted({name for name in names if names.count(name) > 1}):
         raise UsageError(f"--mix: {', '.join(repeated)} given more than once; give each type once, its weight the "
                          f"share of the sample (got {text!r})")
+    total = sum(weight for _, weight in pairs)
+    if abs(total - 1.0) > 1e-6:
+        raise UsageError(f"--mix: the shares sum to {total:g}, not 1; give every type its share of the sample, "
+                         f"e.g. RBC:0.9,melanoma:0.1 (got {text!r})")
     return tuple(pairs)
 
 
@@ -290,7 +296,8 @@ def _arrival_options(parser: argparse.ArgumentParser):
     arrivals.add_argument("--cells", help="explicit ordered list, e.g. RBC,melanoma,RBC (default RBC,melanoma "
                                           "unless --count is given)")
     arrivals.add_argument("--count", type=Integer(low=1), help="number of cells drawn from --mix (at least 1)")
-    arrivals.add_argument("--mix", help="type mix for --count, e.g. RBC:0.9,melanoma:0.1")
+    arrivals.add_argument("--mix", help="type mix for --count: each type's share of the sample, summing to 1, e.g. "
+                          "RBC:0.9,melanoma:0.1")
     arrivals.add_argument("--rate", type=Quantity("frequency", "Hz", low=0, low_open=True), default="500",
                           metavar="RATE", help="arrival rate, cells/s (default 500; e.g. 1kHz)")
     arrivals.add_argument("--arrivals", choices=("regular", "poisson"), default="regular",

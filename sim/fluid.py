@@ -49,11 +49,13 @@ from .taylorhood import TaylorHood, mass_form
 
 
 def solver_code_digest() -> str:
-    """The code that computes a flow (this module, the kernels, the assembly, the linear solvers, and which
-    substitutions the split solve runs: ours or PARDISO's), as a key part of the flows stored through ``sim.store``:
-    a changed kernel or solver, whose bits differ, misses instead of giving a warm run other bits than a cold one."""
+    """The code that computes a flow (this module, the kernels, the assembly, the linear solvers, which
+    substitutions the split solve runs, ours or PARDISO's, and which step kernels, C or numba's), as a key part of
+    the flows stored through ``sim.store``: a changed kernel or solver, whose bits differ, misses instead of giving
+    a warm run other bits than a cold one."""
+    from .kernels import implementation
     from .splitsolve import substitutions
-    return f"{_python_code_digest()}:{substitutions()}"
+    return f"{_python_code_digest()}:{substitutions()}:{implementation()}"
 
 
 @lru_cache(maxsize=1)

@@ -33,8 +33,8 @@ from functools import lru_cache
 import numpy as np
 import scipy
 import scipy.sparse as sp
-from numba import njit
 
+from .kernels import jit_on_first_call
 from .linalg import SolverError, _aligned_empty, _mkl_runtime
 
 LANES = 16        # rows a kernel handles in one vector (the C source's LANES)
@@ -120,7 +120,7 @@ def pardiso_ordering(block: sp.csr_matrix) -> np.ndarray:
     return permutation.astype(np.int64)
 
 
-@njit(cache=True)
+@jit_on_first_call(cache=True)
 def _group(indptr, indices, n, slack, small, widest):
     """Consecutive columns of L (CSC, sorted rows) grouped into supernodes (module docstring): their first columns
     (and n), and each group's rows (its diagonal part's columns first) at rows[row_ptr[s]:row_ptr[s + 1]]."""
@@ -171,7 +171,7 @@ def _group(indptr, indices, n, slack, small, widest):
     return starts[:groups + 1].copy(), row_ptr[:groups + 1].copy(), rows[:row_ptr[groups]].copy()
 
 
-@njit(cache=True)
+@jit_on_first_call(cache=True)
 def _blocks(starts, row_ptr, rows, indptr, indices, values, n, lanes):
     """The supernodes' values in the kernels' layout (the C source's header): the diagonal blocks' strict lower
     triangles column by column and row by row, the rows below them padded to a multiple of ``lanes`` (padding rows

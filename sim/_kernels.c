@@ -140,9 +140,11 @@ CLONED static void momentum_blocks(const Momentum *m)
                     ys[i][j] = 2.0 * vy - back_y;
                     cxs[i][j] = (4.0 * vx - back_x) / 3.0;
                     cys[i][j] = (4.0 * vy - back_y) / 3.0;
-                } else {
+                } else {            /* the carried rows too: the compiler may read them in either case */
                     xs[i][j] = vx;
                     ys[i][j] = vy;
+                    cxs[i][j] = vx;
+                    cys[i][j] = vy;
                 }
             }
         }

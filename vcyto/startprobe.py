@@ -3,9 +3,9 @@
 Runs ``vcyto ARGS`` in this process with ``sim.feib.ImmersedBoundary.step`` replaced by a stop, so what is
 timed is the start: Python's imports, the set-up (mesh, matrices, factorisation, from the cache or not), the
 steady start flow and the first cell. ``--steps N`` lets N steps run before the stop: with 1, the start through
-the first step, which loads numba's compiled kernels. Prints one JSON line: the wall time since this module
-started and the process's CPU time (user + system, all threads), the steps taken and whether pint was
-imported. For comparing starts in pairs on a busy machine, where the CPU time is steadier than the wall time.
+the first step. Prints one JSON line: the wall time since this module started and the process's CPU time
+(user + system, all threads), the steps taken and whether pint was imported. For comparing starts in pairs on
+a busy machine, where the CPU time is steadier than the wall time.
 """
 
 from __future__ import annotations

@@ -66,7 +66,7 @@ def _bench_fluid(scenario: Scenario, repeats: int, progress, rounds: int) -> dic
     result["default_solver"] = _describe(base._constant.factor)
     result["default_factor_nonzeros"] = base._constant.factor.factor_nonzeros
     started = time.perf_counter()
-    state = base.step(start)                # warm-up: numba compilation, MKL thread start, the split coupling
+    state = base.step(start)                # warm-up: MKL's threads, the split coupling
     result["first_step_s"] = time.perf_counter() - started
     progress(f"{rounds} rounds of blocks: the fastest back-solves, the default's back-solve and step")
     fastest = _fastest_backsolves(base)
@@ -315,7 +315,7 @@ def report_lines(result: dict) -> list[str]:
            f"{'the same bits' if result['restored_factor_identical'] else 'OTHER BITS'})"
            if "factorisation_restored_s" in result else ""),
         f"  steady start      {result['steady_solve_s']:8.2f} s",
-        f"  first step        {result['first_step_s']:8.2f} s (split solve: its coupling; numba, MKL start-up)",
+        f"  first step        {result['first_step_s']:8.2f} s (split solve: its coupling; MKL start-up)",
         f"  bare back-solve   {result['backsolve_ms']:8.2f} ms",
     ]
     for treatment, value in result["steps_ms"].items():

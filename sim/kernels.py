@@ -74,9 +74,10 @@ def implementation() -> str:
     return f"numba-{module_digest(_numba())}"
 
 
-def _call(name: str, *arguments):
-    """The C kernel ``name`` on ``arguments``, or numba's when the C one does not take them (TypeError)."""
-    if _C is not None:
+def _call(name: str, *arguments, takes: bool = True):
+    """The C kernel ``name`` on ``arguments``, or numba's when the C one does not take them (TypeError, or
+    ``takes`` False: arguments the caller knows it would compute differently)."""
+    if _C is not None and takes:
         try:
             return getattr(_C, name)(*arguments)
         except TypeError:
@@ -182,22 +183,12 @@ def _sums_in(zero, vector) -> bool:
 
 def transposed_products(y, dinv, z, data, indices, indptr, g, zero):
     """z = dinv * y (when ``dinv`` has entries) and g = H^T y, summed in ``zero``'s type."""
-    if _C is not None and _sums_in(zero, y):
-        try:
-            return _C.transposed_products(y, dinv, z, data, indices, indptr, g, zero)
-        except TypeError:
-            pass
-    return _numba().transposed_products(y, dinv, z, data, indices, indptr, g, zero)
+    _call("transposed_products", y, dinv, z, data, indices, indptr, g, zero, takes=_sums_in(zero, y))
 
 
 def minus_product(z, data, indices, indptr, w, sums, out, zero):
     """out = z - H w, H given by its transpose in CSR, summed in ``zero``'s type."""
-    if _C is not None and _sums_in(zero, z):
-        try:
-            return _C.minus_product(z, data, indices, indptr, w, sums, out, zero)
-        except TypeError:
-            pass
-    return _numba().minus_product(z, data, indices, indptr, w, sums, out, zero)
+    _call("minus_product", z, data, indices, indptr, w, sums, out, zero, takes=_sums_in(zero, z))
 
 
 def scatter_add(solution, rows, x, accumulate):

@@ -22,6 +22,9 @@
 
 #define BLOCK 128          /* elements the momentum kernel takes at a time (kernels_numba.BLOCK) */
 #define LAYOUT 1           /* the functions' argument lists (sim/kernels.py's LAYOUT) */
+#ifdef __FAST_MATH__
+#error "sim/_kernels.c must not be built with -ffast-math: it promises numba's bits (remove it from CFLAGS)"
+#endif
 #ifndef VCYTO_KERNELS_SOURCE
 #define VCYTO_KERNELS_SOURCE "unknown"
 #endif
@@ -64,6 +67,10 @@ static int take(PyObject *object, Arg *arg, char kind, Py_ssize_t size, int writ
                      arg->view.format ? arg->view.format : "B");
         return -1;
     }
+    if ((uintptr_t)arg->view.buf % (uintptr_t)size != 0) {
+        PyErr_Format(PyExc_TypeError, "%s: an array aligned to its items", name);
+        return -1;
+    }
     return 0;
 }
 
@@ -79,6 +86,27 @@ static void release(Arg *args, int n)
 static inline Py_ssize_t count(const Arg *arg) { return arg->view.len / arg->view.itemsize; }
 static inline Py_ssize_t dim(const Arg *arg, int axis) { return axis < arg->view.ndim ? arg->view.shape[axis] : 1; }
 #define DATA(arg, type) ((type *)(arg).view.buf)
+
+/* whether ``arg`` has ``ndim`` axes of the lengths given (-1: any) */
+static int shaped(const Arg *arg, int ndim, Py_ssize_t d0, Py_ssize_t d1, Py_ssize_t d2)
+{
+    const Py_ssize_t wanted[3] = {d0, d1, d2};
+    if (arg->view.ndim != ndim)
+        return 0;
+    for (int i = 0; i < ndim && i < 3; i++)
+        if (wanted[i] >= 0 && arg->view.shape[i] != wanted[i])
+            return 0;
+    return 1;
+}
+
+/* whether every index is in [0, size): checked before a kernel writes through them */
+static int within(const int64_t *indices, Py_ssize_t n, int64_t size)
+{
+    for (Py_ssize_t k = 0; k < n; k++)
+        if (indices[k] < 0 || indices[k] >= size)
+            return 0;
+    return 1;
+}
 
 static int arity(Py_ssize_t nargs, Py_ssize_t wanted, const char *name)
 {
@@ -228,8 +256,9 @@ static PyObject *element_momentum(PyObject *self, PyObject *const *args, Py_ssiz
         goto done;
     m.ne = dim(&a[0], 1);
     m.nq = count(&a[5]);
-    if (dim(&a[0], 0) != 6 || count(&a[1]) != 4 * m.ne || count(&a[2]) != m.ne || count(&a[3]) != 6 * m.nq
-        || count(&a[4]) != 12 * m.nq || count(&a[12]) != 12 * m.ne) {
+    if (!shaped(&a[0], 2, 6, -1, -1) || !shaped(&a[1], 2, 4, m.ne, -1) || !shaped(&a[2], 1, m.ne, -1, -1)
+        || !shaped(&a[3], 2, m.nq, 6, -1) || !shaped(&a[4], 3, m.nq, 6, 2) || !shaped(&a[5], 1, m.nq, -1, -1)
+        || !shaped(&a[12], 3, m.ne, 2, 6)) {
         shape_error(name, "element_dofs (6, ne), jacobian_rows (4, ne), areas (ne), phi (nq, 6), dphi (nq, 6, 2), "
                           "weights (nq), local (ne, 2, 6)");
         goto done;
@@ -240,6 +269,10 @@ static PyObject *element_momentum(PyObject *self, PyObject *const *args, Py_ssiz
             shape_error(name, "the velocity components (and the earlier ones) must have one length");
             goto done;
         }
+    if (!within(DATA(a[0], int64_t), 6 * m.ne, nodes)) {
+        shape_error(name, "an element's dof outside the velocity fields");
+        goto done;
+    }
     m.dofs = DATA(a[0], int64_t);
     m.rows = DATA(a[1], double);
     m.areas = DATA(a[2], double);
@@ -274,7 +307,7 @@ static PyObject *scatter_momentum(PyObject *self, PyObject *const *args, Py_ssiz
         || take(args[2], &a[2], 'l', 8, 0, name) < 0 || take(args[3], &a[3], 'd', 8, 1, name) < 0)
         goto done;
     const int64_t rows = dim(&a[0], 0), ne = dim(&a[0], 1), nodes = dim(&a[2], 1);
-    if (rows != 6 || count(&a[1]) != 12 * ne || dim(&a[2], 0) != 2) {
+    if (rows != 6 || !shaped(&a[0], 2, 6, -1, -1) || !shaped(&a[1], 3, ne, 2, 6) || !shaped(&a[2], 2, 2, -1, -1)) {
         shape_error(name, "element_dofs (6, ne), local (ne, 2, 6), positions (2, N)");
         goto done;
     }
@@ -282,14 +315,21 @@ static PyObject *scatter_momentum(PyObject *self, PyObject *const *args, Py_ssiz
     const double *local = DATA(a[1], double);
     double *out = DATA(a[3], double);
     const int64_t size = count(&a[3]);
+    if (!within(dofs, 6 * ne, nodes)) {
+        shape_error(name, "an element's dof outside positions");
+        goto done;
+    }
+    for (int64_t k = 0; k < 2 * nodes; k++)
+        if (positions[k] >= size) {
+            shape_error(name, "a position outside out");
+            goto done;
+        }
     for (int64_t e = 0; e < ne; e++)
         for (int i = 0; i < 6; i++) {
             const int64_t dof = dofs[i * ne + e];
-            if (dof < 0 || dof >= nodes)
-                continue;
             for (int c = 0; c < 2; c++) {
                 const int64_t position = positions[c * nodes + dof];
-                if (position >= 0 && position < size)
+                if (position >= 0)                  /* < 0: no entry (a Dirichlet unknown) */
                     out[position] += local[12 * e + 6 * c + i];
             }
         }
@@ -317,9 +357,10 @@ static PyObject *linearised_convection(PyObject *self, PyObject *const *args, Py
         if (take(args[slot[i]], &a[i], kinds[i], 8, i >= 9, name) < 0)
             goto done;
     const int64_t ne = dim(&a[0], 1), nq = count(&a[5]), nodes = count(&a[6]), nnz = count(&a[9]);
-    if (dim(&a[0], 0) != 6 || count(&a[1]) != 4 * ne || count(&a[2]) != ne || count(&a[3]) != 6 * nq
-        || count(&a[4]) != 12 * nq || count(&a[7]) != nodes || count(&a[8]) != 36 * ne || count(&a[10]) != nnz
-        || count(&a[11]) != nnz || count(&a[12]) != nnz) {
+    if (!shaped(&a[0], 2, 6, -1, -1) || !shaped(&a[1], 3, ne, 2, 2) || !shaped(&a[2], 1, ne, -1, -1)
+        || !shaped(&a[3], 2, nq, 6, -1) || !shaped(&a[4], 3, nq, 6, 2) || count(&a[7]) != nodes
+        || !shaped(&a[8], 3, ne, 6, 6) || count(&a[10]) != nnz || count(&a[11]) != nnz || count(&a[12]) != nnz
+        || !within(DATA(a[0], int64_t), 6 * ne, nodes)) {
         shape_error(name, "element_dofs (6, ne), inverse_jacobians (ne, 2, 2), determinants (ne), phi (nq, 6), dphi "
                           "(nq, 6, 2), weights (nq), ux and uy (N), positions (ne, 6, 6), four data arrays of one length");
         goto done;
@@ -415,8 +456,9 @@ static PyObject *locate(PyObject *self, PyObject *const *args, Py_ssize_t nargs)
             goto done;
     const int64_t points = dim(&a[0], 0), nx = count(&a[1]) - 1, ny = count(&a[2]) - 1;
     const int64_t triangles = dim(&a[4], 0);
-    if (dim(&a[0], 1) != 2 || nx < 1 || ny < 1 || count(&a[3]) != nx * ny * 2 || count(&a[5]) != 4 * triangles
-        || dim(&a[4], 1) != 2 || count(&a[6]) != points || count(&a[7]) != 2 * points) {
+    if (!shaped(&a[0], 2, -1, 2, -1) || nx < 1 || ny < 1 || !shaped(&a[3], 3, nx, ny, 2)
+        || !shaped(&a[4], 2, -1, 2, -1) || !shaped(&a[5], 3, triangles, 2, 2) || count(&a[6]) != points
+        || !shaped(&a[7], 2, points, 2, -1)) {
         shape_error(name, "points (n, 2), grid_x (nx + 1), grid_y (ny + 1), square_elements (nx, ny, 2), origins "
                           "(ne, 2), inverse_jacobians (ne, 2, 2), elements (n), reference (n, 2)");
         goto done;
@@ -484,8 +526,8 @@ static PyObject *p2_transfer(PyObject *const *args, Py_ssize_t nargs, int spread
     /* interpolate: values (nc, N), out (n, nc); spread: forces (n, nc), out (nc, N) */
     const Arg *field = spread ? &a[4] : &a[3], *at_points = spread ? &a[3] : &a[4];
     const int64_t nc = dim(field, 0), nodes = dim(field, 1);
-    if (count(&a[1]) != 2 * points || dim(&a[2], 0) != 6 || dim(at_points, 0) != points || dim(at_points, 1) != nc
-        || field->view.ndim != 2 || at_points->view.ndim != 2) {
+    if (!shaped(&a[1], 2, points, 2, -1) || !shaped(&a[2], 2, 6, -1, -1) || !shaped(at_points, 2, points, nc, -1)
+        || field->view.ndim != 2) {
         shape_error(name, "elements (n), reference (n, 2), element_dofs (6, ne), the field (nc, N), the points' "
                           "values (n, nc)");
         goto done;
@@ -493,6 +535,13 @@ static PyObject *p2_transfer(PyObject *const *args, Py_ssize_t nargs, int spread
     const int64_t *elements = DATA(a[0], int64_t), *dofs = DATA(a[2], int64_t);
     const double *reference = DATA(a[1], double);
     double phi[6];
+    for (int64_t k = 0; k < points; k++)           /* the dofs of the points' elements: written through in spread */
+        if (elements[k] >= 0 && elements[k] < ne)
+            for (int i = 0; i < 6; i++)
+                if (dofs[i * ne + elements[k]] < 0 || dofs[i * ne + elements[k]] >= nodes) {
+                    shape_error(name, "an element's dof outside the field");
+                    goto done;
+                }
     if (!spread) {
         const double *values = DATA(a[3], double);
         double *out = DATA(a[4], double);
@@ -681,16 +730,22 @@ static int variant(PyObject *real_object, PyObject *index_object, char *real_kin
         else FUNCTION##_f64_i32(__VA_ARGS__);                                                                        \
     } while (0)
 
-/* the CSR arrays' sizes: indptr of rows + 1 entries within data and indices (O(1): as numba's kernels, these check
-   no index's value, the split solve's own arrays built once, to keep a solve's pass over them the only one) */
-static int csr_valid(const Arg *data, const Arg *indices, const Arg *indptr, int64_t rows)
+/* the CSR arrays' sizes: indptr of rows + 1 non-decreasing entries from 0 within data and indices (O(rows)). The
+   column indices' values are not checked (as numba's kernels do not): they are the split solve's own, built once,
+   and checking them would be a pass over them as long as the product's own */
+static int csr_valid(const Arg *data, const Arg *indices, const Arg *indptr, int64_t rows, const char *name)
 {
     const int64_t nnz = count(data);
-    if (count(indptr) != rows + 1 || count(indices) != nnz || DATA(*indptr, int32_t)[0] != 0
-        || DATA(*indptr, int32_t)[rows] > nnz) {
-        shape_error("a split solve kernel", "CSR arrays of inconsistent sizes");
+    const int32_t *p = DATA(*indptr, int32_t);
+    if (count(indptr) != rows + 1 || count(indices) != nnz || p[0] != 0 || p[rows] > nnz) {
+        shape_error(name, "CSR arrays of inconsistent sizes");
         return -1;
     }
+    for (int64_t r = 0; r < rows; r++)
+        if (p[r + 1] < p[r]) {
+            shape_error(name, "a CSR row pointer that decreases");
+            return -1;
+        }
     return 0;
 }
 
@@ -710,9 +765,13 @@ static PyObject *gather_residual(PyObject *self, PyObject *const *args, Py_ssize
         || take(args[6], &a[6], real_kind, real_size, 1, name) < 0)
         goto done;
     const int64_t n = count(&a[1]);
+    if (n == 0) {                                  /* nothing to gather (numba's kernel: a loop of no rows) */
+        result = Py_NewRef(Py_None);
+        goto done;
+    }
     const int with_rows = count(&a[4]) == n + 1;
     if (count(&a[6]) < n
-        || (with_rows && csr_valid(&a[2], &a[3], &a[4], n) < 0)) {
+        || (with_rows && csr_valid(&a[2], &a[3], &a[4], n, name) < 0)) {
         if (!PyErr_Occurred())
             shape_error(name, "out shorter than rows");
         goto done;
@@ -747,7 +806,7 @@ static PyObject *transposed_products(PyObject *self, PyObject *const *args, Py_s
         goto done;
     const int64_t ny = count(&a[0]), ng = count(&a[6]);
     const int with_dinv = count(&a[1]) == ny;
-    if ((with_dinv && count(&a[2]) < ny) || csr_valid(&a[3], &a[4], &a[5], ng) < 0) {
+    if ((with_dinv && count(&a[2]) < ny) || csr_valid(&a[3], &a[4], &a[5], ng, name) < 0) {
         if (!PyErr_Occurred())
             shape_error(name, "z shorter than y");
         goto done;
@@ -780,7 +839,7 @@ static PyObject *minus_product(PyObject *self, PyObject *const *args, Py_ssize_t
         || take(args[6], &a[6], real_kind, real_size, 1, name) < 0)
         goto done;
     const int64_t nz = count(&a[0]), nw = count(&a[4]), nsums = count(&a[5]);
-    if (nsums < nz || count(&a[6]) < nz || csr_valid(&a[1], &a[2], &a[3], nw) < 0) {
+    if (nsums < nz || count(&a[6]) < nz || csr_valid(&a[1], &a[2], &a[3], nw, name) < 0) {
         if (!PyErr_Occurred())
             shape_error(name, "sums and out must be at least as long as z");
         goto done;
@@ -818,9 +877,8 @@ static PyObject *scatter_add(PyObject *self, PyObject *const *args, Py_ssize_t n
         || take(args[2], &a[2], real_kind, real_kind == 'f' ? 4 : 8, 0, name) < 0)
         goto done;
     const int64_t n = count(&a[1]);
-    if (count(&a[2]) < n) {
-        if (!PyErr_Occurred())
-            shape_error(name, "x shorter than rows");
+    if (count(&a[2]) < n || !within(DATA(a[1], int64_t), n, count(&a[0]))) {
+        shape_error(name, "x shorter than rows, or a row outside solution");
         goto done;
     }
     double *solution = DATA(a[0], double);
@@ -918,9 +976,10 @@ static PyObject *boundary_velocity(PyObject *self, PyObject *const *args, Py_ssi
         goto done;
     const int64_t n = count(&a[4]), nv = count(&a[2]);
     const int both_zero = inflow_weight == 0.0 && jet_weight == 0.0;
-    if ((!both_zero && (count(&a[0]) < n || count(&a[1]) < n)) || count(&a[3]) < nv) {
+    if ((!both_zero && (count(&a[0]) < n || count(&a[1]) < n)) || count(&a[3]) < nv
+        || !within(DATA(a[2], int64_t), nv, n)) {
         if (!PyErr_Occurred())
-            shape_error(name, "inflow and jet as long as out, solution as long as free_velocity");
+            shape_error(name, "inflow and jet as long as out, solution as long as free_velocity, each free velocity in out");
         goto done;
     }
     const double *inflow = DATA(a[0], double), *jet = DATA(a[1], double), *solution = DATA(a[3], double);
@@ -949,6 +1008,10 @@ static PyObject *free_solution(PyObject *self, PyObject *const *args, Py_ssize_t
         || take(args[4], &a[3], 'd', 8, 1, name) < 0)
         goto done;
     const int64_t nv = count(&a[1]), np_ = count(&a[2]);
+    if (scale == 0.0 && np_ > 0) {                 /* as numba's kernel (Python's error model) */
+        PyErr_SetString(PyExc_ZeroDivisionError, "free_solution: a pressure scale of zero");
+        goto done;
+    }
     if (count(&a[3]) < nv + np_) {
         if (!PyErr_Occurred())
             shape_error(name, "out must hold the free velocities and the pressure");
@@ -970,7 +1033,15 @@ done:
 /* ------------------------------------------------------------------------------------------------ the module */
 
 static PyObject *layout(PyObject *self, PyObject *unused) { return PyLong_FromLong(LAYOUT); }
-static PyObject *source(PyObject *self, PyObject *unused) { return PyUnicode_FromString(VCYTO_KERNELS_SOURCE); }
+/* what the bits depend on besides the arithmetic written here: the source and the compiler that built it */
+static PyObject *source(PyObject *self, PyObject *unused)
+{
+#ifdef __VERSION__
+    return PyUnicode_FromFormat("%s %s", VCYTO_KERNELS_SOURCE, __VERSION__);
+#else
+    return PyUnicode_FromString(VCYTO_KERNELS_SOURCE);
+#endif
+}
 
 #define FAST(name) {#name, (PyCFunction)(void (*)(void))name, METH_FASTCALL, NULL}
 static PyMethodDef methods[] = {
@@ -978,7 +1049,7 @@ static PyMethodDef methods[] = {
     FAST(first_self_intersection), FAST(gather_residual), FAST(transposed_products), FAST(minus_product),
     FAST(scatter_add), FAST(free_rhs), FAST(subtract_scaled), FAST(boundary_velocity), FAST(free_solution),
     {"layout", layout, METH_NOARGS, "The argument lists' version (sim/kernels.py's LAYOUT)."},
-    {"source", source, METH_NOARGS, "The SHA-256 of the source this library was built from (setup.py)."},
+    {"source", source, METH_NOARGS, "The SHA-256 of the source this library was built from (setup.py) and the compiler."},
     {NULL, NULL, 0, NULL}};
 
 static struct PyModuleDef module = {PyModuleDef_HEAD_INIT, "_kernels",

@@ -22,6 +22,7 @@ from __future__ import annotations
 import functools
 import importlib
 import logging
+import math
 import os
 
 import numpy as np
@@ -66,8 +67,9 @@ def compiled() -> bool:
 
 
 def implementation() -> str:
-    """Which kernels compute, for the keys of stored results: ``c-`` and the SHA-256 of the C source the library was
-    built from, or ``numba-`` and a digest of ``sim.kernels_numba``'s code (imports numba)."""
+    """Which kernels compute, for the keys of stored results: ``c-``, the SHA-256 of the C source the library was
+    built from and the compiler's version, or ``numba-`` and a digest of ``sim.kernels_numba``'s code (imports
+    numba)."""
     if _C is not None:
         return f"c-{_C.source()}"
     from .store import module_digest
@@ -123,12 +125,13 @@ def element_momentum(element_dofs, jacobian_rows, areas, phi, dphi, weights, vel
         bdf2, (w0, w1, w2), (a, b) = True, back[0], back[1]
     general = bool(w0 != 0.0 or w2 != 0.0 or w1 != 1.0)
     rows = [np.ascontiguousarray(field[k], dtype=np.float64) for field in (velocity, a, b) for k in (0, 1)]
-    try:
-        _C.element_momentum(element_dofs, jacobian_rows, areas, phi, dphi, weights, *rows, float(w0), float(w1),
-                            float(w2), general, bdf2, float(mass_coefficient), float(convection_coefficient), out)
-    except TypeError:
-        return _numba().element_momentum(element_dofs, jacobian_rows, areas, phi, dphi, weights, velocity,
-                                         mass_coefficient, convection_coefficient, out, back, threads)
+    # never numba's instead (fastmath: other last bits under the C kernels' key): inputs made what C takes, an
+    # ``out`` it cannot write raises
+    element_dofs = np.ascontiguousarray(element_dofs, dtype=np.int64)
+    jacobian_rows, areas, phi, dphi, weights = (np.ascontiguousarray(array, dtype=np.float64)
+                                                for array in (jacobian_rows, areas, phi, dphi, weights))
+    _C.element_momentum(element_dofs, jacobian_rows, areas, phi, dphi, weights, *rows, float(w0), float(w1),
+                        float(w2), general, bdf2, float(mass_coefficient), float(convection_coefficient), out)
     return out
 
 
@@ -175,20 +178,27 @@ def gather_residual(rhs, rows, data, indices, indptr, x, out):
     _call("gather_residual", rhs, rows, data, indices, indptr, x, out)
 
 
-def _sums_in(zero, vector) -> bool:
-    """Whether ``zero`` (the type numba's kernel sums in) is ``vector``'s type, the one the C kernel sums in."""
-    kind = vector.dtype.type
-    return type(zero) is kind or (type(zero) is float and kind is np.float64)
+def _plus_zero(zero) -> bool:
+    """Whether ``zero`` is +0 (the C kernels start every sum there; numba's start from ``zero`` itself)."""
+    return zero == 0 and math.copysign(1.0, zero) > 0
 
 
 def transposed_products(y, dinv, z, data, indices, indptr, g, zero):
-    """z = dinv * y (when ``dinv`` has entries) and g = H^T y, summed in ``zero``'s type."""
-    _call("transposed_products", y, dinv, z, data, indices, indptr, g, zero, takes=_sums_in(zero, y))
+    """z = dinv * y (when ``dinv`` has entries) and g = H^T y, summed in ``zero``'s type (the C kernel: in y's,
+    so it takes a ``zero`` of that type)."""
+    kind = y.dtype.type
+    takes = _plus_zero(zero) and (type(zero) is kind or (type(zero) is float and kind is np.float64))
+    if len(dinv) == 0:
+        dinv = _NO_DIAGONAL.get(y.dtype, dinv)        # an absent diagonal of y's type, which the C kernel asks for
+    _call("transposed_products", y, dinv, z, data, indices, indptr, g, zero, takes=takes)
 
 
 def minus_product(z, data, indices, indptr, w, sums, out, zero):
-    """out = z - H w, H given by its transpose in CSR, summed in ``zero``'s type."""
-    _call("minus_product", z, data, indices, indptr, w, sums, out, zero, takes=_sums_in(zero, z))
+    """out = z - H w, H given by its transpose in CSR, summed in ``sums``'s type from ``zero``."""
+    _call("minus_product", z, data, indices, indptr, w, sums, out, zero, takes=_plus_zero(zero))
+
+
+_NO_DIAGONAL = {np.dtype(np.float32): np.zeros(0, np.float32), np.dtype(np.float64): np.zeros(0)}
 
 
 def scatter_add(solution, rows, x, accumulate):

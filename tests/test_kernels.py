@@ -1,4 +1,5 @@
-"""Numba kernels against scikit-fem's own assembly and evaluation (the oracles)."""
+"""The step's kernels (``sim.kernels``: the C ones where built, else numba's) against scikit-fem's own assembly and
+evaluation (the oracles); numba's own are held to the C ones' results in tests/test_c_kernels.py."""
 
 import numpy as np
 import pytest
@@ -100,14 +101,21 @@ def test_linearised_convection_kernel_matches_scikit_fem_forms(space, newton):
 @pytest.mark.parametrize("weights", BACKS.values(), ids=BACKS.keys())
 def test_element_integrals_are_the_same_bits_on_one_thread_or_all(space, weights):
     """The fluid step computes the next step's element integrals ahead on one helper thread, or here on all of
-    numba's: each block of elements is computed alone, so the two give the same bits."""
+    numba's: each block of elements is computed alone, so the two give the same bits (numba's kernel, called
+    directly: ``sim.kernels`` runs the C one where it is built, on the calling thread whatever is asked)."""
     import numba
+
+    from sim import kernels_numba
     rng = np.random.default_rng(5)
     velocity, first, second = (rng.standard_normal((2, space.N)) for _ in range(3))
     back = None if weights is None else (weights, (first, second))
-    one, every = space.element_buffer(), space.element_buffer()
+    arguments = (space.element_dofs, space.jacobian_rows, space.areas, space.q_phi, space.q_dphi, space.q_weights,
+                 velocity, 3.0, 2.0)
+    one, every, here = space.element_buffer(), space.element_buffer(), space.element_buffer()
     threads = numba.get_num_threads()
-    space.element_momentum(velocity, 3.0, 2.0, one, back, threads=1)
+    kernels_numba.element_momentum(*arguments, one, back, threads=1)
     assert numba.get_num_threads() == threads                   # the caller's setting restored
-    space.element_momentum(velocity, 3.0, 2.0, every, back)
+    kernels_numba.element_momentum(*arguments, every, back)
     assert np.array_equal(one, every) and np.abs(every).max() > 0
+    space.element_momentum(velocity, 3.0, 2.0, here, back, threads=1)     # whichever kernels sim.kernels runs
+    assert np.abs(here - every).max() <= 1e-13 * np.abs(every).max()

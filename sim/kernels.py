@@ -71,7 +71,7 @@ def implementation() -> str:
     built from and the compiler's version, or ``numba-`` and a digest of ``sim.kernels_numba``'s code (imports
     numba)."""
     if _C is not None:
-        return f"c-{_C.source()}"
+        return "c-" + "_".join(_C.source().split())      # one word (keys are split on spaces by their tests)
     from .store import module_digest
     return f"numba-{module_digest(_numba())}"
 

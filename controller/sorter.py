@@ -17,21 +17,19 @@ Modes (what a sorter offers; ``MODES``):
 - ``yield``: sort every type-II cell; co-deflected type-I cells are accepted.
 - ``single``: ``purity``, and also abort when another type-II cell falls in the widened envelope (both are
   aborted), so that every sorted pulse carries exactly one cell.
-Several pending pulses may overlap: the IDT is on while any is. The controller is fed events and asked for the
-actuation at each control period; it never sees ground truth, so the same object could drive an instrument.
+It implements the controller protocol (``controller.protocol``): each event is answered with its decision and
+the aborts it causes; the loop turns the sorts into the IDT drive (on while any pulse is; pulses may overlap).
+It never sees ground truth, so the same object could drive an instrument.
 """
 
 from __future__ import annotations
 
 import math
-import time as clock
-from collections import deque
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 from .events import TYPE_II, Decision, DetectorEvent
 
 MODES = ("purity", "enrichment", "yield", "single")
-LATENCY_SAMPLES = 100_000      # the latest decision latencies kept (bounded memory over long runs)
 REORDER_SLACK = 1e-3           # s: predicted arrivals may come out of detection order by up to this
 
 
@@ -90,14 +88,21 @@ class _Pending:
     event_id: int
 
 
-@dataclass
 class SortController:
-    settings: ControllerSettings
-    latencies: deque = field(default_factory=lambda: deque(maxlen=LATENCY_SAMPLES))
-    _decisions: dict = field(default_factory=dict)    # event_id -> Decision, in event order
-    _recent: list = field(default_factory=list)       # _Pending entries still able to coincide
-    _pulses: dict = field(default_factory=dict)       # event_id -> (on, off), not yet over
-    _changes: list = field(default_factory=list)      # decisions made or revised since take_changes()
+    """The built-in controller (``controller.protocol.Controller``): answers each event with its decision and the
+    aborts it causes. It keeps its own record of what it decided, to judge coincidences."""
+
+    name = "built-in"
+
+    def __init__(self, settings: ControllerSettings):
+        self.settings = settings
+        self._decisions: dict = {}     # event_id -> Decision, in event order
+        self._recent: list = []        # _Pending entries still able to coincide
+        self._answer: list = []        # the decisions of the event being answered
+
+    @classmethod
+    def from_settings(cls, settings: ControllerSettings) -> SortController:
+        return cls(settings)
 
     @property
     def decisions(self) -> list[Decision]:
@@ -110,8 +115,9 @@ class SortController:
         settings = self.settings
         return event.time + settings.delay * settings.reference_velocity / max(event.velocity, 1e-9)
 
-    def on_event(self, event: DetectorEvent) -> None:
-        started = clock.perf_counter()
+    def on_event(self, event: DetectorEvent, clock: float | None = None) -> list[Decision]:
+        """The decision about ``event`` and the aborts it causes (decided at the event's time)."""
+        self._answer = []
         arrival = self.predicted_arrival(event)
         low, high = self.settings.window()
         reach = max(high, -low, 0.0)
@@ -123,16 +129,11 @@ class SortController:
         else:
             self._pass(event, arrival)
         self._recent.append(_Pending(event.classification, arrival, event.event_id))
-        self.latencies.append(clock.perf_counter() - started)
+        return self._answer
 
     def _decide(self, decision: Decision):
         self._decisions[decision.event_id] = decision
-        self._changes.append(decision)
-
-    def take_changes(self) -> list[Decision]:
-        """Decisions made or revised (a sort turned into an abort) since the last call."""
-        changes, self._changes = self._changes, []
-        return changes
+        self._answer.append(decision)
 
     def _coincident(self, offset: float, other_class: str) -> bool:
         """Whether a cell of ``other_class`` at ``offset`` (s, after the target) forbids the target's sort."""
@@ -158,7 +159,6 @@ class SortController:
             return
         late = f"pulse from the decision, {(event.time - on) * 1e3:.3f} ms late (lead > delay)" if on < event.time \
             else ""
-        self._pulses[event.event_id] = (on, off)
         self._decide(Decision(event.event_id, "sort", arrival, on, off, reason=late))
 
     def _pass(self, event, arrival):
@@ -175,23 +175,8 @@ class SortController:
         decision = self._decisions[event_id]
         if decision.action != "sort" or decision.pulse_on <= now:
             return decision.action == "abort"
-        self._pulses.pop(event_id, None)
         self._decide(Decision(event_id, "abort", decision.arrival, reason=reason))
         return True
-
-    def next_change(self, time: float) -> float:
-        """The earliest pulse start or end after ``time`` (inf if none): until then, and until the next
-        event, ``actuation`` keeps its value at ``time``. Lets a loop skip periods in which nothing happens."""
-        return min((edge for pulse in self._pulses.values() for edge in pulse if edge > time), default=float("inf"))
-
-    def actuation(self, time: float) -> float:
-        """IDT drive at ``time``: 1 while any scheduled pulse is on, else 0."""
-        started = clock.perf_counter()
-        for event_id in [key for key, (_, stop) in self._pulses.items() if stop <= time]:
-            del self._pulses[event_id]
-        on = any(start <= time for start, _ in self._pulses.values())
-        self.latencies.append(clock.perf_counter() - started)
-        return 1.0 if on else 0.0
 
 
 def _describe(other: _Pending, arrival: float) -> str:

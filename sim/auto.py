@@ -57,6 +57,8 @@ STIFF_CAPILLARY = 100.0         # cells with eta U_saw / kappa_e below this inte
 
 
 class AutoPlant:
+    model = "auto"      # its name in the registry (sim.plants): what a summary says ran
+
     def __init__(self, scenario: Scenario, control_period: float | None = None, coupling: float = 3.0,
                  release: float = 1.25, dwell: float = 50e-6, grid_spacing: float = 1e-6,
                  window_mesh_h: float | None = None, stiff_capillary: float = STIFF_CAPILLARY):

@@ -48,6 +48,8 @@ def stokeslet_velocities(points: np.ndarray, forces: np.ndarray, viscosity: floa
 class OneWayPlant:
     """Deforming membranes in the blended steady flows (module docstring), behind the plant contract."""
 
+    model = "oneway"      # its name in the registry (sim.plants): what a summary says ran
+
     def __init__(self, scenario: Scenario, control_period: float | None = None, flows: RomFlows | None = None,
                  response_time: float | None = None, epsilon: float | None = None):
         self.scenario = scenario

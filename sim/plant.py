@@ -56,6 +56,8 @@ ADAPTIVE_PERIOD = 10e-6      # the longest control period of a FeibPlant whose s
 class FeibPlant:
     """The FE-IB model behind the plant contract."""
 
+    model = "feib"      # its name in the registry (sim.plants): what a summary says ran
+
     def __init__(self, scenario: Scenario, control_period: float | None = None, plant: ImmersedBoundary | None = None):
         self.scenario = scenario
         self.ib = plant or ImmersedBoundary(scenario)
@@ -220,6 +222,8 @@ class StreamlinePlant:
     ``response_time`` is the lag of the flow behind the IDT (first order). Cheap: one interpolation per
     cell per control period. It ignores cell size and deformation and the cells' effect on the fluid.
     """
+
+    model = "streamline"      # its name in the registry (sim.plants): what a summary says ran
 
     def __init__(self, scenario: Scenario, control_period: float = 10e-6, response_time: float = 0.1e-3,
                  fluid: NavierStokes | None = None):

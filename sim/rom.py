@@ -212,6 +212,8 @@ class RomPlant:
     solves and the sampling, a few seconds at the paper's mesh) happens once, in ``RomFlows.of``.
     """
 
+    model = "rom"      # its name in the registry (sim.plants): what a summary says ran
+
     def __init__(self, scenario: Scenario, control_period: float | None = None, response_time: float | None = None,
                  flows: RomFlows | None = None, grid_spacing: float = 1e-6, max_substep: float = 20e-6,
                  stall_speed: float = 1e-4, stall_time: float = 1e-3, catch_on_divider: bool = True):

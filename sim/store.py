@@ -37,6 +37,11 @@ def install(store: ArrayStore | None) -> ArrayStore | None:
     return previous
 
 
+def installed() -> ArrayStore | None:
+    """The store in use (None: everything is recomputed)."""
+    return _store
+
+
 def reuse(kind: str, key: dict, build: Callable[[], Arrays]) -> Arrays:
     """The arrays of ``kind`` for ``key``: from the installed store, or ``build()``."""
     if _store is None:

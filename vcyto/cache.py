@@ -323,6 +323,18 @@ def install_default() -> DiskCache | None:
     return cache
 
 
+_default_chosen = False
+
+
+def ensure_default() -> None:
+    """The Python API's default (``vcyto.run_stream``, ``vcyto.make_plant``): the disk cache, as on the command
+    line, installed once per process unless a store is installed already or ``VCYTO_CACHE=off``."""
+    global _default_chosen
+    if not _default_chosen and store.installed() is None:
+        install_default()
+    _default_chosen = True
+
+
 def usage(directory: Path | None = None) -> dict:
     """Where the cache is, whether it is on, and how many entries (the unit memo counted as one) and bytes it holds."""
     directory = directory or cache_directory()

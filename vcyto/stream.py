@@ -19,6 +19,7 @@ import numpy as np
 
 from controller.detector import Detector, DetectorSettings
 from controller.events import Sighting
+from controller.protocol import ControllerError, DeviceFacts
 from controller.sorter import ControllerSettings, SortController
 from sim import contract, plants
 from sim.arrivals import Arrivals, offer
@@ -27,6 +28,7 @@ from sim.linalg import SolverError
 from sim.scenario import Scenario
 
 from . import sortreport
+from .control import Control, InProcess, Timing, describe
 from .sortreport import report_lines, statistics_of, true_class  # noqa: F401  (the loop's public names)
 from .steps import ProgressSink, StepRecord, is_paced
 
@@ -36,7 +38,8 @@ STATUSES = ("complete", "truncated", "interrupted", "failed")
 
 class StreamStopped(Exception):
     """A run that did not finish: ``status`` is "interrupted" (KeyboardInterrupt, which SIGTERM is turned into
-    by the CLI) or "failed" (a numerical failure: ``sim.fluid.NumericalBlowUp`` or ``sim.linalg.SolverError``).
+    by the CLI) or "failed" (a numerical failure: ``sim.fluid.NumericalBlowUp`` or ``sim.linalg.SolverError``;
+    or a controller that broke the protocol: ``controller.protocol.ControllerError``, or lost its connection).
     ``result`` is the summary of what ran up to then (its "status" and "reason" say why it is partial);
     ``__cause__`` is the original exception."""
 
@@ -75,21 +78,36 @@ class StreamSettings:
 
 
 def make_plant(scenario: Scenario, settings: StreamSettings):
-    """A fresh plant of ``settings.model`` (the registry ``sim.plants``)."""
+    """A fresh plant of ``settings.model`` (the registry ``sim.plants``). Set-up results (steady flows, matrices,
+    factorisations) come from the disk cache, as on the command line (``vcyto.cache``; ``VCYTO_CACHE=off``)."""
+    from .cache import ensure_default
+    ensure_default()
     options = {"window_mesh_h": settings.window_mesh_h} if settings.model == "auto" else {}
     return plants.build(settings.model, scenario, control_period=settings.control_period, **options)
 
 
-def run_stream(scenario: Scenario, settings: StreamSettings, progress=None, plant=None, sinks=()) -> dict:
+def built_in_controller(settings: StreamSettings) -> SortController:
+    """The built-in controller of ``settings`` (``controller.sorter``)."""
+    return SortController(settings.controller)
+
+
+def run_stream(scenario: Scenario, settings: StreamSettings, progress=None, plant=None, sinks=(), controller=None,
+               timing: Timing = Timing()) -> dict:
     """Run the loop until every admitted cell has left (or a cap); a JSON-ready summary (``sortreport``).
+
+    ``controller``: any object implementing ``controller.protocol.Controller`` (default: the built-in
+    ``SortController`` of ``settings.controller``), or a port to one in another process (``vcyto.wire``); the
+    loop reaches it only through the protocol. ``plant``: a plant of one's own (``sim.contract.Plant``; default:
+    a fresh one of ``settings.model``). ``timing``: lock-step (default) or paced real time (``vcyto.control``).
+    The summary names the controller and the plant that ran.
 
     ``sinks`` (e.g. an MCAP recorder) get each step through ``on_step``; the caller closes them. The ``truth``
     they get holds the cells in the channel and those that left since the previous step. A plant that can group
     periods (``step_until``, the rom plant) is stepped up to the next moment the loop must look: a cell crossing
-    the end of the detection window, the controller's next pulse edge, the cap, and with sinks every
-    ``record_interval``; the detector is fed the cells that crossed an edge of its window, one period before and
-    at the crossing. It reacts to nothing else and the controller to nothing but its events, so the outcome is
-    the same as stepping period by period (tested), at a fraction of the cost.
+    the end of the detection window, the next pulse edge, an unanswered event's deadline (real time), the cap,
+    and with sinks every ``record_interval``; the detector is fed the cells that crossed an edge of its window,
+    one period before and at the crossing. It reacts to nothing else and the controller to nothing but its
+    events, so the outcome is the same as stepping period by period (tested), at a fraction of the cost.
     """
     started = time.perf_counter()
     rng = np.random.default_rng(settings.seed)
@@ -98,9 +116,10 @@ def run_stream(scenario: Scenario, settings: StreamSettings, progress=None, plan
     if plant is None and progress is not None:
         progress.note(f"setting up the {settings.model} plant (kept in the set-up cache after the first run)")
     plant = plant or make_plant(scenario, settings)
+    port = _port(controller if controller is not None else built_in_controller(settings))
     observers = list(sinks) + ([ProgressSink(progress, len(sample.admitted))] if progress is not None else [])
-    run = _Run(plant, settings, Detector(settings.detector, detector_rng), SortController(settings.controller),
-               observers)
+    facts = DeviceFacts.from_settings(settings.controller, plant.control_period, settings.detector.window)
+    run = _Run(plant, settings, Detector(settings.detector, detector_rng), Control(port, facts, timing), observers)
     run.observation = plant.reset(sample.admitted)
     setup = time.perf_counter() - started
     rss_setup = _peak_rss_mb()
@@ -111,20 +130,27 @@ def run_stream(scenario: Scenario, settings: StreamSettings, progress=None, plan
     try:
         while not plant.done and run.now < cap:
             run.step(cap)
+        run.control.finish()
     except KeyboardInterrupt:
         status, reason = "interrupted", "interrupted by the user (SIGINT or SIGTERM)"
     except (NumericalBlowUp, SolverError) as error:
         status, reason, failure = "failed", str(error), error
+    except (ControllerError, ConnectionError) as error:
+        status, reason, failure = "failed", f"controller: {error}", error
     run.finish()
     rss_loop = _peak_rss_mb()
     if status == "complete" and not plant.done:
         status, reason = "truncated", _truncation(plant, settings, cap, drain_cap)
-    result = sortreport.summarise(sample, plant.truth(), run.events, run.controller, scenario, settings,
+    ledger = run.control.ledger
+    result = sortreport.summarise(sample, plant.truth(), run.events, ledger, scenario, settings,
                                   partial=status != "complete")
     result.update(status=status, reason=reason, wall_time_s=time.perf_counter() - started, setup_time_s=setup,
                   idt_on_time_ms=run.idt_time * 1e3, steps=run.steps,
                   # peak resident memory after the set-up, at the loop's end (its state), and with the report built
                   memory_mb={"after_setup": rss_setup, "after_loop": rss_loop, "peak": _peak_rss_mb()})
+    result["control"] = run.control.report()
+    result["controller_name"] = port.name
+    result["model"] = model_name(plant)
     if isinstance(plant, contract.ReportsTimeSteps):     # feib: the dt used over time (--tolerance)
         result["time_steps"] = plant.time_steps()
     announce_end(sinks, result)
@@ -137,6 +163,21 @@ def run_stream(scenario: Scenario, settings: StreamSettings, progress=None, plan
     if status == "failed":
         raise StreamStopped(status, reason, result) from failure
     return result
+
+
+def model_name(plant) -> str:
+    """What a summary says ran: a registered model's name (``sim.plants``), else the plant's own name."""
+    model = getattr(type(plant), "model", None)
+    if isinstance(model, str) and model in MODELS and type(plant).__module__.startswith("sim."):
+        return model
+    return describe(plant)
+
+
+def _port(controller):
+    """A port to ``controller``: itself if it is one (``vcyto.wire``), else an in-process port to the object."""
+    if callable(getattr(controller, "post", None)) and callable(getattr(controller, "replies", None)):
+        return controller
+    return InProcess(controller)
 
 
 def announce_end(sinks, result):
@@ -164,8 +205,8 @@ def _truncation(plant, settings, cap, drain_cap) -> str:
 class _Run:
     """The state of one closed-loop run between its steps (``run_stream`` owns the loop)."""
 
-    def __init__(self, plant, settings, detector, controller, sinks):
-        self.plant, self.settings, self.detector, self.controller = plant, settings, detector, controller
+    def __init__(self, plant, settings, detector, control: Control, sinks):
+        self.plant, self.settings, self.detector, self.control = plant, settings, detector, control
         self.sinks = tuple(sinks)
         self.paced = any(is_paced(sink) for sink in self.sinks)      # recordings: the state every record_interval
         self.events, self.settled = {}, set()
@@ -191,11 +232,11 @@ class _Run:
         return self.plant.clock if self.single else self.now
 
     def step(self, cap: float):
-        plant, controller = self.plant, self.controller
+        plant, control = self.plant, self.control
         if self.grouped:
             # what the detector reacts to: the cells crossing its lines, one period before and at the crossing
             started = self.now
-            until = min(controller.next_change(self.clock), cap)
+            until = min(control.next_change(self.clock), cap)
             if self.paced and not self.single:
                 until = min(until, self.shown + self.settings.record_interval)
             window_start, window_end = self.settings.detector.window
@@ -207,11 +248,13 @@ class _Run:
             seen = [self.observation]
             self.idt_time += self.actuation * plant.control_period
         self.steps += periods
+        control.pace(self.now)
         new_events = [event for view in seen for event in self.detector.observe(view.time, _sightings(view))]
         for event in new_events:
-            controller.on_event(event)
             self.events[event.key] = event
-        self.actuation = controller.actuation(self.clock)
+        control.deliver(new_events, self.clock)
+        control.settle(self.now)
+        self.actuation = control.actuation(self.clock)
         self.pending.extend(new_events)
         # an event-driven plant shows its state every record_interval (events and decisions wait for it)
         due = (not self.grouped or self.single or self.now >= self.shown + self.settings.record_interval - 1e-12
@@ -223,7 +266,7 @@ class _Run:
         if self.grouped:
             self.observation = self.plant.observe()
         record = StepRecord(self.steps, self.observation, self._truth(), self.actuation, tuple(self.pending),
-                            tuple(self.controller.take_changes()), self.fields,
+                            tuple(self.control.ledger.take_changes()), self.fields,
                             self.diagnostics() if self.diagnostics is not None else None)
         for sink in self.sinks:
             sink.on_step(record)

@@ -11,15 +11,21 @@ import numpy as np
 def bench_controller(events: int = 20_000, rate: float = 1000.0, control_period: float = 10e-6, seed: int = 0) -> dict:
     """Decision latency of the sorting controller on a synthetic Poisson stream of detector events.
 
-    Each control period the controller gets the events completed in it, then is asked for the IDT drive;
-    the wall time of each call is one sample (the decision for an event, the drive for a period).
+    Each control period the controller gets the events completed in it, through the loop's end of the protocol
+    (``vcyto.control``: the answer checked and applied), then the IDT drive is read; the wall time of each is one
+    sample (the decision for an event, the drive for a period).
     """
     from controller.events import TYPE_I, TYPE_II, DetectorEvent
+    from controller.protocol import DeviceFacts
     from controller.sorter import ControllerSettings, SortController
+
+    from ..control import Control, InProcess
 
     rng = np.random.default_rng(seed)
     times = np.cumsum(rng.exponential(1 / rate, size=events))
-    controller = SortController(ControllerSettings())
+    settings = ControllerSettings()
+    control = Control(InProcess(SortController(settings)), DeviceFacts.from_settings(settings, control_period,
+                                                                                       (30e-6, 60e-6)))
     event_samples, drive_samples = [], []
     index, now = 0, 0.0
     while index < events:
@@ -29,11 +35,11 @@ def bench_controller(events: int = 20_000, rate: float = 1000.0, control_period:
                                                                                                                 1.1),
                                   TYPE_II if rng.random() < 0.3 else TYPE_I, index)
             started = time.perf_counter()
-            controller.on_event(event)
+            control.deliver((event,), now)
             event_samples.append(time.perf_counter() - started)
             index += 1
         started = time.perf_counter()
-        controller.actuation(now)
+        control.actuation(now)
         drive_samples.append(time.perf_counter() - started)
 
     def summary(samples):

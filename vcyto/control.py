@@ -17,6 +17,7 @@ latency (wall, times ``factor``); an answer later than its event's deadline is a
 
 from __future__ import annotations
 
+import bisect
 import math
 import time
 from collections import deque
@@ -290,11 +291,37 @@ class Control:
         report = {"timing": self.timing.describe(), "controller": getattr(self.port, "name", "?"),
                   "deadline_budget_ms": budget * 1e3, "missed_decisions": self.ledger.missed,
                   "refused_aborts": self.ledger.refused_aborts,
-                  "latency_ms": _percentiles(self.ledger.latencies)}
+                  "latency_ms": _percentiles(self.ledger.latencies),
+                  "latency_histogram": histogram(self.ledger.latencies)}
         if self.timing.realtime:
             report["lag_ms"] = {**_percentiles(self.lags), "max": self.max_lag * 1e3}
             report["factor"] = self.timing.factor
         return report
+
+
+def timing_line(report: dict) -> str:
+    """One line of ``Control.report()``: the timing mode, missed decisions against the budget, latency and lag."""
+    latency = report.get("latency_ms") or {}
+    said = (f"timing: {report['timing']}: {report['missed_decisions']} missed decisions (deadline "
+            f"{report['deadline_budget_ms']:.3f} ms after detection at the reference velocity)")
+    if latency:
+        said += (f"; controller latency p50 {latency['p50'] * 1e3:.1f} us, p99 {latency['p99'] * 1e3:.1f} us, "
+                 f"max {latency['max'] * 1e3:.1f} us")
+    lag = report.get("lag_ms")
+    if lag:
+        said += f"; the plant behind the wall clock p99 {lag['p99']:.3f} ms, max {lag['max']:.3f} ms"
+    return said
+
+
+HISTOGRAM_EDGES_US = (0, 1, 2, 5, 10, 20, 50, 100, 200, 500, 1_000, 2_000, 5_000, 10_000, 100_000, 1_000_000)
+
+
+def histogram(samples) -> dict:
+    """Latencies (s) counted between ``HISTOGRAM_EDGES_US`` (us; the last bin open above)."""
+    counts = [0] * len(HISTOGRAM_EDGES_US)
+    for sample in samples:
+        counts[bisect.bisect_right(HISTOGRAM_EDGES_US, sample * 1e6) - 1] += 1
+    return {"edges_us": list(HISTOGRAM_EDGES_US), "counts": counts}
 
 
 def _percentiles(samples) -> dict:

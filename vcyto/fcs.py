@@ -30,7 +30,7 @@ DESCRIPTIONS = ("time of detection (ms)", "fluorescence (a.u.)", "forward scatte
                 "velocity through the detection window (mm/s)", "detected class (1=I, 2=II)",
                 "decision (0=pass, 1=sort, 2=abort)", "outlet (0=lower, 1=upper, 2=wall, 3=lost, 4=in channel)")
 CLASS_CODES = {"I": 1, "II": 2}
-DECISION_CODES = {"pass": 0, "sort": 1, "abort": 2}
+DECISION_CODES = {"pass": 0, "sort": 1, "abort": 2, "missed": 3}
 OUTLET_CODES = {"lower": 0, "upper": 1, "wall": 2, "lost": 3, "in_channel": 4}
 
 
@@ -101,7 +101,7 @@ def write_fcs(path: Path, result: dict, metadata: dict | None = None, settings=N
                 "$BTIM": time.strftime("%H:%M:%S", time.localtime(began)),
                 "$ETIM": time.strftime("%H:%M:%S", time.localtime(ended)),
                 "VCYTO_MODEL": result["model"], "VCYTO_SEED": str(result["seed"]), "VCYTO_GATE_FL1": f"{gate!r}",
-                "VCYTO_CLASS_CODES": "1=I,2=II", "VCYTO_DECISION_CODES": "0=pass,1=sort,2=abort",
+                "VCYTO_CLASS_CODES": "1=I,2=II", "VCYTO_DECISION_CODES": "0=pass,1=sort,2=abort,3=missed",
                 "VCYTO_OUTLET_CODES": "0=lower,1=upper,2=wall,3=lost,4=in_channel"}
     keywords.update(_settings_keywords(settings))
     keywords.update(_device_keywords(scenario))

@@ -11,6 +11,7 @@ field), one line naming the option.
 from __future__ import annotations
 
 import argparse
+from pathlib import Path
 
 from controller.sorter import MODES, ControllerSettings
 from sim import plants
@@ -182,14 +183,38 @@ def stream_settings(args, scenario):
                 scenario.with_numerics(mesh_h=window)           # resolves every inlet and outlet
             except ScenarioError as error:
                 raise UsageError(f"--window-h: {str(error).split(': ', 1)[1]}") from None
-        if args.model == "feib":
+        plant_from, controller_from = _plugin(args, "plant_from"), _plugin(args, "controller_from")
+        if plant_from is not None and args.model != "feib":
+            raise UsageError(f"--plant-from: runs your plant instead of --model {args.model}: give one of them")
+        if controller_from is not None and args.no_controller:
+            raise UsageError("--controller-from: --no-controller turns the controller off: give one of them")
+        if args.model == "feib" and plant_from is None:
             check_run_time(args, scenario, _device_time(arrivals, args.max_time), "--dt/--count/--rate")
         return stream.StreamSettings(arrivals, detector, controller, args.model, args.seed,
-                                     max_time=args.max_time, window_mesh_h=window)
+                                     max_time=args.max_time, window_mesh_h=window, controller_from=controller_from,
+                                     plant_from=plant_from)
     except ValueError as error:
         if isinstance(error, (UsageError, ScenarioError, units.QuantityError)):
             raise
         raise UsageError(str(error)) from None
+
+
+def _plugin(args, name: str) -> str | None:
+    """``--controller-from`` / ``--plant-from``: its FILE.py:NAME, a file's path made absolute, checked by loading
+    it (a usage error says what is wrong)."""
+    spec = getattr(args, name, None)
+    if spec is None:
+        return None
+    from . import plugins
+    option = "--" + name.replace("_", "-")
+    try:
+        where, attribute = plugins.split(spec)
+        if where.endswith(".py") or "/" in where:
+            spec = f"{Path(where).expanduser().resolve()}:{attribute}"
+        plugins.load(spec)
+    except plugins.PluginError as error:
+        raise UsageError(f"{option}: {error}") from None
+    return spec
 
 
 def arrivals_settings(args):
@@ -335,9 +360,16 @@ def _sorting_options(parser: argparse.ArgumentParser):
                         help="uncertainty of one predicted arrival; the purity window is the envelope widened by twice "
                              f"this (ms; default {_ms(SHIPPED.timing_error)})")
     optics.add_argument("--no-controller", action="store_true", help="never switch the IDT on")
+    optics.add_argument("--controller-from", metavar="FILE.py:NAME",
+                        help="your controller: NAME (a class or factory in FILE.py, or MODULE:NAME) is called with "
+                             "the controller settings (the calibration and the options above) and returns an object "
+                             "with on_event(event, clock) (docs/controllers.md)")
 
 
 def _plant_options(parser: argparse.ArgumentParser):
+    parser.add_argument("--plant-from", metavar="FILE.py:NAME",
+                        help="your plant instead of --model: NAME (a class or factory in FILE.py, or MODULE:NAME) is "
+                             "called with the scenario and returns a plant (sim.contract.Plant; docs/controllers.md)")
     parser.add_argument("--model", choices=plants.MODELS, default="feib",
                         help="plant: full FE-IB (default); auto (rom, switching to feib while a melanoma "
                              "shares the channel or cells are close together); oneway (membranes deforming in "

@@ -62,7 +62,9 @@ SCHEMAS = {
         "velocity": _number("window length / transit time", "m/s"),
         "classification": _string("class by the gate", ("I", "II")), "key": _integer("the cell's key")}),
     "/controller/decision": _object("vcyto.Decision", "the controller's decision on an event (made or revised)", {
-        "event_id": _integer("event number"), "action": _string("what the controller does", ("sort", "pass", "abort")),
+        "event_id": _integer("event number"), "action": _string(
+            "what the controller does (missed: its answer came after its deadline)",
+            ("sort", "pass", "abort", "missed")),
         "arrival": _number("predicted arrival at the SAW window", "s"),
         "pulse_on": _number("IDT pulse start; null without a pulse", "s", nullable=True),
         "pulse_off": _number("IDT pulse end; null without a pulse", "s", nullable=True),

@@ -167,6 +167,7 @@ def statistics_of(cells, simulated_time, rejected=(), scenario=None, controller_
         "cells": len(cells),
         "events": sum(c["detected_class"] is not None for c in cells),
         "sorted": sum(c["decision"] == "sort" for c in cells),
+        "missed_decisions": sum(c["decision"] == "missed" for c in cells),
         "purity": (sum(c["true_class"] == TYPE_II for c in sorted_cells) / len(sorted_cells)) if sorted_cells else None,
         "purity_of_sorting": _purity_of_sorting(sorted_cells),
         "yield": (sum(c["outlet"] == SORTED_OUTLET for c in targets) / offered_targets) if offered_targets else None,
@@ -341,7 +342,7 @@ def sort_report_lines(result: dict) -> list[str]:
         expected = f" (analytic {_percent(estimate['yield'])}" + (f" +/- {100 * error:.1f}" if error else "") + ")"
     throughput = stats["throughput_cells_per_s"]
     lines = [
-        f"sort report ({result.get('controller_mode', '?')} mode): {stats['offered']} offered, "
+        f"sort report ({_controller_words(result)}): {stats['offered']} offered, "
         f"{stats['rejected_at_inlet']} rejected at the inlet, {stats['events']} events, {stats['sorted']} sort "
         f"decisions, {stats['aborts']} aborted",
         _outcome_line(stats),
@@ -358,6 +359,9 @@ def sort_report_lines(result: dict) -> list[str]:
         f"{result['wall_time_s'] - result['setup_time_s']:.3g} s); "
         + _latency_line(result['controller_latency_us']),
     ]
+    if "control" in result:
+        from .control import timing_line
+        lines.append(timing_line(result["control"]))
     if (result.get("time_steps") or {}).get("levels_us"):
         from .paper import time_step_line
         lines += [line.strip() for line in time_step_line(result["time_steps"])]
@@ -374,6 +378,13 @@ def sort_report_lines(result: dict) -> list[str]:
 
 
 __all__ = ["summarise", "statistics_of", "yield_estimate", "report_lines", "true_class", "DEFAULT_OUTLET"]
+
+
+def _controller_words(result: dict) -> str:
+    """The controller that ran: the built-in one with its mode, or a user's by its name."""
+    name = result.get("controller_name", "built-in")
+    mode = f"{result.get('controller_mode', '?')} mode"
+    return mode if name == "built-in" else f"controller {name}"
 
 
 def _no_coincidence(stats: dict, result: dict) -> str:

@@ -63,6 +63,8 @@ class StreamSettings:
     window_mesh_h: float | None = None        # auto: mesh of its feib windows (None: sim.auto's default)
     drain_time: float = DRAIN_TIME
     record_interval: float = RECORD_INTERVAL
+    controller_from: str | None = None        # FILE.py:NAME or MODULE:NAME of a controller (vcyto.plugins)
+    plant_from: str | None = None             # FILE.py:NAME or MODULE:NAME of a plant; replaces ``model``
 
     def __post_init__(self):
         if self.model not in MODELS:
@@ -80,14 +82,21 @@ class StreamSettings:
 def make_plant(scenario: Scenario, settings: StreamSettings):
     """A fresh plant of ``settings.model`` (the registry ``sim.plants``). Set-up results (steady flows, matrices,
     factorisations) come from the disk cache, as on the command line (``vcyto.cache``; ``VCYTO_CACHE=off``)."""
+    if settings.plant_from is not None:
+        from . import plugins
+        return plugins.plant(settings.plant_from, scenario)
     from .cache import ensure_default
     ensure_default()
     options = {"window_mesh_h": settings.window_mesh_h} if settings.model == "auto" else {}
     return plants.build(settings.model, scenario, control_period=settings.control_period, **options)
 
 
-def built_in_controller(settings: StreamSettings) -> SortController:
-    """The built-in controller of ``settings`` (``controller.sorter``)."""
+def settings_controller(settings: StreamSettings):
+    """The controller ``settings`` name: ``controller_from``'s (``vcyto.plugins``), else the built-in one
+    (``controller.sorter``), each built from ``settings.controller``."""
+    if settings.controller_from is not None:
+        from . import plugins
+        return plugins.controller(settings.controller_from, settings.controller)
     return SortController(settings.controller)
 
 
@@ -95,11 +104,12 @@ def run_stream(scenario: Scenario, settings: StreamSettings, progress=None, plan
                timing: Timing = Timing()) -> dict:
     """Run the loop until every admitted cell has left (or a cap); a JSON-ready summary (``sortreport``).
 
-    ``controller``: any object implementing ``controller.protocol.Controller`` (default: the built-in
-    ``SortController`` of ``settings.controller``), or a port to one in another process (``vcyto.wire``); the
-    loop reaches it only through the protocol. ``plant``: a plant of one's own (``sim.contract.Plant``; default:
-    a fresh one of ``settings.model``). ``timing``: lock-step (default) or paced real time (``vcyto.control``).
-    The summary names the controller and the plant that ran.
+    ``controller``: any object implementing ``controller.protocol.Controller`` (default: ``settings``'s,
+    ``settings_controller``: the built-in ``SortController`` unless ``controller_from`` names one), or a port
+    to one in another process (``vcyto.wire``); the loop reaches it only through the protocol. ``plant``: a
+    plant of one's own (``sim.contract.Plant``; default: a fresh one of ``settings.model``). ``timing``:
+    lock-step (default) or paced real time (``vcyto.control``). The summary names the controller and the plant
+    that ran.
 
     ``sinks`` (e.g. an MCAP recorder) get each step through ``on_step``; the caller closes them. The ``truth``
     they get holds the cells in the channel and those that left since the previous step. A plant that can group
@@ -116,7 +126,7 @@ def run_stream(scenario: Scenario, settings: StreamSettings, progress=None, plan
     if plant is None and progress is not None:
         progress.note(f"setting up the {settings.model} plant (kept in the set-up cache after the first run)")
     plant = plant or make_plant(scenario, settings)
-    port = _port(controller if controller is not None else built_in_controller(settings))
+    port = _port(controller if controller is not None else settings_controller(settings))
     observers = list(sinks) + ([ProgressSink(progress, len(sample.admitted))] if progress is not None else [])
     facts = DeviceFacts.from_settings(settings.controller, plant.control_period, settings.detector.window)
     run = _Run(plant, settings, Detector(settings.detector, detector_rng), Control(port, facts, timing), observers)
@@ -185,7 +195,8 @@ def announce_end(sinks, result):
     stats = result["statistics"]
     ending = {"status": result["status"], "reason": result["reason"], "simulated_time_ms": result["simulated_time_ms"],
               **{key: stats.get(key) for key in ("offered", "events", "sorted", "aborts", "purity", "yield",
-                                                 "not_injected", "not_yet_due")}}
+                                                 "not_injected", "not_yet_due", "missed_decisions")},
+              **({"control": result["control"]} if "control" in result else {})}
     for sink in sinks:
         if hasattr(sink, "on_end"):
             sink.on_end(ending)

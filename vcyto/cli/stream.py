@@ -7,7 +7,7 @@ import argparse
 import sys
 
 from .. import outputs
-from ..arguments import Integer
+from ..arguments import Integer, Number
 from ..options import (
     late_pulse_note,
     scenario_from,
@@ -48,9 +48,46 @@ def add_command(commands):
     stream.add_argument("--field-every", type=Integer(low=0), default="200", metavar="N",
                         help="record the velocity field every N recorded steps (control periods; with "
                              "--tolerance, FE-IB steps), 0 = never (default 200)")
+    _timing_options(stream)
     _viewer_options(stream)
     output_options(stream)
     stream.set_defaults(handler=command_stream)
+
+
+def _timing_options(parser: argparse.ArgumentParser):
+    group = parser.add_argument_group("timing (docs/controllers.md: deadlines and missed decisions)")
+    group.add_argument("--realtime", nargs="?", const="1", default=None, type=Number(low=1e-6, high=1e6),
+                       metavar="FACTOR",
+                       help="paced real time: device time follows the wall clock (FACTOR device seconds per wall "
+                            "second, default 1); an answer later than its event's deadline is a missed decision. "
+                            "Default: lock-step (the loop waits for every answer; results depend on the seed only)")
+
+
+def _timing(args):
+    from ..control import Timing
+    return Timing(realtime=True, factor=args.realtime) if args.realtime is not None else Timing()
+
+
+def _controller(args, settings):
+    """The run's controller, built before the run so that a broken one is a usage error (None: the built-in)."""
+    from .. import plugins, stream
+    if settings.controller_from is None:
+        return None
+    try:
+        return stream.settings_controller(settings)
+    except plugins.PluginError as error:
+        raise UsageError(f"--controller-from: {error}") from None
+
+
+def _plant(settings, scenario):
+    """A plant of the user's (--plant-from), built before the run (a broken one is a usage error), else None."""
+    from .. import plugins, stream
+    if settings.plant_from is None:
+        return None
+    try:
+        return stream.make_plant(scenario, settings)
+    except plugins.PluginError as error:
+        raise UsageError(f"--plant-from: {error}") from None
 
 
 def _viewer_options(parser: argparse.ArgumentParser, live: bool = True):
@@ -83,6 +120,7 @@ def command_stream(args):
             raise UsageError(str(error)) from None
     if note := late_pulse_note(settings.controller):
         print(f"vcyto: note: {note}", file=sys.stderr)
+    controller, plant, timing = _controller(args, settings), _plant(settings, scenario), _timing(args)
     signals_seen.clear()
     view = runfiles.choose_view(args, output is not None, spawn_by_default=True, error=UsageError)
     files = None
@@ -95,7 +133,8 @@ def command_stream(args):
             except outputs.NameTaken as error:
                 raise UsageError(str(error)) from None
         background = _open_sinks(args, scenario, settings, view, files)
-    result, stopped = _run_with_sinks(args, scenario, settings, view, files, background, setting_up.pending)
+    result, stopped = _run_with_sinks(args, scenario, settings, view, files, background, setting_up.pending,
+                                      dict(controller=controller, plant=plant, timing=timing))
     _report_stream(args, result, stopped, view, files, settings, scenario)
     return _partial_status(args, result)
 
@@ -115,10 +154,11 @@ def _open_sinks(args, scenario, settings, view, files):
     return BackgroundSinks(sinks) if sinks else None
 
 
-def _run_with_sinks(args, scenario, settings, view, files, background, interrupted: bool):
+def _run_with_sinks(args, scenario, settings, view, files, background, interrupted: bool, loop: dict):
     """Run the loop with the sinks; (summary, StreamStopped or None). The sinks are closed whatever happens; a
     run stopped by Ctrl-C, SIGTERM or a numerical failure returns its partial summary. ``interrupted``: a signal
-    came while the files and sinks were created; the run stops before its first step."""
+    came while the files and sinks were created; the run stops before its first step. ``loop``: the controller,
+    plant and timing for ``run_stream``."""
     from .. import runfiles, stream
     from ..progress import Progress
     progress = Progress(quiet=args.quiet or args.json)
@@ -128,7 +168,8 @@ def _run_with_sinks(args, scenario, settings, view, files, background, interrupt
             try:
                 if interrupted:
                     raise KeyboardInterrupt
-                result = stream.run_stream(scenario, settings, progress, sinks=[background] if background else [])
+                result = stream.run_stream(scenario, settings, progress, sinks=[background] if background else [],
+                                           **loop)
             except stream.StreamStopped as error:
                 stopped, result = error, error.result
             except KeyboardInterrupt:                      # before the loop began (setting up the plant)

@@ -80,7 +80,11 @@ class InProcess:
 
     def post(self, event: DetectorEvent, clock: float) -> None:
         started = time.perf_counter()
-        answer = self.controller.on_event(event, clock)
+        try:
+            answer = self.controller.on_event(event, clock)
+        except Exception as error:         # the user's code: the run stops and says where
+            text = " ".join(str(error).split())[:300]
+            raise ControllerError(f"{self.name}: on_event raised {type(error).__name__}: {text}") from error
         self._replies.append(Reply(event.event_id, answer, time.perf_counter() - started))
 
     def replies(self, wait: float = 0.0) -> list[Reply]:
@@ -88,7 +92,13 @@ class InProcess:
         return replies
 
     def drive(self, clock: float) -> float | None:
-        return self.controller.drive(clock) if isinstance(self.controller, Drives) else None
+        if not isinstance(self.controller, Drives):
+            return None
+        try:
+            return self.controller.drive(clock)
+        except Exception as error:
+            text = " ".join(str(error).split())[:300]
+            raise ControllerError(f"{self.name}: drive raised {type(error).__name__}: {text}") from error
 
     def close(self) -> None:
         close = getattr(self.controller, "close", None)

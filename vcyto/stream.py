@@ -105,7 +105,8 @@ def run_stream(scenario: Scenario, settings: StreamSettings, progress=None, plan
     """Run the loop until every admitted cell has left (or a cap); a JSON-ready summary (``sortreport``).
 
     ``controller``: any object implementing ``controller.protocol.Controller`` (default: ``settings``'s,
-    ``settings_controller``: the built-in ``SortController`` unless ``controller_from`` names one), or a port
+    ``settings_controller``: the built-in ``SortController`` unless ``controller_from`` names one), a class of
+    one (built from ``settings.controller``), or a port
     to one in another process (``vcyto.wire``); the loop reaches it only through the protocol. ``plant``: a
     plant of one's own (``sim.contract.Plant``; default: a fresh one of ``settings.model``). ``timing``:
     lock-step (default) or paced real time (``vcyto.control``). The summary names the controller and the plant
@@ -126,7 +127,11 @@ def run_stream(scenario: Scenario, settings: StreamSettings, progress=None, plan
     if plant is None and progress is not None:
         progress.note(f"setting up the {settings.model} plant (kept in the set-up cache after the first run)")
     plant = plant or make_plant(scenario, settings)
-    port = _port(controller if controller is not None else settings_controller(settings))
+    if controller is None:
+        controller = settings_controller(settings)
+    elif isinstance(controller, type):          # a class: built from the controller settings, as --controller-from
+        controller = controller(settings.controller)
+    port = _port(controller)
     observers = list(sinks) + ([ProgressSink(progress, len(sample.admitted))] if progress is not None else [])
     facts = DeviceFacts.from_settings(settings.controller, plant.control_period, settings.detector.window)
     run = _Run(plant, settings, Detector(settings.detector, detector_rng), Control(port, facts, timing), observers)

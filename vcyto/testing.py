@@ -121,8 +121,8 @@ def vcyto_plant(vcyto_scenario, _vcyto_plants):
     def plant(model: str = "rom"):
         key = (model, vcyto_scenario)
         if key not in _vcyto_plants:
-            from vcyto.stream import StreamSettings, make_plant
             from sim.arrivals import Arrivals
+            from vcyto.stream import StreamSettings, make_plant
             _vcyto_plants[key] = make_plant(vcyto_scenario, StreamSettings(Arrivals(cells=("RBC",)), model=model))
         return _vcyto_plants[key]
     return plant

@@ -262,3 +262,35 @@ def test_the_python_api_uses_the_set_up_cache_by_default(tmp_path):
     env["VCYTO_CACHE"] = "off"
     off = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, timeout=600)
     assert off.stdout.strip() == "NoneType", off.stderr
+
+
+def test_a_sweep_runs_a_controller_of_ones_own_beside_its_spec(tmp_path):
+    """A controller that sorts nothing: yield 0 at every point (the built-in one sorts this sample fully)."""
+    (tmp_path / "never.py").write_text("from controller.events import Decision\n\nclass Never:\n"
+                                       "    def __init__(self, settings):\n        pass\n\n"
+                                       "    def on_event(self, event, clock):\n"
+                                       "        return [Decision(event.event_id, 'pass', float('nan'))]\n")
+    spec = tmp_path / "spec.toml"
+    spec.write_text('[base]\nmodel = "rom"\ncells = ["RBC", "melanoma"]\ncontroller_from = "never.py:Never"\n'
+                    '[parameters]\nlead = [0.25, 0.3]\n[sweep]\nmetrics = ["purity", "yield"]\n')
+    result = vcyto("sweep", str(spec), "--output", str(tmp_path / "out"), "--workers", "1", "--json")
+    assert result.returncode == 0, result.stderr
+    assert json.loads(result.stdout)["ok"] == 2
+    with open(tmp_path / "out" / "results.csv", newline="") as file:
+        rows = list(__import__("csv").DictReader(file))
+    assert len(rows) == 2 and all(float(row["yield"]) == 0.0 for row in rows)
+    outside = tmp_path / "elsewhere"
+    outside.mkdir()
+    spec.write_text(f'[base]\nmodel = "rom"\ncontroller_from = "{THRESHOLD}:Threshold"\n[parameters]\nlead = [0.25]\n')
+    one_line_error(vcyto("sweep", str(spec), "--output", str(tmp_path / "out2")), "spec's folder")
+
+
+def test_calibrate_checks_a_controller_of_ones_own_with_the_new_calibration(tmp_path):
+    result = vcyto("calibrate", "--controller-from", f"{THRESHOLD}:Threshold", "--pulse", "0.4", "--lead", "0.3",
+                   "--offset-step", "0.1", "--resolution", "0.02", "--output", "", "--json")
+    assert result.returncode == 0, result.stderr
+    check = json.loads(result.stdout)["check"]
+    assert check["controller"] == "threshold" and check["sorted_right"] == 4
+    assert [c["outlet"] for c in check["cells"]] == ["lower", "upper", "lower", "upper"]
+    one_line_error(vcyto("calibrate", "--plant-from", f"{THRESHOLD}:Threshold", "--output", ""),
+                   "--plant-from", "not a plant")

@@ -183,7 +183,7 @@ def stream_settings(args, scenario):
                 scenario.with_numerics(mesh_h=window)           # resolves every inlet and outlet
             except ScenarioError as error:
                 raise UsageError(f"--window-h: {str(error).split(': ', 1)[1]}") from None
-        plant_from, controller_from = _plugin(args, "plant_from"), _plugin(args, "controller_from")
+        plant_from, controller_from = plugin_spec(args, "plant_from"), plugin_spec(args, "controller_from")
         if plant_from is not None and args.model != "feib":
             raise UsageError(f"--plant-from: runs your plant instead of --model {args.model}: give one of them")
         if controller_from is not None and args.no_controller:
@@ -199,7 +199,7 @@ def stream_settings(args, scenario):
         raise UsageError(str(error)) from None
 
 
-def _plugin(args, name: str) -> str | None:
+def plugin_spec(args, name: str) -> str | None:
     """``--controller-from`` / ``--plant-from``: its FILE.py:NAME, a file's path made absolute, checked by loading
     it (a usage error says what is wrong)."""
     spec = getattr(args, name, None)

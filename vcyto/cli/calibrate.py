@@ -14,7 +14,7 @@ from sim import plants
 
 from .. import outputs, runfiles, units
 from ..arguments import Number, Quantity
-from ..options import controller_settings, detector_settings, scenario_from, scenario_options
+from ..options import controller_settings, detector_settings, plugin_spec, scenario_from, scenario_options
 from ..outputs import strict_json
 from .common import SMALL_FILES_BYTES, UsageError, emit, output_directory, output_options, signals_seen
 
@@ -38,6 +38,12 @@ def _calibration_options(parser: argparse.ArgumentParser):
     parser.add_argument("--controller", metavar="FILE", help="start from this controller file (mode and fields not "
                                                              "measured are kept)")
     parser.add_argument("--mode", choices=MODES, help="sort mode written to the controller file (default purity)")
+    parser.add_argument("--plant-from", metavar="FILE.py:NAME",
+                        help="calibrate your plant instead of --model: NAME (in FILE.py, or MODULE:NAME) is called "
+                             "with the scenario and returns a plant (docs/controllers.md)")
+    parser.add_argument("--controller-from", metavar="FILE.py:NAME",
+                        help="then check your controller: NAME, called with the new calibration, sorts "
+                             + ",".join(CHECK_CELLS) + " on the calibrated plant; the report says where each cell went")
     for name in ("delay", "envelope", "timing_error"):
         parser.set_defaults(**{name: None})
     parser.set_defaults(no_controller=False)
@@ -64,6 +70,9 @@ def _calibration_options(parser: argparse.ArgumentParser):
     output_options(parser)
 
 
+CHECK_CELLS = ("RBC", "melanoma", "RBC", "melanoma")
+
+
 def command_calibrate(args):
     from .. import calibrate
     from ..controllerfile import controller_toml
@@ -78,12 +87,16 @@ def command_calibrate(args):
                              "or neither to search for the shortest reliable pulse")
         pulse = (base.pulse, base.lead)
     detector = detector_settings(args, scenario)
+    plant_from, controller_from = plugin_spec(args, "plant_from"), plugin_spec(args, "controller_from")
+    if plant_from is not None and args.model != "rom":
+        raise UsageError(f"--plant-from: calibrates your plant instead of --model {args.model}: give one of them")
     from ..progress import Progress
     progress = Progress(quiet=args.quiet or args.json)
     started = time.perf_counter()
     try:
-        plant = calibrate.make_calibration_plant(scenario, args.model)
+        plant = _plant(scenario, args.model, plant_from)
         result = calibrate.calibrate(plant, scenario, detector, grid, pulse, base, progress)
+        check = _check(scenario, plant, detector, result.settings, controller_from) if controller_from else None
     except calibrate.CalibrationError as error:
         raise UsageError(str(error)) from None
     except calibrate.CalibrationInterrupted as interrupted:
@@ -92,8 +105,10 @@ def command_calibrate(args):
         raise KeyboardInterrupt from None        # nothing is saved; the exit is an interrupt's (130)
     finally:
         progress.close()
-    record = dict(result.as_dict(), model=args.model, saw_model=scenario.saw.model,
+    record = dict(result.as_dict(), model=_model_name(plant), saw_model=scenario.saw.model,
                   wall_time_s=time.perf_counter() - started, files={})
+    if check is not None:
+        record["check"] = check
     interrupted = False
     if output is not None:
         # Ctrl-C or SIGTERM while the files are written waits for them: the calibration is finished, and a
@@ -112,9 +127,49 @@ def command_calibrate(args):
             record["files"] = {kind: str(path) for kind, path in paths.items()}
             outputs.write_into(paths["summary"], strict_json(record) + "\n")
         interrupted = saving.pending
-    emit(args, record, calibrate.report_lines(record))
+    emit(args, record, calibrate.report_lines(record) + ([_check_line(check)] if check else []))
     if interrupted:
         raise KeyboardInterrupt         # the files are whole and listed; the exit is an interrupt's (130)
+
+
+def _plant(scenario, model: str, plant_from: str | None):
+    """The plant the calibration cells go through: ``--model``'s, or the user's (a broken one: a usage error)."""
+    from .. import calibrate, plugins
+    if plant_from is None:
+        return calibrate.make_calibration_plant(scenario, model)
+    try:
+        return plugins.plant(plant_from, scenario)
+    except plugins.PluginError as error:
+        raise UsageError(f"--plant-from: {error}") from None
+
+
+def _model_name(plant) -> str:
+    from ..stream import model_name
+    return model_name(plant)
+
+
+def _check(scenario, plant, detector, settings, controller_from: str) -> dict:
+    """The user's controller, built from the new calibration, on ``CHECK_CELLS``: where each cell went."""
+    from sim.arrivals import Arrivals
+
+    from .. import plugins
+    from ..stream import StreamSettings, run_stream
+    stream_settings = StreamSettings(Arrivals(cells=CHECK_CELLS), detector, settings, model="rom",
+                                     controller_from=controller_from)
+    try:
+        result = run_stream(scenario, stream_settings, plant=plant)
+    except plugins.PluginError as error:
+        raise UsageError(f"--controller-from: {error}") from None
+    cells = [{"type": c["type"], "true_class": c["true_class"], "decision": c["decision"], "outlet": c["outlet"]}
+             for c in result["cells"]]
+    right = sum(c["outlet"] == ("upper" if c["true_class"] == "II" else "lower") for c in cells)
+    return {"controller": result["controller_name"], "cells": cells, "sorted_right": right, "status": result["status"]}
+
+
+def _check_line(check: dict) -> str:
+    went = ", ".join(f"{c['type']} -> {c['outlet']}" for c in check["cells"])
+    return (f"check: controller {check['controller']} with this calibration: {went} "
+            f"({check['sorted_right']} of {len(check['cells'])} by the right outlet)")
 
 
 def _calibration_grid(args):

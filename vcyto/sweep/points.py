@@ -38,6 +38,9 @@ def base_arguments(table: dict, options: dict, directory: Path) -> argparse.Name
             raise SweepError(f"base.{key}: unknown option; known: {', '.join(sorted(options))}")
         if key in ("scenario", "controller"):          # files beside (or below) the spec
             setattr(arguments, key, str(_beside_spec(_checked_text(value, f"base.{key}"), directory)))
+        elif key in ("controller_from", "plant_from"):   # FILE.py:NAME, the file beside (or below) the spec
+            where, _, name = _checked_text(value, f"base.{key}").rpartition(":")
+            setattr(arguments, key, f"{_beside_spec(where, directory)}:{name}" if where.endswith(".py") else value)
         elif key == "set":
             if not isinstance(value, list) or not all(isinstance(item, str) for item in value):
                 raise SweepError('base.set: must be a list of "FIELD=VALUE" strings, e.g. ["saw.model=streaming"]')
@@ -130,9 +133,21 @@ def _point(values: tuple, base: argparse.Namespace, options: dict) -> Point:
         scenario, settings = stream_run(arguments)
     except ValueError as error:
         raise SweepError(f"parameters: the point {label or '(the base run)'}: {one_line(error)}") from None
-    identity = json.dumps({"scenario": scenario_to_toml(scenario), "settings": repr(settings)})
+    identity = json.dumps({"scenario": scenario_to_toml(scenario), "settings": repr(settings),
+                           "code": [_file_digest(spec) for spec in (settings.controller_from, settings.plant_from)]})
     inputs = hashlib.sha256(identity.encode()).hexdigest()[:16]
     return Point(values, scenario, settings, _point_id(inputs), inputs)
+
+
+def _file_digest(spec: str | None) -> str | None:
+    """The SHA-256 of the file of a ``FILE.py:NAME`` (a point's id changes with the user's code), else None."""
+    where = spec.rpartition(":")[0] if spec else ""
+    if not where.endswith(".py"):
+        return None
+    try:
+        return hashlib.sha256(Path(where).read_bytes()).hexdigest()
+    except OSError as error:
+        raise SweepError(f"{where}: cannot read it: {error.strerror}") from None
 
 
 def code_identity() -> str:

@@ -5,8 +5,11 @@ The public Python API (imported on first use, so ``import vcyto`` stays cheap):
 - scenarios: ``Scenario`` (the paper's device by default), ``load_scenario(path, overrides)``,
   ``scenario_from_toml(text)``, ``scenario_to_toml(scenario)``;
 - the closed loop: ``StreamSettings``, ``Arrivals``, ``DetectorSettings``, ``ControllerSettings``,
-  ``run_stream(scenario, settings, sinks=...)`` (a JSON-ready summary), ``make_plant(scenario, settings)``,
-  ``MODELS``, ``report_lines(result)``;
+  ``run_stream(scenario, settings, sinks=..., controller=..., plant=..., timing=...)`` (a JSON-ready summary),
+  ``make_plant(scenario, settings)`` (both use the set-up cache, ``vcyto.cache``), ``MODELS``,
+  ``report_lines(result)``;
+- controllers (docs/controllers.md): ``Decision``, ``DeviceFacts``, ``SortController`` (the built-in one),
+  ``Timing`` (lock-step or paced real time);
 - what happened to each cell: ``outcome_class(cell)``, ``OUTCOME_CLASSES``;
 - recordings: ``McapRecorder`` (a sink), ``RerunSink`` (a sink), ``BackgroundSinks``, ``write_fcs``,
   ``write_gatingml``.
@@ -25,7 +28,9 @@ _EXPORTS = {
     "DetectorSettings": "controller.detector", "ControllerSettings": "controller.sorter",
     "load_scenario": "vcyto.config", "scenario_from_toml": "vcyto.config", "scenario_to_toml": "vcyto.config",
     "StreamSettings": "vcyto.stream", "run_stream": "vcyto.stream", "make_plant": "vcyto.stream",
-    "MODELS": "vcyto.stream", "report_lines": "vcyto.stream", "StreamStopped": "vcyto.stream",
+    "MODELS": "vcyto.stream", "Decision": "controller.events", "DeviceFacts": "controller.protocol",
+    "SortController": "controller.sorter", "Timing": "vcyto.control",
+    "report_lines": "vcyto.stream", "StreamStopped": "vcyto.stream",
     "outcome_class": "vcyto.outcomes", "OUTCOME_CLASSES": "vcyto.outcomes",
     "McapRecorder": "vcyto.recording", "RerunSink": "vcyto.rerunlog", "BackgroundSinks": "vcyto.sinks",
     "write_fcs": "vcyto.fcs", "write_gatingml": "vcyto.gatingml",

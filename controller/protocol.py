@@ -136,6 +136,23 @@ def check_answer(answer, known: set[int] | dict, event_id: int) -> list[Decision
     return decisions
 
 
+class DecisionLog:
+    """Decisions by event, the latest of each, in event order (what a controller or the loop has decided)."""
+
+    def __init__(self):
+        self._decisions: dict[int, Decision] = {}
+
+    @property
+    def decisions(self) -> list[Decision]:
+        return list(self._decisions.values())
+
+    def decision_for(self, event_id: int) -> Decision | None:
+        return self._decisions.get(event_id)
+
+    def record(self, decision: Decision) -> None:
+        self._decisions[decision.event_id] = decision
+
+
 class PulseSchedule:
     """The IDT drive the sorts ask for: on while any scheduled pulse is on (pulses may overlap).
 

@@ -28,6 +28,7 @@ import math
 from dataclasses import dataclass
 
 from .events import TYPE_II, Decision, DetectorEvent
+from .protocol import DecisionLog
 
 MODES = ("purity", "enrichment", "yield", "single")
 REORDER_SLACK = 1e-3           # s: predicted arrivals may come out of detection order by up to this
@@ -88,28 +89,17 @@ class _Pending:
     event_id: int
 
 
-class SortController:
+class SortController(DecisionLog):
     """The built-in controller (``controller.protocol.Controller``): answers each event with its decision and the
-    aborts it causes. It keeps its own record of what it decided, to judge coincidences."""
+    aborts it causes. It keeps its own log of what it decided (``DecisionLog``), to judge coincidences."""
 
     name = "built-in"
 
     def __init__(self, settings: ControllerSettings):
+        super().__init__()
         self.settings = settings
-        self._decisions: dict = {}     # event_id -> Decision, in event order
         self._recent: list = []        # _Pending entries still able to coincide
         self._answer: list = []        # the decisions of the event being answered
-
-    @classmethod
-    def from_settings(cls, settings: ControllerSettings) -> SortController:
-        return cls(settings)
-
-    @property
-    def decisions(self) -> list[Decision]:
-        return list(self._decisions.values())
-
-    def decision_for(self, event_id: int) -> Decision | None:
-        return self._decisions.get(event_id)
 
     def predicted_arrival(self, event: DetectorEvent) -> float:
         settings = self.settings
@@ -132,7 +122,7 @@ class SortController:
         return self._answer
 
     def _decide(self, decision: Decision):
-        self._decisions[decision.event_id] = decision
+        self.record(decision)
         self._answer.append(decision)
 
     def _coincident(self, offset: float, other_class: str) -> bool:
@@ -164,7 +154,7 @@ class SortController:
     def _pass(self, event, arrival):
         reason = ""
         for other in self._recent:
-            decision = self._decisions[other.event_id]
+            decision = self.decision_for(other.event_id)
             if decision.action == "sort" and self._coincident(arrival - other.arrival, event.classification):
                 if not self._abort(other.event_id, event.time, f"type-I event {event.event_id} inside its envelope"):
                     reason = f"inside the envelope of event {other.event_id}'s pulse, which had started"
@@ -172,7 +162,7 @@ class SortController:
 
     def _abort(self, event_id: int, now: float, reason: str) -> bool:
         """Abort the sort of ``event_id`` if its pulse has not started by ``now``; whether it was aborted."""
-        decision = self._decisions[event_id]
+        decision = self.decision_for(event_id)
         if decision.action != "sort" or decision.pulse_on <= now:
             return decision.action == "abort"
         self._decide(Decision(event_id, "abort", decision.arrival, reason=reason))

@@ -21,12 +21,13 @@ import bisect
 import math
 import time
 from collections import deque
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 from controller.events import Decision, DetectorEvent
 from controller.protocol import (
     MISSED,
     ControllerError,
+    DecisionLog,
     DeviceFacts,
     Drives,
     PulseSchedule,
@@ -115,33 +116,25 @@ def describe(obj) -> str:
     return f"{kind.__module__}.{kind.__qualname__}"
 
 
-@dataclass
-class Ledger:
+class Ledger(DecisionLog):
     """The decisions of a run as they stand, the controller's latencies and the missed decisions."""
 
-    facts: DeviceFacts
-    latencies: deque = field(default_factory=lambda: deque(maxlen=LATENCY_SAMPLES))
-    missed: int = 0
-    refused_aborts: int = 0
-    _decisions: dict = field(default_factory=dict)    # event_id -> Decision, in event order
-    _changes: list = field(default_factory=list)      # decisions made or revised since take_changes()
-
-    @property
-    def decisions(self) -> list[Decision]:
-        return list(self._decisions.values())
-
-    def decision_for(self, event_id: int) -> Decision | None:
-        return self._decisions.get(event_id)
+    def __init__(self, facts: DeviceFacts):
+        super().__init__()
+        self.facts = facts
+        self.latencies: deque = deque(maxlen=LATENCY_SAMPLES)
+        self.missed = self.refused_aborts = 0
+        self._changes: list[Decision] = []         # decisions made or revised since take_changes()
 
     def predicted_arrival(self, event: DetectorEvent) -> float:
         """The controller's predicted arrival where it gave one, else the device facts'."""
-        decision = self._decisions.get(event.event_id)
+        decision = self.decision_for(event.event_id)
         if decision is not None and math.isfinite(decision.arrival):
             return decision.arrival
         return self.facts.arrival(event)
 
     def record(self, decision: Decision) -> None:
-        self._decisions[decision.event_id] = decision
+        super().record(decision)
         self._changes.append(decision)
 
     def take_changes(self) -> list[Decision]:

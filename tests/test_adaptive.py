@@ -10,6 +10,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
+from sim import speed
 from sim.adaptive import LEVELS, LOOK_AHEAD, AdaptiveSteps
 from sim.scenario import UM, Scenario
 from vcyto.paper import paper_scenario, run_paper
@@ -212,7 +213,7 @@ def test_an_adaptive_run_computes_ahead_at_the_level_it_will_take(monkeypatch):
     plant = ImmersedBoundary(scenario)
 
     def run(prefetch: bool):
-        monkeypatch.setenv("VCYTO_PREFETCH", "1" if prefetch else "0")
+        monkeypatch.setattr(speed, "_settings", replace(speed.current(), prefetch=prefetch))
         plant.adaptive.reset()                                 # a new run on the same plant (its levels kept)
         used, original = [], NavierStokes._element_momentum
 

@@ -11,8 +11,9 @@ import pytest
 from test_linalg import saddle_point
 
 from sim.fluid import NavierStokes
-from sim.linalg import MixedPrecision, Pardiso, SolverError, factorize, pardiso_available
+from sim.linalg import MixedPrecision, Pardiso, SolverError, pardiso_available
 from sim.scenario import UM, Scenario, ScenarioError
+from sim.solvers import factorize
 
 pytestmark = pytest.mark.skipif(not pardiso_available(), reason="mixed precision runs on MKL PARDISO")
 ROOT = Path(__file__).resolve().parents[1]

@@ -23,6 +23,7 @@ from .. import runfiles, units
 from ..arguments import Parser
 from ..cache import CacheSettingError
 from ..cache import install_default as install_cache
+from ..speedsettings import install as install_speed_settings
 from ..stream import StreamStopped
 from . import bench, cache, calibrate, extremes, flow, paper, replay, scenario, stability, stream, sweep, tradeoff
 from .common import (
@@ -76,6 +77,7 @@ def main(argv=None) -> int:
 
 def _main(args) -> int:
     try:
+        install_speed_settings()
         install_cache()
         with runfiles.signals_as_interrupt(signals_seen):     # SIGTERM ends every command as Ctrl-C does
             status = args.handler(args)

@@ -743,9 +743,9 @@ class NavierStokes:
         if load is None:        # a stored start flow: everything it depends on is in the key (sim.store)
             # what the steady flow depends on: the device, the fluid, the SAW and the numerics of Newton's
             # method (not the convection treatment of steps, the cells or the membrane method); dt and the time
-            # scheme only through the pressure scale of the systems Newton solves, which sets the last bits (the
-            # key held no part of it before round 17: a --tolerance run, bdf2, took the start a fixed-step euler
-            # run had stored, and its digits depended on which of the two had run first)
+            # scheme only through the pressure scale of the systems Newton solves, which sets the last bits (without
+            # it in the key a --tolerance run, bdf2, would take the start a fixed-step euler run had stored, and its
+            # digits would depend on which of the two had run first)
             scene, numerics = self.scenario, self.scenario.numerics
             newton = {name: getattr(numerics, name) for name in
                       ("mesh_h", "linear_solver", "nonlinear_tolerance", "max_nonlinear_iterations", "reproducible")}

@@ -334,8 +334,8 @@ class SplitPardiso:
 
     def __init__(self, matrix: sp.spmatrix, x: np.ndarray, single: bool = False, matching: bool = False,
                  own: bool | None = None):
-        """``matching=True`` factors the halves with PARDISO's weighted matching, as they are (no unknown moved: the
-        split before round 6, kept for the benchmark's comparison). ``own``: whether single-precision halves use our
+        """``matching=True`` factors the halves with PARDISO's weighted matching, as they are (no unknown moved: kept
+        for the benchmark's comparison). ``own``: whether single-precision halves use our
         own substitutions (``sim.supernodal``) where they can; None: ``own_substitutions_wanted()``."""
         matrix = sp.csr_matrix(matrix)
         self.single = single

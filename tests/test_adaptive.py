@@ -1,7 +1,6 @@
-"""Time steps chosen by a tolerance (sim/adaptive.py, --tolerance): the level rules, and the done-means of
-issue 18: Scenario I, II and the default stream keep their outlets and stay within the tolerance of the
-dt = 2.5 us reference paths in the same time scheme (bdf2; centroid distance at the adaptive run's times, as
-the tradeoff measures it)."""
+"""Time steps chosen by a tolerance (sim/adaptive.py, --tolerance): the level rules, and Scenario I, II and the
+default stream keep their outlets and stay within the tolerance of the dt = 2.5 us reference paths in the same time
+scheme (bdf2; centroid distance at the adaptive run's times, as the tradeoff measures it)."""
 
 import math
 from dataclasses import replace

@@ -114,7 +114,10 @@ def _main(args) -> int:
 
 def run() -> None:
     """The ``vcyto`` executable (and ``python -m vcyto``): ``main``, then ``exit_now`` with its status (argparse's
-    exits for --help, --version and bad usage included)."""
+    exits for --help, --version and bad usage included). This process is the command's own, so the Rerun sink may
+    keep pyarrow from importing pandas (``vcyto.viewer.spare_pandas_import``)."""
+    from ..viewer import spare_pandas_import
+    spare_pandas_import()
     try:
         status = main()
     except SystemExit as stop:

@@ -1,6 +1,6 @@
 """Measure what each whole-process choice of the ``vcyto`` executable buys, in alternating pairs of processes.
 
-    python examples/process_tricks.py [--pairs N]
+    python examples/process_tricks.py [--pairs N] [--only painter|exit|collections|switch]
 
 - the quick exit (``vcyto.cli.exit_now``): seconds from ``main``'s return to the process's end, with ``os._exit``
   and with the interpreter's ordinary teardown, after ``vcyto paper 2 --no-png``;
@@ -75,14 +75,17 @@ cli.run()
 """
 
 PAINTER = """
-import sys
+import os, sys
 import vcyto.__main__ as entry
 cli = entry.load_command_line()
 import vcyto.painter as painter
-if not {helper}:
+if {helper}:
+    painter.core_idle = lambda: True          # the helper whatever the load
+else:
     original = painter.Painter.__init__
     painter.Painter.__init__ = lambda self, start=True: original(self, start=False)
-sys.argv = ["vcyto"] + {arguments!r}
+png = os.path.join({directory!r}, f"paper2-{{os.getpid()}}.png")       # a run never overwrites a file
+sys.argv = ["vcyto"] + {arguments!r} + ["--png", png]
 cli.run()
 """
 
@@ -97,52 +100,70 @@ def child(program: str, environment: dict) -> tuple[float, str]:
 
 
 def pairs(count: int, first: str, second: str, measure, environment: dict) -> dict:
+    """``measure(started, ended, stderr)`` -> {name: seconds} of ``count`` alternating pairs of the two programs:
+    for each name the values, their medians and the median of the per-pair ratios first / second."""
     child(first, environment)                                   # warm the cache, untimed
     values = {"on": [], "off": []}
     for _ in range(count):
         for name, program in (("on", first), ("off", second)):
             values[name].append(measure(*child(program, environment)))
-    ratios = [a / b for a, b in zip(values["on"], values["off"]) if b]
-    return {"on": [round(v, 4) for v in values["on"]], "off": [round(v, 4) for v in values["off"]],
-            "median_on": round(statistics.median(values["on"]), 4),
-            "median_off": round(statistics.median(values["off"]), 4),
-            "median_ratio_on_off": round(statistics.median(ratios), 3) if ratios else None}
+    result = {}
+    for key in values["on"][0]:
+        on, off = [v[key] for v in values["on"]], [v[key] for v in values["off"]]
+        ratios = [a / b for a, b in zip(on, off) if b]
+        result[key] = {"on": [round(v, 4) for v in on], "off": [round(v, 4) for v in off],
+                       "median_on": round(statistics.median(on), 4), "median_off": round(statistics.median(off), 4),
+                       "median_ratio_on_off": round(statistics.median(ratios), 3) if ratios else None}
+    return result
 
 
-def main(count: int) -> dict:
+def main(count: int, only: str | None = None) -> dict:
     with tempfile.TemporaryDirectory(prefix="vcyto-tricks-") as directory:
         environment = {**os.environ, "VCYTO_CACHE_DIR": os.path.join(directory, "cache")}
-        output = ["--output", os.path.join(directory, "runs")]
+        stream = STREAM + ["--output", os.path.join(directory, "runs")]
 
         def after_return(started, ended, stderr):
-            returned = float(stderr.split("RETURNED ")[1].split()[0])
-            return ended - returned
+            return {"exit": ended - float(stderr.split("RETURNED ")[1].split()[0])}
 
         def wall(started, ended, stderr):
-            return ended - started
+            return {"wall": ended - started}
 
-        def collected(phase):
-            return lambda started, ended, stderr: json.loads(stderr.split("SPENT ")[1].splitlines()[0])[phase]
+        def collected(started, ended, stderr):
+            return json.loads(stderr.split("SPENT ")[1].splitlines()[0])
 
-        paper_fast = PAPER + ["--no-png"]
-        result = {"quick_exit_s": pairs(count, EXIT.format(quick=True, arguments=paper_fast),
-                                        EXIT.format(quick=False, arguments=paper_fast), after_return, environment)}
-        stream = STREAM + output
-        for phase in ("imports", "run"):
-            result[f"collections_{phase}_s"] = pairs(count, COLLECTIONS.format(frozen=True, arguments=stream),
-                                                     COLLECTIONS.format(frozen=False, arguments=stream),
-                                                     collected(phase), environment)
-        result["switch_interval_wall_s"] = pairs(count, SWITCH.format(interval=2e-4, arguments=stream),
-                                                 SWITCH.format(interval=5e-3, arguments=stream), wall, environment)
-        paper = PAPER + ["--png", os.path.join(directory, "paper2.png")]
-        result["painter_wall_s"] = pairs(count, PAINTER.format(helper=True, arguments=paper),
-                                         PAINTER.format(helper=False, arguments=paper), wall, environment)
+        measurements = {
+            "painter (helper on / drawn by the command)": (
+                PAINTER.format(helper=True, arguments=PAPER, directory=directory),
+                PAINTER.format(helper=False, arguments=PAPER, directory=directory), wall),
+            "quick exit (os._exit / the ordinary exit)": (
+                EXIT.format(quick=True, arguments=PAPER + ["--no-png"]),
+                EXIT.format(quick=False, arguments=PAPER + ["--no-png"]), after_return),
+            "collections (imports frozen / not)": (
+                COLLECTIONS.format(frozen=True, arguments=stream),
+                COLLECTIONS.format(frozen=False, arguments=stream), collected),
+            "switch interval (0.2 ms / 5 ms)": (
+                SWITCH.format(interval=2e-4, arguments=stream),
+                SWITCH.format(interval=5e-3, arguments=stream), wall),
+        }
+        result = {}
+        for name, (first, second, measure) in measurements.items():
+            if only and not name.startswith(only.replace("exit", "quick exit").replace("switch", "switch interval")):
+                continue
+            result[name] = pairs(count, first, second, measure, environment)
+            print(json.dumps({name: result[name]}), file=sys.stderr, flush=True)
         return result
 
 
+USAGE = ("process_tricks: usage: python examples/process_tricks.py [--pairs N] [--only painter|exit|collections|"
+         "switch] (N a whole number >= 1)")
+
 if __name__ == "__main__":
-    arguments = sys.argv[1:]
-    if arguments and (arguments[0] != "--pairs" or len(arguments) != 2 or not arguments[1].isdigit()
-                      or int(arguments[1]) < 1):
-        sys.exit("process_tricks: usage: python examples/process_tricks.py [--pairs N] (N a whole number >= 1)")
-    print(json.dumps(main(int(arguments[1]) if arguments else 4), indent=1))
+    arguments, options = sys.argv[1:], {"--pairs": "4", "--only": None}
+    while arguments:
+        if len(arguments) < 2 or arguments[0] not in options:
+            sys.exit(USAGE)
+        options[arguments[0]], arguments = arguments[1], arguments[2:]
+    if not options["--pairs"].isdigit() or int(options["--pairs"]) < 1 or \
+            options["--only"] not in (None, "painter", "exit", "collections", "switch"):
+        sys.exit(USAGE)
+    print(json.dumps(main(int(options["--pairs"]), options["--only"]), indent=1))

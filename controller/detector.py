@@ -6,7 +6,7 @@ centroid crossing x_start and x_end; on exit the detector emits one event with
 - scatter: the cell's area in um^2 times log-normal noise;
 - velocity: window length / transit time;
 - classification: type II if fluorescence >= ``gate``, else type I.
-With the default brightnesses (RBC 0, melanoma 1), gate 0.5 and background 0.15, about 0.04 % of the
+With the default brightnesses (RBC 0, melanoma 1), gate 0.5 and background level 0.15, about 0.04 % of the
 cells are misclassified; raise the noise or move the gate to study misclassification.
 """
 

@@ -2,7 +2,7 @@
    immersed boundary's point location, interpolation and spreading, the membranes' self-intersection test, the split
    solve's vector work and the fluid step's glue. The same functions as sim/kernels_numba.py (the reference and the
    fallback), called with the same arguments; they exist so that a process that steps the FE-IB plant does not load
-   numba (its import and the loading of its cached kernels cost ~0.35-0.5 s a process: docs/numerics.md, "Round 18").
+   numba (its import and the loading of its cached kernels cost ~0.35-0.5 s a process: docs/numerics.md, "The step's kernels").
 
    Arithmetic: every sum runs in the order written here and the library is compiled with -ffp-contract=off (no fused
    multiply-adds), so each kernel gives numba's bits where numba's kernel is exact (all but the momentum kernel,

@@ -307,7 +307,7 @@ def level_multiples(scenario) -> list[int]:
     (``AdaptiveSteps.stable_level``): an RBC alone (bound 409 us) or an empty channel. Near its cap a membrane's
     stiff modes are weakly damped and the centroid's error estimate does not see them: Scenario II on the 6.67 um
     mesh with the melanoma's cap as a level (35 us) came 1.22 um off at 1 um, against 0.51 um held at 20 us
-    (docs/numerics.md, "Round 16"). The flow alone is stable far above 16 dt0 (measured to 320 us, the IDT switched
+    (``vcyto bench tolerance``). The flow alone is stable far above 16 dt0 (measured to 320 us, the IDT switched
     every 1 ms)."""
     multiples = {2 ** k for k in range(LEVELS)} | {COARSE}
     dt = scenario.numerics.dt

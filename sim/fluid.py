@@ -38,12 +38,13 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 from skfem import ElementTriP2, FacetBasis, LinearForm, asm
 
-from . import kernels
+from . import kernels, speed
 from .boundary import inflow_velocity, saw_jet_factor, saw_window_profile
 from .drive import lagged
-from .linalg import factorize, mkl_version, resolved_solver_name
+from .linalg import mkl_version
 from .mesh import channel_mesh
 from .scenario import Scenario
+from .solvers import factorize, resolved_solver_name
 from .store import code_digest, digest, module_digest, reuse
 from .taylorhood import TaylorHood, mass_form
 
@@ -60,8 +61,8 @@ def solver_code_digest() -> str:
 
 @lru_cache(maxsize=1)
 def _python_code_digest() -> str:
-    from . import kernels, linalg, splitsolve, supernodal, taylorhood
-    return module_digest(sys.modules[__name__], kernels, linalg, splitsolve, supernodal, taylorhood)
+    from . import kernels, linalg, solvers, splitsolve, supernodal, taylorhood
+    return module_digest(sys.modules[__name__], kernels, linalg, solvers, splitsolve, supernodal, taylorhood)
 
 log = logging.getLogger(__name__)
 _NOTHING = np.zeros(0)          # an absent load for ``kernels.free_rhs``
@@ -69,8 +70,9 @@ _NOTHING = np.zeros(0)          # an absent load for ``kernels.free_rhs``
 
 def prefetch_wanted() -> bool:
     """Whether a step computes the next step's momentum integrals ahead on a helper thread (``NavierStokes.step``);
-    ``VCYTO_PREFETCH=0`` computes them in the step itself (the same bits: for measurements and tests)."""
-    return os.environ.get("VCYTO_PREFETCH", "1") != "0"
+    ``SpeedSettings.prefetch`` False (``sim.speed``) computes them in the step itself (the same bits: for
+    measurements and tests)."""
+    return speed.current().prefetch
 
 
 class _Helper:
@@ -741,9 +743,9 @@ class NavierStokes:
         if load is None:        # a stored start flow: everything it depends on is in the key (sim.store)
             # what the steady flow depends on: the device, the fluid, the SAW and the numerics of Newton's
             # method (not the convection treatment of steps, the cells or the membrane method); dt and the time
-            # scheme only through the pressure scale of the systems Newton solves, which sets the last bits (the
-            # key held no part of it before round 17: a --tolerance run, bdf2, took the start a fixed-step euler
-            # run had stored, and its digits depended on which of the two had run first)
+            # scheme only through the pressure scale of the systems Newton solves, which sets the last bits (without
+            # it in the key a --tolerance run, bdf2, would take the start a fixed-step euler run had stored, and its
+            # digits would depend on which of the two had run first)
             scene, numerics = self.scenario, self.scenario.numerics
             newton = {name: getattr(numerics, name) for name in
                       ("mesh_h", "linear_solver", "nonlinear_tolerance", "max_nonlinear_iterations", "reproducible")}

@@ -5,14 +5,14 @@ tested against scikit-fem): the P2 momentum load's element integrals and their s
 the immersed boundary's point location, interpolation and spreading, a membrane's first self-intersection, the split
 solve's vector work and the fluid step's glue. The C library has the same functions with the same arguments. It
 exists because numba costs every process that steps the plant ~0.35-0.5 s before its first step (importing numba,
-its compiler's set-up and loading each cached kernel: ``docs/numerics.md``, "Round 18"); with the C kernels an
-FE-IB run never imports numba.
+its compiler's set-up and loading each cached kernel: ``docs/numerics.md``, "The step's kernels"); with the C
+kernels an FE-IB run never imports numba.
 
 The C kernels give numba's bits wherever numba's kernel is exact (every one but the momentum kernel, which numba
 compiles with ``fastmath``: there the two agree to round-off; ``tests/test_c_kernels.py``). Which one computed a
 result is part of the keys of stored results (``implementation``), so a warm start never mixes them.
 
-``VCYTO_C_KERNELS=0`` uses numba's kernels (read when this module is imported). The C library is an optional
+``SpeedSettings.c_kernels`` False (``sim.speed``) uses numba's kernels. The C library is an optional
 extension (``setup.py``): without a compiler, or when it was built from another layout of the functions' arguments,
 numba's are used. An array the C kernels do not take (another dtype, not contiguous) goes to numba's kernel.
 """
@@ -23,23 +23,17 @@ import functools
 import importlib
 import logging
 import math
-import os
 
 import numpy as np
+
+from . import speed
 
 LAYOUT = 1            # the C functions' argument lists (``sim/_kernels.c``'s LAYOUT)
 log = logging.getLogger(__name__)
 
 
-def c_kernels_wanted() -> bool:
-    """Whether the C kernels are to be used where installed (``VCYTO_C_KERNELS``, default on)."""
-    return os.environ.get("VCYTO_C_KERNELS", "1").strip().lower() not in ("0", "off", "false", "no")
-
-
 def _load_compiled():
-    """The compiled module ``sim._kernels``, or None (not wanted, not built, or built for another layout)."""
-    if not c_kernels_wanted():
-        return None
+    """The compiled module ``sim._kernels``, or None (not built, or built for another layout)."""
     try:
         module = importlib.import_module("sim._kernels")
     except ImportError:
@@ -52,7 +46,12 @@ def _load_compiled():
     return module
 
 
-_C = _load_compiled()
+_LIBRARY = _load_compiled()
+
+
+def _compiled_kernels():
+    """The C library when it is built and the speed settings want it, else None (numba's kernels)."""
+    return _LIBRARY if speed.current().c_kernels else None
 
 
 def _numba():
@@ -63,15 +62,16 @@ def _numba():
 
 def compiled() -> bool:
     """Whether this process's kernels are the compiled C ones."""
-    return _C is not None
+    return _compiled_kernels() is not None
 
 
 def implementation() -> str:
     """Which kernels compute, for the keys of stored results: ``c-``, the SHA-256 of the C source the library was
     built from and the compiler's version, or ``numba-`` and a digest of ``sim.kernels_numba``'s code (imports
     numba)."""
-    if _C is not None:
-        return "c-" + "_".join(_C.source().split())      # one word (keys are split on spaces by their tests)
+    library = _compiled_kernels()
+    if library is not None:
+        return "c-" + "_".join(library.source().split())      # one word (keys are split on spaces by their tests)
     from .store import module_digest
     return f"numba-{module_digest(_numba())}"
 
@@ -79,9 +79,10 @@ def implementation() -> str:
 def _call(name: str, *arguments, takes: bool = True):
     """The C kernel ``name`` on ``arguments``, or numba's when the C one does not take them (TypeError, or
     ``takes`` False: arguments the caller knows it would compute differently)."""
-    if _C is not None and takes:
+    library = _compiled_kernels()
+    if library is not None and takes:
         try:
-            return getattr(_C, name)(*arguments)
+            return getattr(library, name)(*arguments)
         except TypeError:
             pass
     return getattr(_numba(), name)(*arguments)
@@ -116,7 +117,8 @@ def element_momentum(element_dofs, jacobian_rows, areas, phi, dphi, weights, vel
     ``element_momentum`` (its docstring: ``back``, BDF2's velocity one step back). ``threads``: numba's threads for
     the call (1: the calling thread alone); the C kernel always runs on the calling thread (~0.5 ms at the paper's
     mesh), without the GIL."""
-    if _C is None:
+    library = _compiled_kernels()
+    if library is None:
         return _numba().element_momentum(element_dofs, jacobian_rows, areas, phi, dphi, weights, velocity,
                                          mass_coefficient, convection_coefficient, out, back, threads)
     if back is None:
@@ -130,8 +132,8 @@ def element_momentum(element_dofs, jacobian_rows, areas, phi, dphi, weights, vel
     element_dofs = np.ascontiguousarray(element_dofs, dtype=np.int64)
     jacobian_rows, areas, phi, dphi, weights = (np.ascontiguousarray(array, dtype=np.float64)
                                                 for array in (jacobian_rows, areas, phi, dphi, weights))
-    _C.element_momentum(element_dofs, jacobian_rows, areas, phi, dphi, weights, *rows, float(w0), float(w1),
-                        float(w2), general, bdf2, float(mass_coefficient), float(convection_coefficient), out)
+    library.element_momentum(element_dofs, jacobian_rows, areas, phi, dphi, weights, *rows, float(w0), float(w1),
+                             float(w2), general, bdf2, float(mass_coefficient), float(convection_coefficient), out)
     return out
 
 

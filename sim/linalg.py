@@ -8,7 +8,8 @@ of a factorisation computed at start-up. Two back-ends:
   CSR, iterative refinement off. The fastest back-solve measured here (docs/numerics.md, "Linear solvers").
 - ``superlu``: scipy's SuperLU with a symmetric minimum-degree ordering; always available.
 
-``factorize(matrix, solver="auto", symmetric=...)`` picks PARDISO when MKL loads and SuperLU otherwise.
+``sim.solvers.factorize(matrix, solver="auto", symmetric=...)`` picks one: PARDISO when MKL loads, SuperLU
+otherwise. This module imports nothing of the model or the method (an import contract in ``pyproject.toml``).
 """
 
 from __future__ import annotations
@@ -25,10 +26,8 @@ import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
-from .scenario import LINEAR_SOLVERS, PRECISIONS
+from . import speed
 from .store import digest, discard_directory, keep_directory, stored_directory
-
-SOLVERS = LINEAR_SOLVERS              # the one list: sim.scenario
 
 
 class SolverError(RuntimeError):
@@ -43,10 +42,10 @@ def _mkl_runtime():
     entry points come first); its threads spin for 200 ms after every parallel region (KMP_BLOCKTIME),
     so each step's momentum kernel left a thread spinning through the next back-solve, on a core the
     split solve's second thread needed (measured: 100 ms of CPU per 100 ms after a step; steps 10-40 %
-    slower, by how the threads landed). Unless the user set it, KMP_BLOCKTIME=0: idle threads sleep at
-    once (docs/numerics.md, "Linear solvers")."""
-    os.environ.setdefault("KMP_BLOCKTIME", "0")
-    names = [os.environ.get("VCYTO_MKL_RT", "")]
+    slower, by how the threads landed). So the application runs with KMP_BLOCKTIME=0 unless the user set it
+    (``SpeedSettings.openmp_blocktime_ms``): idle threads sleep at once (docs/numerics.md, "Linear solvers").
+    ``SpeedSettings.mkl_library`` names a library to try first (read on the first call)."""
+    names = [speed.current().mkl_library]
     for root in {sys.prefix, site.getuserbase()}:
         names += sorted(glob.glob(os.path.join(root, "lib", "libmkl_rt.so*")), key=len)
         names += sorted(glob.glob(os.path.join(root, "Library", "bin", "mkl_rt*.dll")), key=len)
@@ -64,7 +63,7 @@ def _mkl_runtime():
 @contextmanager
 def spinning_openmp_threads(milliseconds: int = 200):
     """Within the block, Intel OpenMP's idle threads spin ``milliseconds`` (for teams the calling thread
-    starts), then back to the process's setting (KMP_BLOCKTIME, 0 unless the user set it). The benchmarks
+    starts), then back to the process's setting (``SpeedSettings.openmp_blocktime_ms``). The benchmarks
     give PARDISO's parallel substitution its own best setting (threads hot between calls) while they time it.
     Does nothing when that runtime is not loaded."""
     runtime = None
@@ -79,11 +78,7 @@ def spinning_openmp_threads(milliseconds: int = 200):
         yield
     finally:
         if runtime is not None:
-            try:
-                restored = int(os.environ.get("KMP_BLOCKTIME", "0"))
-            except ValueError:
-                restored = 0
-            runtime.kmp_set_blocktime(ctypes.c_int(restored))
+            runtime.kmp_set_blocktime(ctypes.c_int(int(speed.current().openmp_blocktime_ms)))
 
 
 def _aligned_empty(size: int, alignment: int = 64, dtype=np.float64) -> np.ndarray:
@@ -395,46 +390,3 @@ def narrow(target: np.ndarray, values: np.ndarray) -> None:
     cause."""
     with np.errstate(over="ignore"):
         target[:] = values
-
-
-def factorize(matrix: sp.spmatrix, solver: str = "auto", symmetric: bool = False, previous=None,
-              reproducible: bool = True, coordinates: np.ndarray | None = None, precision: str = "double"):
-    """Factor ``matrix`` with the named back-end ('auto' prefers PARDISO); returns an object with ``solve``.
-
-    With ``previous`` (an earlier PARDISO factorisation of a matrix with the same sparsity pattern, e.g. the
-    previous Newton or Oseen matrix) only the numerical factorisation is redone: ~3x cheaper.
-    With ``coordinates`` (the x coordinate of each unknown) a large symmetric reproducible PARDISO system is
-    solved by two sequential halves on two threads (``sim.splitsolve``): reproducible at the parallel speed.
-    ``precision="mixed"`` (PARDISO only) factors in single precision and refines in double
-    (``MixedPrecision``); other back-ends and refactorisations stay in double precision.
-    """
-    if solver not in SOLVERS:
-        raise SolverError(f"unknown linear solver {solver!r}: choose one of {', '.join(SOLVERS)}")
-    if isinstance(previous, Pardiso) and previous.symmetric == symmetric and previous.same_pattern(matrix):
-        return previous.refactor(matrix)
-    if precision not in PRECISIONS:
-        raise SolverError(f"unknown precision {precision!r}: choose one of {', '.join(PRECISIONS)}")
-    if solver == "pardiso" or (solver == "auto" and pardiso_available()):
-        single = precision == "mixed"
-        if pardiso_available() and symmetric and reproducible and coordinates is not None and split_wanted(matrix):
-            from .splitsolve import SplitPardiso
-            factor = SplitPardiso(matrix, coordinates, single=single)
-        else:
-            factor = Pardiso(matrix, symmetric=symmetric, reproducible=reproducible, single=single)
-        return MixedPrecision(matrix, factor) if single else factor
-    return SuperLU(matrix, symmetric=symmetric)
-
-
-def split_wanted(matrix) -> bool:
-    """Whether the two-thread split solve pays: a large matrix, two cores; ``VCYTO_SPLIT_SOLVE=0`` turns it off."""
-    from .splitsolve import MIN_UNKNOWNS
-    if os.environ.get("VCYTO_SPLIT_SOLVE", "1") == "0":
-        return False
-    return matrix.shape[0] >= MIN_UNKNOWNS and (os.cpu_count() or 1) >= 2
-
-
-def resolved_solver_name(solver: str) -> str:
-    """The back-end ``factorize`` will use for ``solver`` on this machine."""
-    if solver == "auto":
-        return "pardiso" if pardiso_available() else "superlu"
-    return solver

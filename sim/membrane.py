@@ -186,7 +186,7 @@ class Membrane:
         clone.points = points
         return clone
 
-    # ------------------------------------------------------------------ area conservation (issue 4)
+    # ------------------------------------------------------------------ area conservation
     def pressure_balanced(self, forces: np.ndarray) -> tuple[np.ndarray, float]:
         """The forces plus an interior pressure p dA/dX that removes their component along dA/dX.
 

@@ -47,7 +47,6 @@ from __future__ import annotations
 
 import ctypes
 import math
-import os
 import queue
 import threading
 from typing import NamedTuple
@@ -56,7 +55,7 @@ import numpy as np
 import scipy.linalg as sla
 import scipy.sparse as sp
 
-from . import kernels, supernodal
+from . import kernels, speed, supernodal
 from .linalg import Pardiso, SolverError, _aligned_empty, _mkl_runtime, mkl_version, narrow
 from .store import code_digest, digest, reuse
 
@@ -84,8 +83,9 @@ def separator_split(matrix: sp.csr_matrix, x: np.ndarray, band=(0.35, 0.65)):
 
 def own_substitutions_wanted() -> bool:
     """Whether a single-precision split solve substitutes with our own kernels (``sim.supernodal``: compiled at
-    install) instead of PARDISO's; ``VCYTO_OWN_SUBSTITUTIONS=0`` keeps PARDISO's (the benchmark compares both)."""
-    return os.environ.get("VCYTO_OWN_SUBSTITUTIONS", "1") != "0" and supernodal.available()
+    install) instead of PARDISO's; ``SpeedSettings.own_substitutions`` False (``sim.speed``) keeps PARDISO's (the
+    benchmark compares both)."""
+    return speed.current().own_substitutions and supernodal.available()
 
 
 def substitutions() -> str:
@@ -334,8 +334,8 @@ class SplitPardiso:
 
     def __init__(self, matrix: sp.spmatrix, x: np.ndarray, single: bool = False, matching: bool = False,
                  own: bool | None = None):
-        """``matching=True`` factors the halves with PARDISO's weighted matching, as they are (no unknown moved: the
-        split before round 6, kept for the benchmark's comparison). ``own``: whether single-precision halves use our
+        """``matching=True`` factors the halves with PARDISO's weighted matching, as they are (no unknown moved: kept
+        for the benchmark's comparison). ``own``: whether single-precision halves use our
         own substitutions (``sim.supernodal``) where they can; None: ``own_substitutions_wanted()``."""
         matrix = sp.csr_matrix(matrix)
         self.single = single

@@ -1,11 +1,11 @@
 """Our own substitutions for the split solve's halves: a supernodal single-precision L D L^T and compiled kernels.
 
-PARDISO's sequential substitutions (its phases 331 and 333) of a half of the paper's fluid run at ~0.77 ns an
-entry and pass, a tenth of what the last-level cache delivers (a half's single-precision factor is ~10 MB): they
-are bound by their code, not by the memory (docs/numerics.md, "Round 12" and "Round 13"). This module keeps the same
-factorisation in a layout of its own and substitutes with the C kernels of ``sim/_substitute.c``, compiled when vcyto
-is installed (an optional extension: without a compiler, ``available()`` is False and the split solve keeps PARDISO's
-substitutions):
+PARDISO's sequential substitutions (its phases 331 and 333) of a half of the paper's fluid run at ~0.77 ns an entry
+and pass, a tenth of what the last-level cache delivers (a half's single-precision factor is ~10 MB): they are bound
+by their code, not by the memory (docs/numerics.md, "Our own substitutions for the halves"). This module keeps the
+same factorisation in a layout of its own and substitutes with the C kernels of ``sim/_substitute.c``, compiled when
+vcyto is installed (an optional extension: without a compiler, ``available()`` is False and the split solve keeps
+PARDISO's substitutions):
 
 - the ordering is PARDISO's (METIS nested dissection, from its analysis phase with ``iparm[4] = 2``), so the factor
   has PARDISO's fill;

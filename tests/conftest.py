@@ -7,10 +7,13 @@ import pytest
 
 from sim.fluid import NavierStokes
 from sim.scenario import UM, Scenario
+from vcyto import speedsettings
 
 # the command-line tests' set-up cache goes to a directory of this session, never the user's (vcyto/cache.py)
 os.environ["VCYTO_CACHE_DIR"] = tempfile.mkdtemp(prefix="vcyto-test-cache-")
 atexit.register(shutil.rmtree, os.environ["VCYTO_CACHE_DIR"], True)
+# the simulator's speed settings as the vcyto command reads them (KMP_BLOCKTIME=0 before MKL loads included)
+speedsettings.install()
 
 
 @pytest.fixture(scope="session")

@@ -1,7 +1,6 @@
-"""Time steps chosen by a tolerance (sim/adaptive.py, --tolerance): the level rules, and the done-means of
-issue 18: Scenario I, II and the default stream keep their outlets and stay within the tolerance of the
-dt = 2.5 us reference paths in the same time scheme (bdf2; centroid distance at the adaptive run's times, as
-the tradeoff measures it)."""
+"""Time steps chosen by a tolerance (sim/adaptive.py, --tolerance): the level rules, and Scenario I, II and the
+default stream keep their outlets and stay within the tolerance of the dt = 2.5 us reference paths in the same time
+scheme (bdf2; centroid distance at the adaptive run's times, as the tradeoff measures it)."""
 
 import math
 from dataclasses import replace
@@ -10,6 +9,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
+from sim import speed
 from sim.adaptive import LEVELS, LOOK_AHEAD, AdaptiveSteps
 from sim.scenario import UM, Scenario
 from vcyto.paper import paper_scenario, run_paper
@@ -212,7 +212,7 @@ def test_an_adaptive_run_computes_ahead_at_the_level_it_will_take(monkeypatch):
     plant = ImmersedBoundary(scenario)
 
     def run(prefetch: bool):
-        monkeypatch.setenv("VCYTO_PREFETCH", "1" if prefetch else "0")
+        monkeypatch.setattr(speed, "_settings", replace(speed.current(), prefetch=prefetch))
         plant.adaptive.reset()                                 # a new run on the same plant (its levels kept)
         used, original = [], NavierStokes._element_momentum
 

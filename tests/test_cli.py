@@ -70,7 +70,7 @@ def test_bench_fluid_reports_every_treatment_and_the_ratio():
         assert report["double_backsolve_ms"] > 0 and report["corrections_per_step"] >= 1
         assert report["default_factor_nonzeros"] > 0 and report["fastest_factor_nonzeros"] > 0
         assert "M factor entries" in report["default_solver"] and "M factor entries" in report["fastest_backsolve"]
-    if "SplitPardiso" in report["default_solver"]:     # the matched halves of round 5 beside the default
+    if "SplitPardiso" in report["default_solver"]:     # the matched halves beside the default
         assert report["matched_backsolve_ms"] > 0 and report["backsolve_over_matched"] > 0
     from sim.supernodal import available
     if "SplitPardiso" in report["default_solver"] and available():   # our own substitutions against PARDISO's

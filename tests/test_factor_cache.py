@@ -8,12 +8,13 @@ import logging
 import os
 import subprocess
 import sys
+from dataclasses import replace
 
 import numpy as np
 import pytest
 import scipy.sparse as sp
 
-from sim import store
+from sim import speed, store
 from sim.linalg import Pardiso, pardiso_available
 from vcyto.cache import DiskCache, clear, usage
 
@@ -147,7 +148,7 @@ def test_the_split_solve_restores_both_halves_to_the_same_bits(cache, own, monke
     from sim.supernodal import SupernodalLDL, available
     if own == "1" and not available():
         pytest.skip("vcyto was installed without its compiled substitution kernels")
-    monkeypatch.setenv("VCYTO_OWN_SUBSTITUTIONS", own)
+    monkeypatch.setattr(speed, "_settings", replace(speed.current(), own_substitutions=own == "1"))
     scenario = Scenario().with_numerics(mesh_h=5 * UM)
     store.install(None)
     cold = NavierStokes(scenario)

@@ -1,9 +1,12 @@
 """Taylor-Hood Navier-Stokes: manufactured solutions, Poiseuille flow, mass conservation, treatments."""
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 from skfem import Basis, ElementTriP1, ElementTriP2, FacetBasis, Functional, LinearForm, asm
 
+from sim import speed
 from sim.boundary import inlet_flux
 from sim.fluid import NavierStokes
 from sim.scenario import UM, Channel, Inlet, Outlet, Scenario
@@ -244,11 +247,11 @@ def test_a_solver_like_another_steps_as_one_built_alone_and_refuses_another_devi
 def test_steps_are_the_same_bits_with_the_momentum_computed_ahead_or_in_the_step(scheme, monkeypatch):
     """Each step starts the next one's element integrals on a helper thread (``NavierStokes.prefetch``): a
     speculation on the state it returned. Stepping on from it, stepping again from an earlier state (a retaken
-    step: the speculation is not of it), and with the helper switched off (``VCYTO_PREFETCH=0``) give the same
+    step: the speculation is not of it), and with the helper switched off (``SpeedSettings.prefetch``) give the same
     bits; a step's velocity and pressure are read-only, so a speculation's input cannot change under it."""
 
     def run(prefetch: bool):
-        monkeypatch.setenv("VCYTO_PREFETCH", "1" if prefetch else "0")
+        monkeypatch.setattr(speed, "_settings", replace(speed.current(), prefetch=prefetch))
         solver = NavierStokes(Scenario().with_numerics(mesh_h=6 * UM, time_scheme=scheme))
         computed, original = [], solver._element_integrals
         solver._element_integrals = lambda state, out, threads=None: (computed.append(threads),

@@ -2,7 +2,8 @@ import numpy as np
 import pytest
 import scipy.sparse as sp
 
-from sim.linalg import Pardiso, SolverError, SuperLU, factorize, pardiso_available
+from sim.linalg import Pardiso, SolverError, SuperLU, pardiso_available
+from sim.solvers import factorize
 
 
 def saddle_point(n=60, m=20, seed=0):

@@ -11,8 +11,9 @@ import pytest
 from test_linalg import saddle_point
 
 from sim.fluid import NavierStokes
-from sim.linalg import MixedPrecision, Pardiso, SolverError, factorize, pardiso_available
+from sim.linalg import MixedPrecision, Pardiso, SolverError, pardiso_available
 from sim.scenario import UM, Scenario, ScenarioError
+from sim.solvers import factorize
 
 pytestmark = pytest.mark.skipif(not pardiso_available(), reason="mixed precision runs on MKL PARDISO")
 ROOT = Path(__file__).resolve().parents[1]
@@ -109,6 +110,8 @@ def test_mixed_steps_follow_the_double_steps_through_an_idt_pulse():
 
 SPIN = """
 import time
+from vcyto import speedsettings
+speedsettings.install()                     # as the vcyto command does, before MKL loads
 from sim.fluid import NavierStokes
 from sim.scenario import UM, Scenario
 fluid = NavierStokes(Scenario().with_numerics(mesh_h=10 * UM))
@@ -125,7 +128,8 @@ print(time.process_time() - started)
 
 def test_no_openmp_thread_spins_after_a_step():
     """Intel OpenMP runs numba's kernels once MKL is loaded; with its default 200 ms spin a thread burnt a core
-    through the next back-solve (100 ms of CPU per 100 ms after a step). vcyto sets KMP_BLOCKTIME=0."""
+    through the next back-solve (100 ms of CPU per 100 ms after a step). vcyto sets KMP_BLOCKTIME=0
+    (``vcyto.speedsettings.install``)."""
     environment = {k: v for k, v in __import__("os").environ.items() if k != "KMP_BLOCKTIME"}
     cpu = float(subprocess.run([sys.executable, "-c", SPIN], capture_output=True, text=True, cwd=ROOT,
                                check=True, env=environment).stdout)

@@ -94,3 +94,18 @@ def test_a_helper_stopped_while_it_draws_leaves_no_temporary_file(tmp_path):
     helper.close()                                        # SIGTERM while it writes
     assert process.returncode is not None
     assert list(tmp_path.iterdir()) == []                 # neither the temporary file nor a figure
+
+
+@pytest.mark.parametrize("cores, load, idle", [(2, 0.3, True), (2, 1.0, True), (2, 1.2, False), (2, 13.0, False),
+                                               (8, 6.5, True)])
+def test_the_helper_starts_only_where_a_core_is_idle(monkeypatch, cores, load, idle):
+    monkeypatch.setattr(painter.os, "cpu_count", lambda: cores)
+    monkeypatch.setattr(painter.os, "getloadavg", lambda: (load, load, load))
+    assert painter.core_idle() is idle
+
+
+def test_without_a_load_average_the_figure_is_drawn_here(monkeypatch):
+    def unknown():
+        raise OSError("no load average")
+    monkeypatch.setattr(painter.os, "getloadavg", unknown)
+    assert painter.core_idle() is False

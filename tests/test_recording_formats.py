@@ -275,19 +275,27 @@ def test_the_flow_colours_are_matplotlibs_viridis_and_a_warm_process_needs_no_ma
 
 
 def test_a_rerun_recording_does_not_import_pandas_and_pandas_stays_usable(tmp_path):
-    """Opening a Rerun recording (its blueprint is pyarrow's first conversion) leaves pandas unimported where it is
-    installed (``vcyto.viewer.import_rerun``: 0.2-0.3 s of a recorded run); pandas then imports as usual, and pyarrow
-    converts to and from it; a process that had imported pandas keeps it."""
+    """In the vcyto command's own process (``spare_pandas_import``, which ``vcyto.cli.run`` calls) opening a Rerun
+    recording (its blueprint is pyarrow's first conversion) leaves pandas unimported where it is installed
+    (``vcyto.viewer.import_rerun``: 0.2-0.3 s of a recorded run); pandas then imports as usual, and pyarrow converts
+    to and from it; a process that had imported pandas keeps it. A Python user's process is left alone: pyarrow
+    imports pandas as usual and converts a categorical Series to a dictionary array."""
     script = ("import sys\nif sys.argv[2] == 'first': import pandas\n"
+              "from vcyto import viewer\nif sys.argv[3] == 'command': viewer.spare_pandas_import()\n"
               "from sim.scenario import Scenario; from vcyto.rerunlog import RerunLogger\n"
               "from controller.detector import DetectorSettings\n"
               "logger = RerunLogger(Scenario(), DetectorSettings().window, ('save', sys.argv[1]))\n"
               "logger.text('hello'); logger.close(); print('pandas' in sys.modules)\n"
               "import pandas, pyarrow\n"
-              "print(pyarrow.table({'a': [1, 2]}).to_pandas()['a'].sum(), pyarrow.array(pandas.Series([3, 4])).type)")
-    for order, expected in (("after", "False"), ("first", "True")):
-        done = subprocess.run([sys.executable, "-c", script, str(tmp_path / f"{order}.rrd"), order],
-                              capture_output=True, text=True, timeout=120)
+              "print(pyarrow.table({'a': [1, 2]}).to_pandas()['a'].sum(), pyarrow.array(pandas.Series([3, 4])).type)\n"
+              "print(pyarrow.array(pandas.Series(['x', 'y'], dtype='category')).type)")
+    for order, process, expected in (("after", "command", "False"), ("first", "command", "True"),
+                                     ("after", "library", "True")):
+        done = subprocess.run([sys.executable, "-c", script, str(tmp_path / f"{order}-{process}.rrd"), order,
+                               process], capture_output=True, text=True, timeout=120)
         assert done.returncode == 0, done.stderr
-        assert done.stdout.split("\n")[:2] == [expected, "3 int64"], order
-    assert RrdReader(str(tmp_path / "after.rrd")) is not None
+        lines = done.stdout.split("\n")
+        assert lines[:2] == [expected, "3 int64"], (order, process)
+        if process == "library":
+            assert lines[2].startswith("dictionary<"), lines[2]         # pyarrow's own pandas conversion
+    assert RrdReader(str(tmp_path / "after-command.rrd")) is not None

@@ -3,12 +3,13 @@ precision like PARDISO's, give the same bits for the same input on either thread
 and the split solve falls back to PARDISO's without them."""
 
 import threading
+from dataclasses import replace
 
 import numpy as np
 import pytest
 import scipy.sparse as sp
 
-from sim import kernels, supernodal
+from sim import kernels, speed, supernodal
 from sim.linalg import Pardiso, SolverError, pardiso_available
 from sim.scenario import UM, Scenario
 
@@ -100,10 +101,10 @@ def fluid():
 @pytest.mark.parametrize("way", ["own", "switched off", "not built", "refused"])
 def test_the_split_solve_uses_them_or_pardisos(fluid, monkeypatch, way):
     """Single precision, halves without matching: our substitutions, solving like PARDISO's; with
-    ``VCYTO_OWN_SUBSTITUTIONS=0``, without the compiled kernels, or with a factor they refuse: PARDISO's."""
+    ``SpeedSettings.own_substitutions`` off, without the compiled kernels, or with a factor they refuse: PARDISO's."""
     import sim.splitsolve as splitsolve
     if way == "switched off":
-        monkeypatch.setenv("VCYTO_OWN_SUBSTITUTIONS", "0")
+        monkeypatch.setattr(speed, "_settings", replace(speed.current(), own_substitutions=False))
     elif way == "not built":
         monkeypatch.setattr(supernodal, "_kernels", lambda: None)
     elif way == "refused":
@@ -195,7 +196,7 @@ def test_stored_flows_name_the_substitutions_that_computed_them(monkeypatch):
     part of stored flows (``solver_code_digest``) names them."""
     from sim.fluid import solver_code_digest
     ours = solver_code_digest()
-    monkeypatch.setenv("VCYTO_OWN_SUBSTITUTIONS", "0")
+    monkeypatch.setattr(speed, "_settings", replace(speed.current(), own_substitutions=False))
     theirs = solver_code_digest()
     assert ours != theirs and ours.split(":")[1] == f"own-{supernodal.LAYOUT}" and theirs.split(":")[1] == "pardiso"
     assert ours.split(":")[2] == theirs.split(":")[2] == kernels.implementation()     # which step kernels: C or numba

@@ -1,4 +1,4 @@
-"""Runs a user can trust (issue 16): every bad input a one-line error with exit 1 or 2, units checked for
+"""Runs a user can trust: every bad input a one-line error with exit 1 or 2, units checked for
 dimension, strict JSON, run files never overwritten, interrupted and failed runs leaving a complete record,
 a desktop without a usable viewer still getting its files."""
 

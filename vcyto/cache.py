@@ -44,7 +44,7 @@ from sim.store import digest
 from . import __version__
 from .outputs import create_new
 
-FORMAT = 2          # 2 (round 15): the arrays' names stored and checked, no SHA-256 of the arrays
+FORMAT = 2          # the arrays' names stored and checked (format 1 held a SHA-256 of the arrays)
 LOG = logging.getLogger(__name__)
 
 

@@ -7,10 +7,14 @@ the core the command's own imports leave idle, draws a stand-in figure into memo
 costs ~0.15 s more than the next), then waits for one figure on its standard input (a pickled name, path and
 plain data: arrays, lines, texts), draws it with the Agg backend, writes the PNG whole
 (``vcyto.outputs.write_whole``: a temporary file moved in place) and ends without the interpreter's teardown
-(0.13-0.17 s with matplotlib loaded): the command's wait for its figure went from ~0.4 s to ~0.16-0.22 s
-(round 18). The command meanwhile runs; at its end it
-hands over the figure's data and waits for the helper to finish, so the PNG exists when the command reports
-it (docs/numerics.md, "Round 11").
+(0.13-0.17 s with matplotlib loaded). The command meanwhile runs; at its end it hands over the figure's data and
+waits for the helper to finish, so the PNG exists when the command reports it.
+
+The helper pays only where a core is idle: where one was, the command's wait for its figure fell from 0.39-0.41 s
+to 0.16-0.22 s (2026-12-03, CHANGELOG.md); on a shared 2-core host at load average 12-16 it made ``vcyto paper 2``
+slower, median wall 7.07 s against 5.58 s drawn in the command (``python examples/process_tricks.py --only
+painter --pairs 5``: the helper's imports took CPU the run needed). So the command starts it only when the load
+average leaves a core idle (``core_idle``), and otherwise draws the figure itself.
 
 The helper imports only numpy, matplotlib and ``vcyto.outputs`` (no ``sim``), the same ``vcyto`` as the command
 (its package's directory first on the helper's path). Whatever happens to it (it could not start, died, failed
@@ -88,6 +92,16 @@ def draw(name: str, path, spec: dict, plt=None) -> None:
         save_figure(figure, path)
     finally:
         plt.close(figure)
+
+
+def core_idle() -> bool:
+    """Whether this machine has a core to spare for the helper: the 1-minute load average at least one below the
+    number of cores (False where the load average is unknown)."""
+    try:
+        load = os.getloadavg()[0]
+    except (AttributeError, OSError):
+        return False
+    return (os.cpu_count() or 1) - load >= 1.0
 
 
 class Painter:

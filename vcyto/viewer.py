@@ -160,23 +160,32 @@ class _NoPandasNow:
         return None
 
 
+_spare_pandas = False         # set by the vcyto executable for its own process only (``spare_pandas_import``)
+
+
+def spare_pandas_import() -> None:
+    """In the ``vcyto`` executable's own process (``vcyto.cli.run``), let ``import_rerun`` keep pyarrow from
+    importing pandas. Never called for a Python user of vcyto: their pyarrow converts pandas objects as usual."""
+    global _spare_pandas
+    _spare_pandas = True
+
+
 @functools.lru_cache(maxsize=None)
 def import_rerun():
-    """The ``rerun`` module, with pyarrow told once that pandas is not there for it.
+    """The ``rerun`` module; in the vcyto command's own process, with pyarrow told once that pandas is not there.
 
     pyarrow's first conversion of a Python sequence (Rerun makes one for the first thing it logs: the blueprint)
     imports pandas, where it is installed (FlowKit, a dev dependency, brings it), only to recognise pandas objects
     among the values; vcyto gives it none. That import took 0.2-0.3 s of a recorded run (measured), on the sinks'
-    thread but holding the interpreter's lock the plant's set-up and steps need. Here pyarrow makes that first
-    conversion while pandas cannot be imported, notes that it has none (``_PandasAPIShim``: asked once per
-    process), and the finder is removed at once: pandas stays importable, and pyarrow's explicit pandas functions
-    (``Table.to_pandas``, ``Table.from_pandas``) import it when called. Until one of them is, a pandas object given
-    to ``pyarrow.array`` converts as a plain sequence (a categorical Series to strings, not a dictionary array); no
-    vcyto code gives pyarrow pandas objects. While the finder is in place (one conversion of one string) another
-    thread's ``import pandas`` would fail; nothing of vcyto imports pandas. A process that imported pandas already
-    keeps it."""
+    thread but holding the interpreter's lock the plant's set-up and steps need. In the command's process
+    (``spare_pandas_import``) pyarrow makes that first conversion while pandas cannot be imported, notes that it
+    has none (``_PandasAPIShim``: asked once per process), and the finder is removed at once: pandas stays
+    importable, and pyarrow's explicit pandas functions (``Table.to_pandas``, ``Table.from_pandas``) import it when
+    called; until one of them is, a pandas object given to ``pyarrow.array`` would convert as a plain sequence,
+    and nothing in that process gives it one. A Python user's process (vcyto imported as a library) is left
+    alone: there pyarrow imports pandas as it always does. A process that imported pandas already keeps it."""
     import pyarrow
-    if "pandas" not in sys.modules:
+    if _spare_pandas and "pandas" not in sys.modules:
         finder = _NoPandasNow()
         sys.meta_path.insert(0, finder)
         try:

@@ -9,7 +9,7 @@ meaningful on a noisy machine, and returns a JSON-ready dict with the lines that
 - ``realtime``: real-time factor of the closed loop with the rom plant.
 - ``auto``: the auto plant against feib on one stream, cell by cell.
 - ``recording``: overhead of the MCAP + Rerun recording.
-- ``process``: whole ``vcyto`` processes (separate processes, warm cache): issue 18's whole-process targets.
+- ``process``: whole ``vcyto`` processes (separate processes, warm cache) against the whole-process targets.
 - ``sort``: long rom sorting runs with recording (separate processes): cost per event, memory, file sizes.
 - ``sweep``: one sweep on pools of several sizes: the speed-up.
 """

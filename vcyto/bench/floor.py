@@ -55,6 +55,8 @@ def _main(arguments: list[str]) -> None:
             sys.exit("floor: usage: python -m vcyto.bench.floor [--rounds N] (N a whole number >= 1, e.g. 3)")
         rounds = int(arguments[1])
     from ..cache import install_default
+    from ..speedsettings import install
+    install()
     install_default()
     print(json.dumps(floor_probe(rounds)))
 

@@ -258,13 +258,13 @@ def _split_variant(base: NavierStokes, wanted, **options):
 
 
 def _matched_default(base: NavierStokes):
-    """The default's back-solve with its halves factored with weighted matching (the split before round 6), or
+    """The default's back-solve with its halves factored with weighted matching (no unknown moved), or
     None when the default is not the split solve."""
     return _split_variant(base, lambda split: True, matching=True)
 
 
 def _pardiso_substitutions_default(base: NavierStokes):
-    """The default's back-solve with PARDISO's substitutions in its halves instead of our own (before round 13), or
+    """The default's back-solve with PARDISO's substitutions in its halves instead of our own, or
     None when the default does not use our own (``sim.supernodal``)."""
     return _split_variant(base, lambda split: split.own, own=False)
 
@@ -336,10 +336,10 @@ def report_lines(result: dict) -> list[str]:
                      f"{result['fastest_single_backsolve_ms']:.2f} ms (imex step / it = "
                      f"{result['imex_over_fastest_single_backsolve']:.2f})")
     if "matched_backsolve_ms" in result:
-        lines.append(f"  the default with matched halves (before round 6): {result['matched_backsolve']}, back-solve "
+        lines.append(f"  the default with matched halves: {result['matched_backsolve']}, back-solve "
                      f"{result['matched_backsolve_ms']:.2f} ms (default / it = {result['backsolve_over_matched']:.2f})")
     if "pardiso_substitutions_backsolve_ms" in result:
-        lines.append(f"  the default with PARDISO's substitutions (before round 13): "
+        lines.append(f"  the default with PARDISO's substitutions: "
                      f"{result['pardiso_substitutions_backsolve']}, back-solve "
                      f"{result['pardiso_substitutions_backsolve_ms']:.2f} ms (default / it = "
                      f"{result['backsolve_over_pardiso_substitutions']:.2f})")

@@ -23,6 +23,7 @@ from .. import runfiles, units
 from ..arguments import Parser
 from ..cache import CacheSettingError
 from ..cache import install_default as install_cache
+from ..speedsettings import install as install_speed_settings
 from ..stream import StreamStopped
 from . import bench, cache, calibrate, extremes, flow, paper, replay, scenario, stability, stream, sweep, tradeoff
 from .common import (
@@ -58,8 +59,9 @@ def build_parser() -> argparse.ArgumentParser:
 
 # Python's threads take turns with the interpreter lock at least this often (Python's default: 5 ms). A command's
 # threads that run Python (the loop; the recording sinks; the split solve's and the momentum's helpers between their
-# kernels) then wait ~0.2 ms, not up to 5 ms, for one that holds it: the README stream 3.5 % faster (median of four
-# alternating pairs; docs/numerics.md, "Round 14").
+# kernels) then wait ~0.2 ms, not up to 5 ms, for one that holds it: the README stream with --tolerance 1um and its
+# recordings took a median 16.5 s against 18.2 s at 5 ms, per-pair ratio 0.93 (``python examples/process_tricks.py
+# --only switch``, three pairs on a loaded 2-core host).
 SWITCH_INTERVAL_S = 2e-4
 
 
@@ -76,6 +78,7 @@ def main(argv=None) -> int:
 
 def _main(args) -> int:
     try:
+        install_speed_settings()
         install_cache()
         with runfiles.signals_as_interrupt(signals_seen):     # SIGTERM ends every command as Ctrl-C does
             status = args.handler(args)
@@ -112,7 +115,10 @@ def _main(args) -> int:
 
 def run() -> None:
     """The ``vcyto`` executable (and ``python -m vcyto``): ``main``, then ``exit_now`` with its status (argparse's
-    exits for --help, --version and bad usage included)."""
+    exits for --help, --version and bad usage included). This process is the command's own, so the Rerun sink may
+    keep pyarrow from importing pandas (``vcyto.viewer.spare_pandas_import``)."""
+    from ..viewer import spare_pandas_import
+    spare_pandas_import()
     try:
         status = main()
     except SystemExit as stop:
@@ -128,12 +134,14 @@ def run() -> None:
 def exit_now(status: int) -> None:
     """End the process with ``status`` once everything is written, without the interpreter's teardown.
 
-    Tearing down the interpreter (freeing every module's objects, numba's compiled code, MKL's threads) took
-    0.13 s after ``vcyto --help`` and 0.24-0.33 s after an FE-IB run (measured): time a user waits for nothing.
-    Every output file is closed by the time ``main`` returns; here the exit handlers run (logging, rerun's
-    flush, temporary directories), stdout and stderr are flushed, and ``os._exit`` ends the process. With
-    a non-daemon thread still running, or under a profiler or tracer (``python -m cProfile``, which writes its
-    results after ``main``), the ordinary exit."""
+    Tearing down the interpreter (freeing every module's objects and the libraries' threads) is time a user waits
+    for nothing: from ``main``'s return to the process's end after ``vcyto paper 2 --no-png``, 0.045 s median with
+    ``os._exit`` against 0.105 s ordinarily (``python examples/process_tricks.py --only exit``, three pairs). The
+    rules this relies on: every output file is closed by the time ``main`` returns (a file left to the garbage
+    collector would lose its buffered data), and every thread kept for the life of the process is a daemon. Here
+    the exit handlers run (logging, rerun's flush, temporary directories), stdout and stderr are flushed, and
+    ``os._exit`` ends the process. With a non-daemon thread still running, or under a profiler or tracer (``python
+    -m cProfile``, which writes its results after ``main``), the ordinary exit."""
     working = [thread for thread in threading.enumerate()
                if thread.is_alive() and not thread.daemon and thread is not threading.main_thread()]
     if sys.getprofile() is not None or sys.gettrace() is not None or working:

@@ -34,11 +34,11 @@ def add_command(commands):
 
 def command_paper(args):
     from .. import runfiles
-    from ..painter import Painter
+    from ..painter import Painter, core_idle
     from ..progress import Progress
-    # the PNG's helper process starts first: it imports matplotlib while this one imports the plant and runs
-    # (vcyto.painter); leaving this block (an error, Ctrl-C) stops it
-    with Painter(start=not args.no_png) as painter:
+    # the PNG's helper process starts first where a core is idle: it imports matplotlib while this one imports the
+    # plant and runs (vcyto.painter); leaving this block (an error, Ctrl-C) stops it
+    with Painter(start=not args.no_png and core_idle()) as painter:
         from .. import paper
         # with --tolerance the finest level is --dt or 2.5 us, the step the tolerance is stated against
         scenario = paper.paper_scenario(args.number, scenario_from(args, membrane="paper"),

@@ -7,6 +7,9 @@ import threading
 import time
 from collections import OrderedDict
 
+from sim import speed
+
+from ..speedsettings import from_environment
 from ..stream import make_plant, run_stream
 from .metrics import metric_value
 from .model import one_line
@@ -46,20 +49,23 @@ def simulate(scenario, settings) -> dict:
 
 def evaluate(jobs, metrics, simulator=None) -> list[dict]:
     """Run the points ``jobs`` ((scenario, settings), ...) one after the other; a row of metrics each. A point
-    that raises is a row with status "failed" and the error in one line; the others still run."""
-    rows = []
-    for scenario, settings in jobs:
-        started = time.perf_counter()
-        try:
-            result = (simulator or simulate)(scenario, settings)
-            if result.get("status", "complete") != "complete":     # a partial run is not a result
-                row = {"status": "truncated", "error": one_line(result.get("reason", ""))}
-            else:
-                row = {"status": "ok", "error": "", **{name: metric_value(result, name) for name in metrics}}
-        except Exception as error:  # noqa: BLE001 - a failed point is data, not the end of the sweep
-            if getattr(error, "status", None) == "interrupted":       # Ctrl-C inside the loop: not a result
-                raise KeyboardInterrupt from error
-            row = {"status": "failed", "error": one_line(f"{type(error).__name__}: {error}")}
-        row["wall_time_s"] = time.perf_counter() - started
-        rows.append(row)
-    return rows
+    that raises is a row with status "failed" and the error in one line; the others still run. The simulator's
+    speed settings are this worker's environment's (``vcyto.sweep.executors``: no prefetch helper thread)."""
+    with speed.using(from_environment()):
+        return [_evaluate_one(scenario, settings, metrics, simulator) for scenario, settings in jobs]
+
+
+def _evaluate_one(scenario, settings, metrics, simulator) -> dict:
+    started = time.perf_counter()
+    try:
+        result = (simulator or simulate)(scenario, settings)
+        if result.get("status", "complete") != "complete":     # a partial run is not a result
+            row = {"status": "truncated", "error": one_line(result.get("reason", ""))}
+        else:
+            row = {"status": "ok", "error": "", **{name: metric_value(result, name) for name in metrics}}
+    except Exception as error:  # noqa: BLE001 - a failed point is data, not the end of the sweep
+        if getattr(error, "status", None) == "interrupted":       # Ctrl-C inside the loop: not a result
+            raise KeyboardInterrupt from error
+        row = {"status": "failed", "error": one_line(f"{type(error).__name__}: {error}")}
+    row["wall_time_s"] = time.perf_counter() - started
+    return row

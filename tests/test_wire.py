@@ -252,7 +252,7 @@ def test_late_answers_in_real_time_are_missed_and_their_targets_go_lower(tmp_pat
     ("garbage", "malformed message: its 12 bytes are not UTF-8"),
     ("oversized", "oversized message: a frame of 2097152 bytes"),
     ("version", "version mismatch: the controller speaks version 2 of vcyto-controller, vcyto speaks 1"),
-    ("silent", "the controller did not answer within 2 s (--controller-timeout)"),
+    ("silent", "the controller did not answer within 2 s (--controller-timeout): no answer came"),
 ])
 def test_a_failing_controller_stops_the_run_in_one_line_with_a_finalised_recording(mode, words, tmp_path):
     started = time.monotonic()

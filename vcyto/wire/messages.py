@@ -46,7 +46,7 @@ def check_welcome(message: dict) -> tuple[str, str, tuple[str, ...]]:
     """The controller's name, software version and capabilities from its answer to ``hello`` (``WireError`` if
     it refused or speaks another protocol or version)."""
     if message["type"] == "error":
-        raise WireError(f"the controller refused the handshake: {_text(message.get('message'))}")
+        raise WireError(f"the controller refused the handshake: {shorten(message.get('message'))}")
     if message["type"] != "welcome":
         raise WireError(f"expected a welcome message in answer to hello, got {message['type']!r}")
     if message.get("protocol") != PROTOCOL:
@@ -63,7 +63,7 @@ def check_welcome(message: dict) -> tuple[str, str, tuple[str, ...]]:
     if not (isinstance(name, str) and name.strip() and isinstance(software, str)):
         raise WireError(f"welcome: name must be a non-empty string and software a string (got {name!r}, "
                         f"{software!r})")
-    return _text(name, 80), _text(software, 80), tuple(capabilities)
+    return shorten(name, 80), shorten(software, 80), tuple(capabilities)
 
 
 def decisions(message: dict) -> tuple[int, tuple[Decision, ...]]:
@@ -108,6 +108,6 @@ def _is_integer(value) -> bool:
     return isinstance(value, int) and not isinstance(value, bool)
 
 
-def _text(value, width: int = 200) -> str:
+def shorten(value, width: int = 200) -> str:
     text = " ".join(str(value).split())
     return text[:width] + ("..." if len(text) > width else "")

@@ -190,17 +190,27 @@ class WirePort:
         self._inbox: queue.SimpleQueue = queue.SimpleQueue()      # (message, wall time it came) or an exception
         self._posted: dict[int, float] = {}                       # event_id -> wall time it was sent
         self._facts: DeviceFacts | None = None
+        self._frames = Frames()
         self._closing = threading.Event()
-        self._closed = self._broken = False
-        self._reader = threading.Thread(target=self._read, name="vcyto-wire-reader", daemon=True)
-        self._reader.start()
+        self._closed = False
+        self._failure: BaseException | None = None     # why the connection can no longer be used
+        self._reader: threading.Thread | None = None
+        if timing.realtime:
+            self._listen_in_background()
+
+    def _listen_in_background(self) -> None:
+        """Read on a thread from now on, which stamps each message with the wall time it came: paced real time
+        judges a reply by that time, not by when the loop looks (lock-step reads inline: one thread hop less)."""
+        if self._reader is None:
+            self._reader = threading.Thread(target=self._read, name="vcyto-wire-reader", daemon=True)
+            self._reader.start()
 
     # --- the port contract (vcyto.control)
     def start(self, facts: DeviceFacts) -> None:
         """The handshake: hello (versions, capabilities, device facts, timing) and the controller's welcome."""
         self._facts = facts
         self._send(messages.hello(facts, self.timing))
-        message, _ = self._next(self.timeout, "the handshake (its welcome)")
+        message, _ = self._next(self.timeout, "welcome")
         name, software, self.capabilities = messages.check_welcome(message)
         self.name = f"{name}{' ' + software if software else ''} (wire, {self._label})"
 
@@ -213,8 +223,10 @@ class WirePort:
     def replies(self, wait: float = 0.0) -> list[Reply]:
         """The answers that came, waiting up to ``wait`` s for the first (inf: up to the timeout, then
         ``ControllerError``: a controller that never answers stops the run)."""
+        if not math.isinf(wait):            # a caller that polls (paced real time) needs arrivals stamped
+            self._listen_in_background()
         bounded = self.timeout if math.isinf(wait) else max(0.0, wait)
-        first = self._next(bounded, "an answer" if math.isinf(wait) else None)
+        first = self._next(bounded, "answer" if math.isinf(wait) else None)
         if first is None:
             return []
         replies = [self._reply(*first)]
@@ -235,7 +247,7 @@ class WirePort:
             return
         self._closed = True
         try:
-            if self._facts is not None and not self._broken:
+            if self._facts is not None and self._failure is None:
                 self._send(messages.end("the run is over"))
                 self._await_bye(min(self.timeout, CLOSE_WAIT))
         except (ControllerError, ConnectionError, OSError):
@@ -247,7 +259,8 @@ class WirePort:
             except OSError:
                 pass
             self._sock.close()
-            self._reader.join(CLOSE_WAIT)
+            if self._reader is not None:
+                self._reader.join(CLOSE_WAIT)
             if self._process is not None:
                 _stop(self._process)
             if self._directory is not None:
@@ -261,23 +274,23 @@ class WirePort:
 
     # --- messages
     def _send(self, message: dict) -> None:
-        if self._broken:
-            raise ConnectionError(f"the connection to the controller at {self.address} is lost")
+        if self._failure is not None:
+            raise self._failure
         try:
             self._sock.sendall(encode(message))
         except (socket.timeout, TimeoutError):
-            self._broken = True
-            raise ControllerError(f"the controller took no message for {self.timeout:g} s (--controller-timeout): "
-                                  "it has stopped reading") from None
+            self._failure = ControllerError(f"the controller took no message for {self.timeout:g} s "
+                                            "(--controller-timeout): it has stopped reading")
+            raise self._failure from None
         except OSError as error:
-            self._broken = True
-            raise ConnectionError(self._lost(_reason(error))) from None
+            self._failure = ConnectionError(self._lost(_reason(error)))
+            raise self._failure from None
 
     def _next(self, wait: float, waiting_for: str | None):
         """The next message and the wall time it came, within ``wait`` s; None if none came and ``waiting_for``
         is None, else ``ControllerError`` saying what never came."""
         try:
-            item = self._inbox.get(timeout=wait) if wait > 0 else self._inbox.get_nowait()
+            item = self._take(wait)
         except queue.Empty:
             if waiting_for is None:
                 return None
@@ -285,9 +298,23 @@ class WirePort:
                                   f"(--controller-timeout): no {waiting_for} came") from None
         return self._checked(item)
 
+    def _take(self, wait: float):
+        """The next item of the inbox within ``wait`` s (``queue.Empty`` if none); without a reader thread the
+        socket is read here."""
+        if self._reader is not None:
+            return self._inbox.get(timeout=wait) if wait > 0 else self._inbox.get_nowait()
+        end = time.perf_counter() + wait
+        while self._inbox.empty():
+            if self._failure is not None:
+                raise self._failure
+            left = end - time.perf_counter()
+            if (wait > 0 and left <= 0) or not self._pump(max(left, 0.0)) or wait <= 0:
+                break
+        return self._inbox.get_nowait()
+
     def _checked(self, item):
         if isinstance(item, BaseException):
-            self._broken = True
+            self._failure = item
             raise item
         return item
 
@@ -299,46 +326,63 @@ class WirePort:
             if posted is None:
                 raise WireError(f"an answer to event {event_id}, which was not asked about or was answered before")
             return Reply(event_id, decisions, max(0.0, received - posted))
-        self._broken = True
         if kind == "error":
-            raise ControllerError(f"the controller reported an error: {messages._text(message.get('message'))}")
-        if kind == "bye":
-            raise ConnectionError("the controller said bye before the run ended")
-        raise WireError(f"unexpected message type {kind!r} during the run (expected decisions)")
+            self._failure = ControllerError(f"the controller reported an error: "
+                                            f"{messages.shorten(message.get('message'))}")
+        elif kind == "bye":
+            self._failure = ConnectionError("the controller said bye before the run ended")
+        else:
+            self._failure = WireError(f"unexpected message type {kind!r} during the run (expected decisions)")
+        raise self._failure
 
     def _await_bye(self, wait: float) -> None:
         end = time.monotonic() + wait
         while (left := end - time.monotonic()) > 0:
             try:
-                item = self._inbox.get(timeout=left)
+                item = self._take(left)
             except queue.Empty:
                 return
             if isinstance(item, BaseException) or item[0]["type"] == "bye":
                 return
 
     def _read(self) -> None:
-        """The reader thread: frames off the socket into the inbox, stamped with the wall time they came."""
-        frames = Frames()
+        """The reader thread: messages off the socket into the inbox until the port closes or breaks."""
+        while not self._closing.is_set() and self._pump(None):
+            pass
+
+    def _pump(self, wait: float | None) -> bool:
+        """Read what the socket has (waiting up to ``wait`` s; None: the socket's timeout) into the inbox, each
+        message stamped with the wall time it came; False once the connection has ended (the inbox says why)."""
         try:
-            while not self._closing.is_set():
-                try:
-                    data = self._sock.recv(RECEIVE_CHUNK)
-                except (socket.timeout, TimeoutError):
-                    continue
-                received = time.perf_counter()
-                if not data:
-                    if not self._closing.is_set():
-                        cut = f" in the middle of a message ({frames.partial} bytes)" if frames.partial else ""
-                        self._inbox.put(ConnectionError(self._lost(f"the controller closed the connection{cut}")))
-                    return
-                frames.feed(data)
-                while (message := frames.pop()) is not None:
-                    self._inbox.put((message, received))
+            if wait is not None:
+                self._sock.settimeout(max(wait, 1e-6))
+            try:
+                data = self._sock.recv(RECEIVE_CHUNK)
+            except (socket.timeout, TimeoutError):
+                return True
+            finally:
+                if wait is not None:
+                    self._sock.settimeout(self.timeout)
+            received = time.perf_counter()
+            if not data:
+                if not self._closing.is_set():
+                    cut = f" in the middle of a message ({self._frames.partial} bytes)" if self._frames.partial else ""
+                    self._fail(ConnectionError(self._lost(f"the controller closed the connection{cut}")))
+                return False
+            self._frames.feed(data)
+            while (message := self._frames.pop()) is not None:
+                self._inbox.put((message, received))
+            return True
         except WireError as error:
-            self._inbox.put(error)
+            self._fail(error)
         except OSError as error:
             if not self._closing.is_set():
-                self._inbox.put(ConnectionError(self._lost(_reason(error))))
+                self._fail(ConnectionError(self._lost(_reason(error))))
+        return False
+
+    def _fail(self, error: BaseException) -> None:
+        self._inbox.put(error)
+        self._failure = error
 
     def _lost(self, cause: str) -> str:
         said = f"lost the connection to the controller at {self.address}: {cause}"

@@ -290,3 +290,28 @@ def test_the_controller_options_exclude_each_other_and_check_the_address(tmp_pat
     assert refused.returncode == 1 and len(lines) == 1 and "cannot connect to the controller" in lines[0]
     assert not list(tmp_path.iterdir())            # nothing reserved before the controller was reached
 
+
+
+def test_a_python_controller_served_over_the_wire_sorts_as_in_process():
+    """python -m vcyto.wire.serve: the built-in controller in a process of its own, its settings from the hello's
+    facts, decides as in process (200 events with coincidences)."""
+    stream = [*POISSON[:3], "200", *POISSON[4:]]
+    in_process = _run(stream)
+    served = _run(stream, wire.launch(shlex.join([sys.executable, "-m", "vcyto.wire.serve", "--once"]), timeout=60))
+    assert in_process["statistics"]["aborts"] > 0
+    assert _outcomes(served) == _outcomes(in_process)
+    assert served["controller_name"].startswith("built-in vcyto.wire.serve (wire, ")
+
+
+def test_bench_wire_reports_both_timing_modes_with_the_load(tmp_path):
+    result = vcyto("bench", "wire", "--duration", "0.05", "--realtime-duration", "0.05", "--repeats", "1", "--json",
+                   timeout=300)
+    assert result.returncode == 0, result.stderr
+    bench = json.loads(result.stdout)
+    lock, paced = bench["lockstep"], bench["realtime"]
+    assert lock["same_outcomes"] and lock["over_wire"][0]["latency_ms"]["count"] == lock["events"] > 20
+    assert lock["real_time_factor"] == lock["over_wire"][0]["real_time_factor"] > 0
+    assert paced["device_time_s"] > 0.03 and paced["events"] > 20 and paced["missed_decisions"] >= 0
+    assert paced["lag_ms"]["count"] > 0 and paced["met"] == (paced["missed_decisions"] == 0
+                                                             and paced["lag_ms"]["p99"] <= paced["lag_target_ms"])
+    assert len(bench["load_average"]["before"]) == 3

@@ -300,7 +300,7 @@ def test_a_python_controller_served_over_the_wire_sorts_as_in_process():
     served = _run(stream, wire.launch(shlex.join([sys.executable, "-m", "vcyto.wire.serve", "--once"]), timeout=60))
     assert in_process["statistics"]["aborts"] > 0
     assert _outcomes(served) == _outcomes(in_process)
-    assert served["controller_name"].startswith("built-in vcyto.wire.serve (wire, ")
+    assert served["controller_name"] == "built-in vcyto.wire.serve (wire, started by vcyto)"
 
 
 def test_bench_wire_reports_both_timing_modes_with_the_load(tmp_path):

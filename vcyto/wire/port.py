@@ -114,8 +114,7 @@ def launch(command: str, timeout: float = DEFAULT_TIMEOUT, timing: Timing = Timi
         _stop(process)
         shutil.rmtree(directory, ignore_errors=True)
         raise
-    return WirePort(sock, address, timeout, timing, process=process, directory=directory,
-                    label=f"{os.path.basename(argv[0])} started by vcyto")
+    return WirePort(sock, address, timeout, timing, process=process, directory=directory, label="started by vcyto")
 
 
 def _private_address(directory: str) -> str:

@@ -28,7 +28,10 @@ def served_command() -> str:
 
 def bench_wire(scenario: Scenario, rate: float = 1000.0, duration: float = 1.0, realtime_duration: float = 100.0,
                mix=(("RBC", 0.7), ("melanoma", 0.3)), min_spacing: float = 0.1e-3, repeats: int = 3, seed: int = 0,
-               timeout: float = 10.0, progress=lambda message: None) -> dict:
+               timeout: float = 10.0, client: str | None = None, progress=lambda message: None) -> dict:
+    """Lock-step runs of ``duration`` (in process, then over the wire, ``repeats`` times each) and one paced
+    real-time run of ``realtime_duration`` at 1x over the wire; ``client``: the controller's command (started
+    by ``vcyto.wire.launch``; default the built-in controller served by ``vcyto.wire.serve``)."""
     from sim.arrivals import Arrivals
 
     from .. import wire
@@ -41,7 +44,7 @@ def bench_wire(scenario: Scenario, rate: float = 1000.0, duration: float = 1.0, 
         return StreamSettings(arrivals, model="rom", seed=seed, max_time=2 * length + 20e-3)
 
     def run(length, timing=Timing(), over_wire=True):
-        port = wire.launch(served_command(), timeout, timing) if over_wire else None
+        port = wire.launch(client, timeout, timing) if over_wire else None
         try:
             result = run_stream(scenario, settings(length), plant=plant, controller=port, timing=timing)
         finally:
@@ -52,6 +55,7 @@ def bench_wire(scenario: Scenario, rate: float = 1000.0, duration: float = 1.0, 
                         "real_time_factor": result["simulated_time_ms"] * 1e-3 / loop,
                         "latency_ms": result["control"]["latency_ms"]}
 
+    client = client or served_command()
     progress("set-up: the rom plant")
     plant = make_plant(scenario, settings(duration))
     load_before = os.getloadavg()
@@ -74,7 +78,7 @@ def bench_wire(scenario: Scenario, rate: float = 1000.0, duration: float = 1.0, 
     factor_local = statistics.median(r["real_time_factor"] for r in in_process)
     return {
         "model": "rom", "rate_per_s": rate, "mix": [list(pair) for pair in mix], "min_spacing_ms": min_spacing * 1e3,
-        "seed": seed, "client": served_command(), "transport": "unix socket",
+        "seed": seed, "client": client, "client_name": result["controller_name"], "transport": "unix socket",
         "load_average": {"before": list(load_before), "after": list(os.getloadavg())}, "cpus": os.cpu_count(),
         "lockstep": {"duration_s": duration, "events": result_events(over_wire), "in_process": in_process,
                      "over_wire": over_wire, "real_time_factor": factor_wire,
@@ -103,7 +107,7 @@ def wire_lines(result: dict) -> list[str]:
         return "met" if flag else "NOT met"
     return [
         f"wire: rom, Poisson {result['rate_per_s']:g}/s, {', '.join(f'{n}:{w:g}' for n, w in result['mix'])}, "
-        f"--min-spacing {result['min_spacing_ms']:g} ms; client: the built-in controller in a local Python process "
+        f"--min-spacing {result['min_spacing_ms']:g} ms; client: {result['client_name']} in a local process "
         f"({result['transport']}); load average {load['before'][0]:.1f} before, {load['after'][0]:.1f} after "
         f"({result['cpus']} CPUs)",
         f"  lock-step, no recording: real-time factor {lock['real_time_factor']:.1f} over the wire (runs: "

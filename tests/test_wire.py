@@ -66,7 +66,8 @@ def test_a_frame_is_a_big_endian_length_and_one_json_object():
     (struct.pack(">I", 0), "empty frame"),
     (struct.pack(">I", 4) + b"\xff\xfe\x00\x01", "not UTF-8"),
     (struct.pack(">I", 5) + b"hello", "not JSON"),
-    (struct.pack(">I", 3) + b"NaN", "NaN is not JSON"),
+    (struct.pack(">I", 3) + b"NaN", "not JSON"),
+    (struct.pack(">I", 23) + b'{"type": "x", "a": NaN}', "not JSON"),
     (struct.pack(">I", 2) + b"[]", "a JSON object with a string \"type\""),
     (struct.pack(">I", 11) + b'{"type": 1}', "a JSON object with a string \"type\""),
 ])
@@ -81,8 +82,9 @@ def test_malformed_and_oversized_frames_are_refused_naming_the_cause(data, words
 def test_a_message_vcyto_would_send_beyond_the_limit_or_with_nan_is_refused():
     with pytest.raises(framing.WireError, match="longer than"):
         framing.encode({"type": "error", "message": "x" * (1 << 20)})
-    with pytest.raises(ValueError):
-        framing.encode({"type": "event", "time": math.nan})
+    from controller.events import DetectorEvent
+    with pytest.raises(framing.WireError, match="not a finite number"):
+        messages.event(DetectorEvent(3, 1e-3, 1.0, 100.0, math.nan, "II", 3), 1.2e-3, 1e-3)
 
 
 def test_the_hello_carries_the_protocol_version_capabilities_and_facts_in_si():

@@ -8,8 +8,9 @@ constants NaN and Infinity (``WireError``, one line naming the cause). docs/wire
 
 from __future__ import annotations
 
-import json
 import struct
+
+import orjson
 
 from controller.protocol import ControllerError
 
@@ -22,25 +23,23 @@ class WireError(ControllerError):
 
 
 def encode(message: dict) -> bytes:
-    """The frame of ``message`` (compact JSON; a non-finite number is refused, as the protocol forbids it)."""
-    body = json.dumps(message, separators=(",", ":"), allow_nan=False, ensure_ascii=False).encode()
+    """The frame of ``message`` (compact JSON; the messages of ``messages`` hold finite numbers only)."""
+    body = orjson.dumps(message)
     if len(body) > MAX_MESSAGE:
         raise WireError(f"a {message.get('type')} message of {len(body)} bytes is longer than the protocol's "
                         f"{MAX_MESSAGE} bytes")
     return HEADER.pack(len(body)) + body
 
 
-def _no_constant(name: str):
-    raise ValueError(f"{name} is not JSON")
-
-
 def decode(body: bytes) -> dict:
     """The message in one frame's bytes (``WireError`` if they are not a JSON object with a string ``type``)."""
     try:
-        message = json.loads(body.decode("utf-8"), parse_constant=_no_constant)
+        text = body.decode("utf-8")
     except UnicodeDecodeError:
         raise WireError(f"malformed message: its {len(body)} bytes are not UTF-8 ({_preview(body)})") from None
-    except (ValueError, RecursionError) as error:
+    try:
+        message = orjson.loads(text)          # strict RFC 8259: NaN and Infinity are refused
+    except orjson.JSONDecodeError as error:
         raise WireError(f"malformed message: not JSON ({' '.join(str(error).split())}: {_preview(body)})") from None
     if not isinstance(message, dict) or not isinstance(message.get("type"), str):
         raise WireError(f"malformed message: a JSON object with a string \"type\" is required ({_preview(body)})")

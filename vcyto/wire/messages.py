@@ -29,6 +29,10 @@ def hello(facts: DeviceFacts, timing) -> dict:
 
 
 def event(event: DetectorEvent, deadline: float, clock: float) -> dict:
+    numbers = (event.time, event.fluorescence, event.scatter, event.velocity, deadline, clock)
+    if not all(map(math.isfinite, numbers)):
+        raise WireError(f"event {event.event_id} has a value that is not a finite number ({numbers}): the "
+                        "protocol carries finite numbers only")
     return {"type": "event", "event_id": event.event_id, "time": event.time, "fluorescence": event.fluorescence,
             "scatter": event.scatter, "velocity": event.velocity, "classification": event.classification,
             "key": event.key, "deadline": deadline, "clock": clock}

@@ -317,3 +317,15 @@ def test_bench_wire_reports_both_timing_modes_with_the_load(tmp_path):
     assert paced["lag_ms"]["count"] > 0 and paced["met"] == (paced["missed_decisions"] == 0
                                                              and paced["lag_ms"]["p99"] <= paced["lag_target_ms"])
     assert len(bench["load_average"]["before"]) == 3
+
+
+def test_closing_is_bounded_even_for_a_controller_that_ignores_end_and_sigterm():
+    """No bye, SIGTERM ignored: close() waits 2 s for the bye, 2 s for the exit, 2 s after SIGTERM, then kills."""
+    port = wire.launch(python_server("stubborn"), timeout=30)
+    port.start(FACTS)
+    process = port._process
+    started = time.monotonic()
+    port.close()
+    assert time.monotonic() - started < 15
+    assert process.returncode == -9                 # SIGKILL: it is gone
+    port.close()                                    # twice: nothing more to do

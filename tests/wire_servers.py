@@ -7,7 +7,8 @@ Each listens where vcyto says (VCYTO_CONTROLLER_ADDRESS), serves one run with th
 - garbage: answers its third event with bytes that are not JSON;
 - oversized: announces a 2 MiB frame in answer to its third event;
 - version: welcomes with version 2 of the protocol;
-- silent: welcomes, then never answers.
+- silent: welcomes, then never answers;
+- stubborn: welcomes, never answers, never says bye, and ignores SIGTERM.
 """
 
 import importlib.util
@@ -53,7 +54,7 @@ def serve(mode: str, sock: socket.socket) -> None:
             count += 1
             answer = frame({"type": "decisions", "event_id": message["event_id"],
                             "decisions": controller.on_event(message)})
-            if mode == "silent":
+            if mode in ("silent", "stubborn"):
                 continue
             if mode == "die" and count == 5:
                 os.kill(os.getpid(), signal.SIGKILL)
@@ -65,17 +66,21 @@ def serve(mode: str, sock: socket.socket) -> None:
                 threading.Timer(LATE_BY, send, (answer,)).start()
             else:
                 send(answer)
-        elif kind == "end":
+        elif kind == "end" and mode != "stubborn":
             send(frame({"type": "bye"}))
             return
 
 
 def main():
     mode = sys.argv[1]
+    if mode == "stubborn":
+        signal.signal(signal.SIGTERM, signal.SIG_IGN)
     server = purity_server.listen(os.environ["VCYTO_CONTROLLER_ADDRESS"])
     connection, _ = server.accept()
     with connection:
         serve(mode, connection)
+    while mode == "stubborn":
+        signal.pause()
 
 
 if __name__ == "__main__":

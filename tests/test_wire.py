@@ -282,6 +282,7 @@ def test_the_controller_options_exclude_each_other_and_check_the_address(tmp_pat
          "--controller-connect: --controller-exec names the controller too"),
         (["--controller-connect", "localhost:7070"], "--controller-connect: a controller address is tcp:HOST:PORT"),
         (["--controller-exec", "'unclosed"], "--controller-exec: the controller command"),
+        (["--controller-timeout", "3"], "--controller-timeout: applies to a controller in another process"),
     ]:
         result = vcyto("stream", "--model", "rom", "--cells", "RBC", "--output", "", "--no-viewer", *argv)
         lines = result.stderr.strip().splitlines()

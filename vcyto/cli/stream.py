@@ -71,7 +71,7 @@ def _timing_options(parser: argparse.ArgumentParser):
                       help="start the controller CMD (split as a shell would; {address} in it, and the environment "
                            "variable VCYTO_CONTROLLER_ADDRESS, say where to listen), connect, stop it at the end")
     wire.add_argument("--controller-timeout", type=Quantity("time", "s", low=0, low_open=True, high=3600),
-                      default="10", metavar="TIME",
+                      metavar="TIME",
                       help="how long to wait for the connection, the handshake and each lock-step answer "
                            "(default 10 s); a controller that takes longer stops the run with an error")
 
@@ -93,6 +93,9 @@ def _controller(args, settings, timing):
         raise UsageError(f"{named[0]}: {named[1]} names the controller too: give one of them")
     if named and named[0] in ("--controller-connect", "--controller-exec"):
         return _wire_port(args, named[0], timing)
+    if args.controller_timeout is not None:
+        raise UsageError("--controller-timeout: applies to a controller in another process: add "
+                         "--controller-connect ADDRESS or --controller-exec CMD, or drop it")
     if settings.controller_from is None:
         return None
     try:
@@ -105,12 +108,12 @@ def _wire_port(args, option: str, timing):
     """The port to a controller in another process (``vcyto.wire``): connected, or its process started; a bad
     address or command is a usage error, a controller that cannot be reached one line and exit 1."""
     from .. import wire
-    connect = option == "--controller-connect"
+    timeout = wire.DEFAULT_TIMEOUT if args.controller_timeout is None else args.controller_timeout
     try:
-        if connect:
+        if option == "--controller-connect":
             wire.parse_address(args.controller_connect)
-            return wire.connect(args.controller_connect, args.controller_timeout, timing)
-        return wire.launch(args.controller_exec, args.controller_timeout, timing)
+            return wire.connect(args.controller_connect, timeout, timing)
+        return wire.launch(args.controller_exec, timeout, timing)
     except (ControllerError, ConnectionError) as error:
         print(f"vcyto: error: {option}: {' '.join(str(error).split())}", file=sys.stderr)
         raise RunStopped(EXIT_NUMERICAL) from None

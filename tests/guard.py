@@ -25,6 +25,7 @@ HEAVY = {
     "vcyto.bench.controller": ["bench_controller"],
     "vcyto.bench.sweep": ["bench_sweep"],
     "vcyto.bench.realtime": ["bench_realtime"],
+    "vcyto.bench.wire": ["bench_wire"],
     "vcyto.bench.recording": ["bench_recording"],
     "vcyto.bench.auto": ["bench_auto"],
     "vcyto.bench.membrane": ["bench_membrane"],

@@ -34,7 +34,8 @@ values = st.one_of(quantities, st.lists(quantities, min_size=0, max_size=4).map(
 STREAM_OPTIONS = ["--rate", "--min-spacing", "--max-time", "--delay", "--lead", "--pulse", "--envelope", "--gate",
                   "--timing-error", "--mode", "--controller",
                   "--noise", "--count", "--seed", "--detection-window", "--mix", "--cells", "--dt", "--mesh-h",
-                  "--flush-every", "--field-every", "--window-h", "--name", "--arrivals", "--model"]
+                  "--flush-every", "--field-every", "--window-h", "--name", "--arrivals", "--model",
+                  "--controller-timeout", "--realtime"]
 SET_FIELDS = ["fluid.viscosity", "fluid.density", "numerics.dt", "numerics.mesh_h", "channel.length",
               "channel.height", "saw.frequency", "saw.amplitude", "channel.inlets.1.v_hat", "channel.inlets.0.tilt",
               "channel.inlets.0.span", "cell_types.0.semi_axes", "numerics.spacing_band", "numerics.max_stretch",
@@ -46,6 +47,8 @@ OTHER_COMMANDS = {
     ("extremes",): ["--case"],
     ("flow",): ["--mesh-h", "--dt"],
     ("bench", "realtime"): ["--rate", "--duration", "--control-period", "--repeats", "--seed", "--mix"],
+    ("bench", "wire"): ["--rate", "--duration", "--realtime-duration", "--min-spacing", "--repeats", "--seed",
+                        "--mix"],
     ("bench", "auto"): ["--count", "--rate", "--mix", "--seed"],
     ("bench", "controller"): ["--events"],
     ("bench", "fluid"): ["--repeats"],

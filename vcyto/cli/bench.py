@@ -129,24 +129,45 @@ def _sort_parser(targets):
     sort_bench.set_defaults(handler=command_bench)
 
 
+def _poisson_stream_options(parser, mix: str, duration_help: str):
+    """The options of a benchmark that runs the rom loop on a Poisson stream: rate, duration, mix, repeats, seed."""
+    parser.add_argument("--rate", type=Quantity("frequency", "Hz", low=0, low_open=True), default="1000",
+                        help="arrival rate in cells/s (default 1000; e.g. 1kHz)")
+    parser.add_argument("--duration", type=Quantity("time", "s", low=0, low_open=True), default="1s", metavar="TIME",
+                        help=duration_help)
+    parser.add_argument("--mix", default=mix, help=f"type mix (default {mix})")
+    parser.add_argument("--repeats", type=Integer(low=1, high=1000), default="3",
+                        help="runs of the same stream (default 3; the median is reported)")
+    parser.add_argument("--seed", type=Integer(low=0, high=2**63 - 1), default="0", help="random seed (default 0)")
+
+
 def _realtime_parser(targets):
     realtime_bench = targets.add_parser("realtime", help="real-time factor of the closed loop with the rom plant: "
                                                          "a Poisson stream, detector and controller, no recording")
     scenario_options(realtime_bench)
-    realtime_bench.add_argument("--rate", type=Quantity("frequency", "Hz", low=0, low_open=True), default="1000",
-                                help="arrival rate in cells/s (default 1000; e.g. 1kHz)")
-    realtime_bench.add_argument("--duration", type=Quantity("time", "s", low=0, low_open=True), default="1s",
-                                metavar="TIME",
-                                help="device time of arrivals (s); count = rate x duration (default 1s)")
-    realtime_bench.add_argument("--mix", default="RBC:0.9,melanoma:0.1", help="type mix (default RBC:0.9,melanoma:0.1)")
-    realtime_bench.add_argument("--repeats", type=Integer(low=1, high=1000), default="3",
-                                help="runs of the same stream (default 3)")
+    _poisson_stream_options(realtime_bench, "RBC:0.9,melanoma:0.1",
+                            "device time of arrivals (s); count = rate x duration (default 1s)")
     realtime_bench.add_argument("--control-period", type=Quantity("time", "s", low=0, low_open=True, high=1.0),
                                 metavar="TIME", help="control period (s; default: the plant's, 20us)")
-    realtime_bench.add_argument("--seed", type=Integer(low=0, high=2**63 - 1), default="0",
-                                help="random seed (default 0)")
     output_options(realtime_bench)
     realtime_bench.set_defaults(handler=command_bench)
+
+
+def _wire_parser(targets):
+    wire_bench = targets.add_parser("wire", help="the loop with its controller in another process (rom): lock-step "
+                                                 "real-time factor, and missed decisions and lag in paced real time")
+    scenario_options(wire_bench)
+    _poisson_stream_options(wire_bench, "RBC:0.7,melanoma:0.3", "device time of each lock-step run (default 1 s)")
+    wire_bench.add_argument("--realtime-duration", type=Quantity("time", "s", low=0, low_open=True, high=3600),
+                            default="100s", metavar="TIME",
+                            help="device time of the paced real-time run at 1x (default 100 s: as long in wall time)")
+    wire_bench.add_argument("--min-spacing", type=Quantity("time", "ms", low=0), default="0.1", metavar="TIME",
+                            help="dead time of the inlet (ms; default 0.1: coincidences and aborts occur)")
+    wire_bench.add_argument("--client", metavar="CMD",
+                            help="the controller to time, started as by vcyto stream --controller-exec (default: "
+                                 "the built-in controller served by python -m vcyto.wire.serve --once)")
+    output_options(wire_bench)
+    wire_bench.set_defaults(handler=command_bench)
 
 
 def _controller_parser(targets):
@@ -265,6 +286,17 @@ def _realtime(args, scenario, progress):
     return result, realtime.realtime_lines(result)
 
 
+def _wire(args, scenario, progress):
+    from ..bench import wire
+    mix = parse_mix(args.mix)
+    check_cells_fit(scenario, [name for name, _ in mix])
+    limits.check_cells(math.ceil(args.rate * max(args.duration, args.realtime_duration)),
+                       "--rate x --duration/--realtime-duration")
+    result = wire.bench_wire(scenario, args.rate, args.duration, args.realtime_duration, mix, args.min_spacing,
+                             args.repeats, args.seed, client=args.client, progress=progress)
+    return result, wire.wire_lines(result)
+
+
 def _controller(args, scenario, progress):
     from ..bench import controller
     result = controller.bench_controller(args.events)
@@ -292,6 +324,7 @@ TARGETS = {
     "process": Target(_process_parser, _process, scenario=False),
     "sort": Target(_sort_parser, _sort),
     "realtime": Target(_realtime_parser, _realtime),
+    "wire": Target(_wire_parser, _wire),
     "controller": Target(_controller_parser, _controller, scenario=False),
 }
 

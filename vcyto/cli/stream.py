@@ -6,8 +6,10 @@ from __future__ import annotations
 import argparse
 import sys
 
+from controller.protocol import ControllerError
+
 from .. import outputs
-from ..arguments import Integer, Number
+from ..arguments import Integer, Number, Quantity
 from ..options import (
     late_pulse_note,
     scenario_from,
@@ -61,6 +63,17 @@ def _timing_options(parser: argparse.ArgumentParser):
                        help="paced real time: device time follows the wall clock (FACTOR device seconds per wall "
                             "second, default 1); an answer later than its event's deadline is a missed decision. "
                             "Default: lock-step (the loop waits for every answer; results depend on the seed only)")
+    wire = parser.add_argument_group("a controller in another process (docs/wire-protocol.md)")
+    wire.add_argument("--controller-connect", metavar="ADDRESS",
+                      help="the controller listening at ADDRESS: tcp:HOST:PORT (e.g. tcp:127.0.0.1:7070) or "
+                           "unix:PATH, spoken to over the wire protocol")
+    wire.add_argument("--controller-exec", metavar="CMD",
+                      help="start the controller CMD (split as a shell would; {address} in it, and the environment "
+                           "variable VCYTO_CONTROLLER_ADDRESS, say where to listen), connect, stop it at the end")
+    wire.add_argument("--controller-timeout", type=Quantity("time", "s", low=0, low_open=True, high=3600),
+                      metavar="TIME",
+                      help="how long to wait for the connection, the handshake and each lock-step answer "
+                           "(default 10 s); a controller that takes longer stops the run with an error")
 
 
 def _timing(args):
@@ -68,15 +81,44 @@ def _timing(args):
     return Timing(realtime=True, factor=args.realtime) if args.realtime is not None else Timing()
 
 
-def _controller(args, settings):
-    """The run's controller, built before the run so that a broken one is a usage error (None: the built-in)."""
+def _controller(args, settings, timing):
+    """The run's controller, built before the run so that a broken one is a usage error (None: the built-in);
+    a controller in another process is connected to (or started) here: the caller closes its port."""
     from .. import plugins, stream
+    named = [option for option, given in (("--controller-connect", args.controller_connect),
+                                          ("--controller-exec", args.controller_exec),
+                                          ("--controller-from", settings.controller_from),
+                                          ("--no-controller", args.no_controller)) if given is not None and given]
+    if len(named) > 1:
+        raise UsageError(f"{named[0]}: {named[1]} names the controller too: give one of them")
+    if named and named[0] in ("--controller-connect", "--controller-exec"):
+        return _wire_port(args, named[0], timing)
+    if args.controller_timeout is not None:
+        raise UsageError("--controller-timeout: applies to a controller in another process: add "
+                         "--controller-connect ADDRESS or --controller-exec CMD, or drop it")
     if settings.controller_from is None:
         return None
     try:
         return stream.settings_controller(settings)
     except plugins.PluginError as error:
         raise UsageError(f"--controller-from: {error}") from None
+
+
+def _wire_port(args, option: str, timing):
+    """The port to a controller in another process (``vcyto.wire``): connected, or its process started; a bad
+    address or command is a usage error, a controller that cannot be reached one line and exit 1."""
+    from .. import wire
+    timeout = wire.DEFAULT_TIMEOUT if args.controller_timeout is None else args.controller_timeout
+    try:
+        if option == "--controller-connect":
+            wire.parse_address(args.controller_connect)
+            return wire.connect(args.controller_connect, timeout, timing)
+        return wire.launch(args.controller_exec, timeout, timing)
+    except (ControllerError, ConnectionError) as error:
+        print(f"vcyto: error: {option}: {' '.join(str(error).split())}", file=sys.stderr)
+        raise RunStopped(EXIT_NUMERICAL) from None
+    except ValueError as error:
+        raise UsageError(f"{option}: {error}") from None
 
 
 def _plant(settings, scenario):
@@ -107,7 +149,6 @@ def _viewer_options(parser: argparse.ArgumentParser, live: bool = True):
 
 
 def command_stream(args):
-    from .. import runfiles
     scenario = scenario_from(args)
     settings = stream_settings(args, scenario)
     output = output_directory(args.output)
@@ -120,7 +161,19 @@ def command_stream(args):
             raise UsageError(str(error)) from None
     if note := late_pulse_note(settings.controller):
         print(f"vcyto: note: {note}", file=sys.stderr)
-    controller, plant, timing = _controller(args, settings), _plant(settings, scenario), _timing(args)
+    timing = _timing(args)
+    controller = _controller(args, settings, timing)
+    try:
+        plant = _plant(settings, scenario)
+        return _stream_with(args, scenario, settings, output, dict(controller=controller, plant=plant, timing=timing))
+    finally:                         # a controller in another process: said goodbye to (and stopped), whatever happens
+        if controller is not None and callable(getattr(controller, "replies", None)):
+            controller.close()
+
+
+def _stream_with(args, scenario, settings, output, loop: dict):
+    """The run with its files, once the controller, plant and timing (``loop``) are built."""
+    from .. import runfiles
     signals_seen.clear()
     view = runfiles.choose_view(args, output is not None, spawn_by_default=True, error=UsageError)
     files = None
@@ -133,8 +186,7 @@ def command_stream(args):
             except outputs.NameTaken as error:
                 raise UsageError(str(error)) from None
         background = _open_sinks(args, scenario, settings, view, files)
-    result, stopped = _run_with_sinks(args, scenario, settings, view, files, background, setting_up.pending,
-                                      dict(controller=controller, plant=plant, timing=timing))
+    result, stopped = _run_with_sinks(args, scenario, settings, view, files, background, setting_up.pending, loop)
     _report_stream(args, result, stopped, view, files, settings, scenario)
     return _partial_status(args, result)
 
@@ -177,6 +229,14 @@ def _run_with_sinks(args, scenario, settings, view, files, background, interrupt
                                                runfiles.stopped_summary(settings, "interrupted while setting up"))
                 result = stopped.result
                 stream.announce_end([background] if background else [], result)   # the recording says so too
+            except (ControllerError, ConnectionError) as error:   # the controller's start (the wire's handshake)
+                if isinstance(error, BrokenPipeError):
+                    raise
+                reason = f"controller: {' '.join(str(error).split())}"
+                stopped = stream.StreamStopped("failed", reason, {**runfiles.stopped_summary(settings, reason),
+                                                                  "status": "failed"})
+                result = stopped.result
+                stream.announce_end([background] if background else [], result)
         failed = False
     finally:                                               # the sinks are closed once, whatever happened
         view.notes += _close_run(progress, background, files, failed)

@@ -341,7 +341,8 @@ def _peak_rss_mb() -> float | None:
 
 
 def _sightings(observation) -> list[Sighting]:
-    return [Sighting(c.key, c.x, c.y, c.area, c.brightness) for c in observation.cells]
+    """What the detector sees of an observation's cells (a plant's own views are kept: they are frozen)."""
+    return [c if type(c) is Sighting else Sighting(c.key, c.x, c.y, c.area, c.brightness) for c in observation.cells]
 
 
 def _field_payload(plant):

@@ -48,6 +48,7 @@ OTHER_COMMANDS = {
     ("bench", "realtime"): ["--rate", "--duration", "--control-period", "--repeats", "--seed", "--mix"],
     ("bench", "auto"): ["--count", "--rate", "--mix", "--seed"],
     ("bench", "controller"): ["--events"],
+    ("bench", "gym"): ["--count", "--rate", "--min-spacing", "--repeats", "--seed"],
     ("bench", "fluid"): ["--repeats"],
     ("bench", "treatments"): ["--steps"],
     ("bench", "sweep"): ["--workers", "--repeats"],

@@ -162,17 +162,18 @@ class SortEnv(gymnasium.Env):
         self._facts = loop.control.facts
         self._recent: deque = deque(maxlen=RECENT)      # (event id, class, predicted arrival) of earlier events
         self._sorts: dict = {}                          # event id -> (arrival, pulse on, pulse off) of standing sorts
-        self._batch, self._next = [], 0
+        self._batch, self._next, self._ended = [], 0, False
         self._sorted_targets = self._contaminants = 0
         sample = loop.sample
         self._targets_offered = sum(self._target[name] for _, name in sample.admitted + sample.rejected)
         self._alive = self._to_next_event()
         self._collect()                                 # cells that left before the first decision
-        return self._observe(), {"seed": self.episode_settings.seed}
+        return self._observe(), {"seed": self.episode_settings.seed, "targets_offered": self._targets_offered}
 
     def step(self, action):
-        if self.loop is None:
-            raise RuntimeError("call reset() before step()")
+        if self.loop is None or self._ended:
+            raise RuntimeError("call reset() before step(): " + ("the episode has ended" if self.loop else
+                                                                 "no episode yet"))
         if action not in self._actions:
             raise ValueError(f"action must be one of {list(self._actions)} (got {action!r})")
         action = int(action)
@@ -184,6 +185,12 @@ class SortEnv(gymnasium.Env):
         if self._alive:
             return self._observe(), reward, False, False, {}
         return self._end(reward)
+
+    @property
+    def event(self):
+        """The detector event awaiting its decision (``controller.events.DetectorEvent``; None once the episode
+        has ended): what the observation describes, for a policy that wants more than the observation."""
+        return self._batch[self._next] if self.loop is not None and self._alive else None
 
     def summary(self) -> dict:
         """The episode's sort report as ``vcyto stream`` writes it (``vcyto.stream.Loop.summary``)."""
@@ -249,6 +256,7 @@ class SortEnv(gymnasium.Env):
         info = {"purity": purity, "yield": yield_, "f1": f1, "sorted_targets": self._sorted_targets,
                 "contaminants": self._contaminants, "targets_offered": self._targets_offered,
                 "events": len(self.loop.events), "seed": self.episode_settings.seed}
+        self._ended = True
         return np.zeros(self.observation_space.shape, dtype=np.float32), reward, self.plant.done, \
             not self.plant.done, info
 

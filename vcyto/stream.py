@@ -217,13 +217,15 @@ class Loop:
             window_start, window_end = self.settings.detector.window
             periods, seen = plant.step_until(self.actuation, until, stop_lines=(window_end,),
                                              record_lines=(window_start,))
-            self.idt_time += self.actuation * (self.now - started)
+            now = self.now
+            self.idt_time += self.actuation * (now - started)
         else:
             self.observation, periods = plant.step(self.actuation), 1
             seen = [self.observation]
             self.idt_time += self.actuation * plant.control_period
+            now = self.now
         self.steps += periods
-        control.pace(self.now)
+        control.pace(now)
         new_events = [event for view in seen for event in self.detector.observe(view.time, _sightings(view))]
         for event in new_events:
             self.events[event.key] = event
@@ -231,14 +233,13 @@ class Loop:
 
     def conclude(self, new_events):
         """After the controller was told of ``new_events``: late answers settled, the drive set, the sinks shown."""
-        control = self.control
-        control.settle(self.now)
-        self.actuation = control.actuation(self.clock)
+        control, now = self.control, self.now
+        control.settle(now)
+        self.actuation = control.actuation(self.plant.clock if self.single else now)
         self.pending.extend(new_events)
         # an event-driven plant shows its state every record_interval (events and decisions wait for it)
-        due = (not self.grouped or self.single or self.now >= self.shown + self.settings.record_interval - 1e-12
-               or self.plant.done)
-        if due and self.sinks:
+        if self.sinks and (not self.grouped or self.single or now >= self.shown + self.settings.record_interval - 1e-12
+                           or self.plant.done):
             self._show()
 
     def _show(self):

@@ -13,9 +13,10 @@ aborts matter. The policy is a rule of five numbers, numpy only:
 The built-in controller's purity mode is this rule with the detector's gate (0.5) and its calibrated envelope
 widened by the timing error (sort window [-0.253, 0.246] ms, abort window [-0.246, 0.253] ms). The search starts
 from the detector's gate and wide windows ([-0.5, 0.5] ms) and maximises the shaped reward (+1 a target sorted,
--30 a non-target sorted) on training episodes of ``rom``; the figures are counted on held-out episodes, the
-built-in controller running the same samples (the same stream seeds) through ``vcyto.run_stream``. The learned
-rule is then run on ``auto`` (``rom`` with FE-IB windows around close cells), beside the built-in controller.
+-30 a non-target sorted or caught on the divider) on training episodes of ``rom``; the figures are counted on
+held-out episodes, the built-in controller running the same samples (the same stream seeds) through
+``vcyto.run_stream``. The learned rule is then run on ``auto`` (``rom`` with FE-IB windows around close cells),
+beside the built-in controller.
 
     python examples/rl_policy.py            # the figures of docs/gymnasium.md (~10 min on a quiet machine)
     python examples/rl_policy.py --quick    # a short search, rom only (the test; ~1 min)
@@ -43,7 +44,7 @@ BUILT_IN = (0.5, -0.2532, 0.2457, -0.2457, 0.2532)    # the built-in purity mode
 START = (0.5, -0.5, 0.5, -0.5, 0.5)                 # where the search starts: the detector's gate, wide windows
 SPREAD = (0.2, 0.2, 0.2, 0.2, 0.2)
 RATE = 1000.0 / (1 - 1000.0 * 0.1e-3)             # offered: 1,000 admitted events/s through the 0.1 ms dead time
-CONTAMINANT_COST = 30.0                           # the shaped reward: a non-target sorted costs 30 targets
+CONTAMINANT_COST = 30.0       # the shaped reward: a non-target sorted (or caught on the divider) costs 30 targets
 
 
 def window_policy(theta):
@@ -97,23 +98,24 @@ def tally(env, act, seeds) -> dict:
     """Purity, yield and F1 of ``act`` over the episodes ``seeds``, counted over all of them together; with
     ``act`` None, the built-in controller on the same samples (``run_stream``). A run the plant cannot finish (a
     numerical failure of an FE-IB window, which the plant names) is reported as failed, with its reason."""
-    sorted_targets = contaminants = offered = events = 0
+    total = np.zeros(5, dtype=int)
     for seed in seeds:
         try:
-            counts = built_in_counts(env, seed) if act is None else policy_counts(env, act, seed)
+            total += built_in_counts(env, seed) if act is None else policy_counts(env, act, seed)
         except (StreamStopped, NumericalBlowUp, SolverError) as failure:
             return {"status": "failed", "reason": str(failure), "seed": seed}
-        sorted_targets, contaminants = sorted_targets + counts[0], contaminants + counts[1]
-        offered, events = offered + counts[2], events + counts[3]
+    sorted_targets, contaminants, misrouted, offered, events = (int(n) for n in total)
     purity, yield_, f1 = rl.sorting_figures(sorted_targets, contaminants, offered)
     return {"status": "complete", "events": events, "sorted_targets": sorted_targets, "contaminants": contaminants,
-            "targets_offered": offered, "purity": purity, "yield": yield_, "f1": f1}
+            "misrouted": misrouted, "targets_offered": offered, "purity": purity, "yield": yield_, "f1": f1}
 
 
 def policy_counts(env, act, seed: int) -> tuple:
-    """(targets sorted, non-targets sorted, targets offered, events) of an episode of ``act``."""
+    """(targets sorted, non-targets sorted, non-targets that left by neither outlet, targets offered, events) of
+    an episode of ``act``."""
     _, info = episode(env, act, seed)
-    return info["sorted_targets"], info["contaminants"], info["targets_offered"], info["events"]
+    return (info["sorted_targets"], info["contaminants"], info["misrouted"], info["targets_offered"],
+            info["events"])
 
 
 def built_in_counts(env, seed: int) -> tuple:
@@ -123,7 +125,9 @@ def built_in_counts(env, seed: int) -> tuple:
     result = run_stream(core.scenario, core.episode_settings, plant=core.plant)
     upper = [cell for cell in result["cells"] if cell["outlet"] == "upper"]
     right = sum(cell["true_class"] == "II" for cell in upper)
-    return right, len(upper) - right, info["targets_offered"], result["statistics"]["events"]
+    misrouted = sum(cell["true_class"] == "I" and cell["outlet"] not in ("upper", "lower", "not_injected")
+                    for cell in result["cells"])
+    return right, len(upper) - right, misrouted, info["targets_offered"], result["statistics"]["events"]
 
 
 def make(model: str, count: int, scenario=None):
@@ -161,15 +165,15 @@ def main(argv=None) -> dict:
         for name, rule in (("learned", theta), ("built-in", BUILT_IN)):
             print("{:<8} rule: gate {:.3f}, sort window [{:+.4f}, {:+.4f}] ms, abort window [{:+.4f}, {:+.4f}] ms"
                   .format(name, *rule))
-        print(f"{'model':<6} {'policy':<12} {'events':>7} {'sorted':>7} {'wrong':>6} {'purity':>8} {'yield':>8} "
-              f"{'F1':>6}")
+        print(f"{'model':<6} {'policy':<12} {'events':>7} {'sorted':>7} {'wrong':>6} {'wall':>5} {'purity':>8} "
+              f"{'yield':>8} {'F1':>6}")
         for row in result["rows"]:
             if row["status"] != "complete":
                 print(f"{row['model']:<6} {row['policy']:<12} failed: {row['reason']}")
                 continue
             print(f"{row['model']:<6} {row['policy']:<12} {row['events']:>7} {row['sorted_targets']:>7} "
-                  f"{row['contaminants']:>6} {100 * row['purity']:>7.2f}% {100 * row['yield']:>7.2f}% "
-                  f"{row['f1']:>6.3f}")
+                  f"{row['contaminants']:>6} {row['misrouted']:>5} {100 * row['purity']:>7.2f}% "
+                  f"{100 * row['yield']:>7.2f}% {row['f1']:>6.3f}")
     return result
 
 

@@ -108,7 +108,7 @@ def test_the_rewards_follow_the_sort_reports_counts(paper_scenario, rom_plant, r
     assert info["contaminants"] > 0 and info["sorted_targets"] > 0       # a stream dense enough to co-deflect
     purity, yield_ = info["purity"], info["yield"]
     if reward == "shaped":
-        assert sum(rewards) == info["sorted_targets"] - 3.0 * info["contaminants"]
+        assert sum(rewards) == info["sorted_targets"] - 3.0 * (info["contaminants"] + info["misrouted"])
         assert sum(r != 0 for r in rewards) > 10                          # paid as the cells leave
     else:
         assert all(r == 0 for r in rewards[:-1])

@@ -20,7 +20,8 @@ Observation (``SortEnv.observation_names``), what a controller could know at the
 Action: 0 pass, 1 sort (the calibrated pulse: from the predicted arrival minus the lead, ``DeviceFacts``),
 2 pass and abort the abortable pending sort nearest in arrival (``aborts=False``: 0 and 1 only).
 Rewards (``REWARDS``): ``shaped`` (each cell as it leaves: +1 a target by the upper outlet, minus
-``contaminant_cost`` a non-target there), ``f1`` (at the end: the F1 score of purity and yield), ``purity_floor``
+``contaminant_cost`` a non-target anywhere but the lower outlet: the upper one, or caught on the divider between
+them, ``wall``, where no outlet is certain), ``f1`` (at the end: the F1 score of purity and yield), ``purity_floor``
 (at the end: the yield, minus ``floor_weight`` times the purity's shortfall below ``purity_floor``).
 Purity and yield are counted as in the sort report (``vcyto.sortreport``): purity over the cells that left by
 the upper outlet, yield over the targets offered (those the inlet turned away included).
@@ -45,7 +46,7 @@ from sim.arrivals import Arrivals
 from sim.scenario import Scenario
 
 from .control import Reply
-from .outcomes import SORTED_OUTLET
+from .outcomes import DEFAULT_OUTLET, SORTED_OUTLET
 from .stream import Loop, StreamSettings, make_plant
 
 ENV_ID = "vcyto/Sort-v0"
@@ -163,7 +164,7 @@ class SortEnv(gymnasium.Env):
         self._recent: deque = deque(maxlen=RECENT)      # (event id, class, predicted arrival) of earlier events
         self._sorts: dict = {}                          # event id -> (arrival, pulse on, pulse off) of standing sorts
         self._batch, self._next, self._ended = [], 0, False
-        self._sorted_targets = self._contaminants = 0
+        self._sorted_targets = self._contaminants = self._misrouted = 0
         sample = loop.sample
         self._targets_offered = sum(self._target[name] for _, name in sample.admitted + sample.rejected)
         self._alive = self._to_next_event()
@@ -233,18 +234,25 @@ class SortEnv(gymnasium.Env):
         self._recent.appendleft((event.event_id, float(event.classification == TYPE_II), arrival))
 
     def _collect(self) -> float:
-        """The shaped reward of the cells that left since the last call (and their count for the figures)."""
+        """The shaped reward of the cells that left since the last call (and their count for the figures): a
+        non-target that leaves by neither outlet (``wall``: caught on the divider; ``lost``) costs as much as one
+        sorted, ``misrouted``; purity and yield count the outlets only, as the sort report does."""
         if self.reward_kind != "shaped" and self._alive:
             return 0.0
         reward = 0.0
         for cell in self.loop.truth_update().cells:
-            if cell.fate == SORTED_OUTLET:
-                if self._target[cell.type]:
+            if cell.fate == "in_channel" or cell.fate == DEFAULT_OUTLET:
+                continue
+            if self._target[cell.type]:
+                if cell.fate == SORTED_OUTLET:
                     self._sorted_targets += 1
                     reward += 1.0
-                else:
-                    self._contaminants += 1
-                    reward -= self.contaminant_cost
+                continue
+            if cell.fate == SORTED_OUTLET:
+                self._contaminants += 1
+            else:
+                self._misrouted += 1
+            reward -= self.contaminant_cost
         return reward if self.reward_kind == "shaped" else 0.0
 
     def _end(self, reward: float):
@@ -254,7 +262,8 @@ class SortEnv(gymnasium.Env):
         elif self.reward_kind == "purity_floor":
             reward = yield_ - self.floor_weight * max(0.0, self.purity_floor - purity)
         info = {"purity": purity, "yield": yield_, "f1": f1, "sorted_targets": self._sorted_targets,
-                "contaminants": self._contaminants, "targets_offered": self._targets_offered,
+                "contaminants": self._contaminants, "misrouted": self._misrouted,
+                "targets_offered": self._targets_offered,
                 "events": len(self.loop.events), "seed": self.episode_settings.seed}
         self._ended = True
         return np.zeros(self.observation_space.shape, dtype=np.float32), reward, self.plant.done, \

@@ -19,8 +19,8 @@ def bench_gym(scenario: Scenario, count: int = 2000, rate: float = 1000.0 / 0.9,
     detector classes II, pass the rest: an action read off the observation, so that the policy costs nothing),
     each episode ``reset(seed=seed)``, ``repeats`` times, the median. The reference: the same sample through
     ``run_stream`` with the built-in controller (detector events per second of loop wall time, set-up apart).
-    The plant is built once, before the timing (``plant``: one already built). The process's CPU time is measured too: on a machine shared with
-    other work the wall time includes waiting for a core."""
+    The plant is built once, before the timing (``plant``: one already built). The process's CPU time is measured
+    too: on a machine shared with other work the wall time includes waiting for a core."""
     import gymnasium
 
     from .. import rl

@@ -140,6 +140,44 @@ def run_stream(scenario: Scenario, settings: StreamSettings, progress=None, plan
     return result
 
 
+def model_name(plant) -> str:
+    """What a summary says ran: a registered model's name (``sim.plants``), else the plant's own name."""
+    model = getattr(type(plant), "model", None)
+    if isinstance(model, str) and model in MODELS and type(plant).__module__.startswith("sim."):
+        return model
+    return describe(plant)
+
+
+def _port(controller):
+    """A port to ``controller``: itself if it is one (``vcyto.wire``), else an in-process port to the object."""
+    if callable(getattr(controller, "post", None)) and callable(getattr(controller, "replies", None)):
+        return controller
+    return InProcess(controller)
+
+
+def announce_end(sinks, result):
+    """Tell the sinks how the run ended (a partial run's recording must say it is partial)."""
+    stats = result["statistics"]
+    ending = {"status": result["status"], "reason": result["reason"], "simulated_time_ms": result["simulated_time_ms"],
+              **{key: stats.get(key) for key in ("offered", "events", "sorted", "aborts", "purity", "yield",
+                                                 "not_injected", "not_yet_due", "missed_decisions")},
+              **({"control": result["control"]} if "control" in result else {})}
+    for sink in sinks:
+        if hasattr(sink, "on_end"):
+            sink.on_end(ending)
+
+
+def _truncation(plant, settings, cap, drain_cap) -> str:
+    truth = plant.truth()
+    waiting = truth.waiting
+    inside = sum(cell.fate == "in_channel" for cell in truth.cells)
+    if settings.max_time is not None and cap < drain_cap:
+        return (f"stopped at --max-time {settings.max_time * 1e3:g} ms as asked: {inside} cells still in the "
+                f"channel; {waiting} admitted cells were not yet due (not counted)")
+    return (f"{inside} cells still in the channel {settings.drain_time * 1e3:g} ms after the last arrival "
+            "(stuck or too slow): their outcomes are unknown")
+
+
 class Loop:
     """One closed-loop run, built once (the sample, the plant reset to it, the detector, the controller's port)
     and stepped by its driver, ``run_stream`` or another (``vcyto.rl``): ``while loop.proceed: loop.step()``,
@@ -291,44 +329,6 @@ class Loop:
                                            for t, model, why in plant.switches],
                               "feib_fraction": plant.diagnostics()["feib_fraction"]}
         return result
-
-
-def model_name(plant) -> str:
-    """What a summary says ran: a registered model's name (``sim.plants``), else the plant's own name."""
-    model = getattr(type(plant), "model", None)
-    if isinstance(model, str) and model in MODELS and type(plant).__module__.startswith("sim."):
-        return model
-    return describe(plant)
-
-
-def _port(controller):
-    """A port to ``controller``: itself if it is one (``vcyto.wire``), else an in-process port to the object."""
-    if callable(getattr(controller, "post", None)) and callable(getattr(controller, "replies", None)):
-        return controller
-    return InProcess(controller)
-
-
-def announce_end(sinks, result):
-    """Tell the sinks how the run ended (a partial run's recording must say it is partial)."""
-    stats = result["statistics"]
-    ending = {"status": result["status"], "reason": result["reason"], "simulated_time_ms": result["simulated_time_ms"],
-              **{key: stats.get(key) for key in ("offered", "events", "sorted", "aborts", "purity", "yield",
-                                                 "not_injected", "not_yet_due", "missed_decisions")},
-              **({"control": result["control"]} if "control" in result else {})}
-    for sink in sinks:
-        if hasattr(sink, "on_end"):
-            sink.on_end(ending)
-
-
-def _truncation(plant, settings, cap, drain_cap) -> str:
-    truth = plant.truth()
-    waiting = truth.waiting
-    inside = sum(cell.fate == "in_channel" for cell in truth.cells)
-    if settings.max_time is not None and cap < drain_cap:
-        return (f"stopped at --max-time {settings.max_time * 1e3:g} ms as asked: {inside} cells still in the "
-                f"channel; {waiting} admitted cells were not yet due (not counted)")
-    return (f"{inside} cells still in the channel {settings.drain_time * 1e3:g} ms after the last arrival "
-            "(stuck or too slow): their outcomes are unknown")
 
 
 def _peak_rss_mb() -> float | None:

@@ -358,17 +358,21 @@ class RomPlant:
     def truth_update(self) -> Truth:
         """Ground truth of the cells in the channel and of those that settled since the previous call (each
         settled cell once); its cost depends on the cells in the channel, not on how many have passed."""
-        upto = int(self._counters[kernels.NEXT])
-        cells = []
-        for i in range(self._unreported, upto):
-            if i in self._reported:
+        start, upto = self._unreported, int(self._counters[kernels.NEXT])
+        cells, reported, names, outlets = [], self._reported, self._names, self._outlet_names
+        window = slice(start, upto)                 # read in bulk: one conversion per array, not per value
+        for i, code, kind, born, exit_time, exit_y, (x, y) in zip(
+                range(start, upto), self._fate[window].tolist(), self._kind[window].tolist(),
+                self._born[window].tolist(), self._exit_time[window].tolist(), self._exit_y[window].tolist(),
+                self._position[window].tolist()):
+            if i in reported:
                 continue
-            record = self._record(i)
-            if record.fate != "in_channel":
-                self._reported.add(i)
-            cells.append(record)
-        while self._unreported < upto and self._unreported in self._reported:
-            self._reported.discard(self._unreported)
+            fate = outlets.get(code) or FATES[code]
+            if fate != "in_channel":
+                reported.add(i)
+            cells.append(CellTruth(i, names[kind], born, fate, exit_time, exit_y, x, y, 1.0))
+        while self._unreported < upto and self._unreported in reported:
+            reported.discard(self._unreported)
             self._unreported += 1
         return Truth(self.time, tuple(cells), len(self._arrival) - upto)
 

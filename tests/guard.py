@@ -28,6 +28,7 @@ HEAVY = {
     "vcyto.bench.wire": ["bench_wire"],
     "vcyto.bench.recording": ["bench_recording"],
     "vcyto.bench.auto": ["bench_auto"],
+    "vcyto.bench.gym": ["bench_gym"],
     "vcyto.bench.membrane": ["bench_membrane"],
     "vcyto.bench.treatments": ["bench_paper_treatments", "bench_treatments"],
     "vcyto.bench.fluid": ["bench_fluid"],

@@ -51,6 +51,7 @@ OTHER_COMMANDS = {
                         "--mix"],
     ("bench", "auto"): ["--count", "--rate", "--mix", "--seed"],
     ("bench", "controller"): ["--events"],
+    ("bench", "gym"): ["--count", "--rate", "--min-spacing", "--repeats", "--seed"],
     ("bench", "fluid"): ["--repeats"],
     ("bench", "treatments"): ["--steps"],
     ("bench", "sweep"): ["--workers", "--repeats"],

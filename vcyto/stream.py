@@ -120,59 +120,20 @@ def run_stream(scenario: Scenario, settings: StreamSettings, progress=None, plan
     one period before and at the crossing. It reacts to nothing else and the controller to nothing but its
     events, so the outcome is the same as stepping period by period (tested), at a fraction of the cost.
     """
-    started = time.perf_counter()
-    rng = np.random.default_rng(settings.seed)
-    arrivals_rng, detector_rng = rng.spawn(2)
-    sample = offer(settings.arrivals, arrivals_rng)
-    if plant is None and progress is not None:
-        progress.note(f"setting up the {settings.model} plant (kept in the set-up cache after the first run)")
-    plant = plant or make_plant(scenario, settings)
-    if controller is None:
-        controller = settings_controller(settings)
-    elif isinstance(controller, type):          # a class: built from the controller settings, as --controller-from
-        controller = controller(settings.controller)
-    port = _port(controller)
-    observers = list(sinks) + ([ProgressSink(progress, len(sample.admitted))] if progress is not None else [])
-    facts = DeviceFacts.from_settings(settings.controller, plant.control_period, settings.detector.window)
-    run = _Run(plant, settings, Detector(settings.detector, detector_rng), Control(port, facts, timing), observers)
-    run.observation = plant.reset(sample.admitted)
-    setup = time.perf_counter() - started
-    rss_setup = _peak_rss_mb()
-    last_arrival = sample.admitted[-1][0] if sample.admitted else 0.0
-    drain_cap = last_arrival + settings.drain_time
-    cap = min(drain_cap, settings.max_time) if settings.max_time is not None else drain_cap
+    loop = Loop(scenario, settings, progress, plant, sinks, controller, timing)
     status, reason, failure = "complete", "", None
     try:
-        while not plant.done and run.now < cap:
-            run.step(cap)
-        run.control.finish()
+        while loop.proceed:
+            loop.step()
+        loop.control.finish()
     except KeyboardInterrupt:
         status, reason = "interrupted", "interrupted by the user (SIGINT or SIGTERM)"
     except (NumericalBlowUp, SolverError) as error:
         status, reason, failure = "failed", str(error), error
     except (ControllerError, ConnectionError) as error:
         status, reason, failure = "failed", f"controller: {error}", error
-    run.finish()
-    rss_loop = _peak_rss_mb()
-    if status == "complete" and not plant.done:
-        status, reason = "truncated", _truncation(plant, settings, cap, drain_cap)
-    ledger = run.control.ledger
-    result = sortreport.summarise(sample, plant.truth(), run.events, ledger, scenario, settings,
-                                  partial=status != "complete")
-    result.update(status=status, reason=reason, wall_time_s=time.perf_counter() - started, setup_time_s=setup,
-                  idt_on_time_ms=run.idt_time * 1e3, steps=run.steps,
-                  # peak resident memory after the set-up, at the loop's end (its state), and with the report built
-                  memory_mb={"after_setup": rss_setup, "after_loop": rss_loop, "peak": _peak_rss_mb()})
-    result["control"] = run.control.report()
-    result["controller_name"] = port.name
-    result["model"] = model_name(plant)
-    if isinstance(plant, contract.ReportsTimeSteps):     # feib: the dt used over time (--tolerance)
-        result["time_steps"] = plant.time_steps()
-    announce_end(sinks, result)
-    if isinstance(plant, contract.SwitchesModels):       # the auto plant: what it picked, when and why
-        result["auto"] = {"switches": [{"time_ms": t * 1e3, "model": model, "reason": why}
-                                       for t, model, why in plant.switches],
-                          "feib_fraction": plant.diagnostics()["feib_fraction"]}
+    loop.finish()
+    result = loop.summary(status, reason)
     if status == "interrupted":
         raise StreamStopped(status, reason, result)
     if status == "failed":
@@ -218,12 +179,36 @@ def _truncation(plant, settings, cap, drain_cap) -> str:
             "(stuck or too slow): their outcomes are unknown")
 
 
-class _Run:
-    """The state of one closed-loop run between its steps (``run_stream`` owns the loop)."""
+class Loop:
+    """One closed-loop run, built once (the sample, the plant reset to it, the detector, the controller's port)
+    and stepped by its driver, ``run_stream`` or another (``vcyto.rl``): ``while loop.proceed: loop.step()``,
+    then ``finish()`` and ``summary(status, reason)``.
 
-    def __init__(self, plant, settings, detector, control: Control, sinks):
-        self.plant, self.settings, self.detector, self.control = plant, settings, detector, control
-        self.sinks = tuple(sinks)
+    A step is ``advance()`` (the plant up to the next moment the loop must look; the events the detector
+    completed then), the controller told of each event (``control.deliver``; lock-step: each answer is taken
+    before device time goes on), and ``conclude(events)`` (answers settled, the drive for the next stretch, the
+    sinks shown the step when due). A driver may deliver the events one at a time between the two.
+    """
+
+    def __init__(self, scenario: Scenario, settings: StreamSettings, progress=None, plant=None, sinks=(),
+                 controller=None, timing: Timing = Timing()):
+        started = self.started = time.perf_counter()
+        self.scenario, self.settings, self.sinks_given = scenario, settings, tuple(sinks)
+        rng = np.random.default_rng(settings.seed)
+        arrivals_rng, detector_rng = rng.spawn(2)
+        sample = self.sample = offer(settings.arrivals, arrivals_rng)
+        if plant is None and progress is not None:
+            progress.note(f"setting up the {settings.model} plant (kept in the set-up cache after the first run)")
+        plant = self.plant = plant or make_plant(scenario, settings)
+        if controller is None:
+            controller = settings_controller(settings)
+        elif isinstance(controller, type):      # a class: built from the controller settings, as --controller-from
+            controller = controller(settings.controller)
+        self.port = _port(controller)
+        observers = list(sinks) + ([ProgressSink(progress, len(sample.admitted))] if progress is not None else [])
+        facts = DeviceFacts.from_settings(settings.controller, plant.control_period, settings.detector.window)
+        self.detector, self.control = Detector(settings.detector, detector_rng), Control(self.port, facts, timing)
+        self.sinks = tuple(observers)
         self.paced = any(is_paced(sink) for sink in self.sinks)      # recordings: the state every record_interval
         self.events, self.settled = {}, set()
         self.actuation = self.idt_time = 0.0
@@ -232,10 +217,21 @@ class _Run:
         self.grouped = isinstance(plant, contract.StepsUntil)
         # one step a call (the FE-IB plant with a tolerance): every call is shown, none stopped for the records
         self.single = self.grouped and getattr(plant, "one_step_per_call", False)
-        self.observation = None
-        self.truth_update = plant.truth_update if isinstance(plant, contract.ReportsTruthUpdates) else None
+        self.truth_updates = plant.truth_update if isinstance(plant, contract.ReportsTruthUpdates) else None
         self.diagnostics = plant.diagnostics if isinstance(plant, contract.HasDiagnostics) else None
         self.pending, self.shown = [], 0.0          # events not yet shown to the sinks; when they last saw a step
+        self.observation = plant.reset(sample.admitted)
+        self.setup = time.perf_counter() - started
+        self.rss_setup = _peak_rss_mb()
+        last_arrival = sample.admitted[-1][0] if sample.admitted else 0.0
+        self.drain_cap = last_arrival + settings.drain_time
+        self.cap = min(self.drain_cap, settings.max_time) if settings.max_time is not None else self.drain_cap
+        self.rss_loop = None
+
+    @property
+    def proceed(self) -> bool:
+        """Whether the run goes on: cells are still to leave and the cap is not reached."""
+        return not self.plant.done and self.now < self.cap
 
     @property
     def now(self) -> float:
@@ -247,8 +243,14 @@ class _Run:
         changes only at their ends, as when the loop steps period by period), else the plant's time."""
         return self.plant.clock if self.single else self.now
 
-    def step(self, cap: float):
-        plant, control = self.plant, self.control
+    def step(self):
+        events = self.advance()
+        self.control.deliver(events, self.clock)
+        self.conclude(events)
+
+    def advance(self) -> list:
+        """The plant up to the next moment the loop must look; the detector events completed by then."""
+        plant, control, cap = self.plant, self.control, self.cap
         if self.grouped:
             # what the detector reacts to: the cells crossing its lines, one period before and at the crossing
             started = self.now
@@ -258,40 +260,45 @@ class _Run:
             window_start, window_end = self.settings.detector.window
             periods, seen = plant.step_until(self.actuation, until, stop_lines=(window_end,),
                                              record_lines=(window_start,))
-            self.idt_time += self.actuation * (self.now - started)
+            now = self.now
+            self.idt_time += self.actuation * (now - started)
         else:
             self.observation, periods = plant.step(self.actuation), 1
             seen = [self.observation]
             self.idt_time += self.actuation * plant.control_period
+            now = self.now
         self.steps += periods
-        control.pace(self.now)
+        control.pace(now)
         new_events = [event for view in seen for event in self.detector.observe(view.time, _sightings(view))]
         for event in new_events:
             self.events[event.key] = event
-        control.deliver(new_events, self.clock)
-        control.settle(self.now)
-        self.actuation = control.actuation(self.clock)
+        return new_events
+
+    def conclude(self, new_events):
+        """After the controller was told of ``new_events``: late answers settled, the drive set, the sinks shown."""
+        control, now = self.control, self.now
+        control.settle(now)
+        self.actuation = control.actuation(self.plant.clock if self.single else now)
         self.pending.extend(new_events)
         # an event-driven plant shows its state every record_interval (events and decisions wait for it)
-        due = (not self.grouped or self.single or self.now >= self.shown + self.settings.record_interval - 1e-12
-               or plant.done)
-        if due and self.sinks:
+        if self.sinks and (not self.grouped or self.single or now >= self.shown + self.settings.record_interval - 1e-12
+                           or self.plant.done):
             self._show()
 
     def _show(self):
         if self.grouped:
             self.observation = self.plant.observe()
-        record = StepRecord(self.steps, self.observation, self._truth(), self.actuation, tuple(self.pending),
+        record = StepRecord(self.steps, self.observation, self.truth_update(), self.actuation, tuple(self.pending),
                             tuple(self.control.ledger.take_changes()), self.fields,
                             self.diagnostics() if self.diagnostics is not None else None)
         for sink in self.sinks:
             sink.on_step(record)
         self.pending, self.shown = [], self.now
 
-    def _truth(self):
+    def truth_update(self):
         """The cells in the channel and those that left since the last call (each settled cell once)."""
-        if self.truth_update is not None:
-            return self.truth_update()
+        if self.truth_updates is not None:
+            return self.truth_updates()
         truth = self.plant.truth()
         cells = tuple(cell for cell in truth.cells if cell.fate == "in_channel" or cell.key not in self.settled)
         self.settled.update(cell.key for cell in cells if cell.fate != "in_channel")
@@ -301,6 +308,32 @@ class _Run:
         """Show the sinks what they have not seen yet (the last step, events and cells that left since)."""
         if self.sinks and self.grouped and (self.pending or self.now > self.shown):
             self._show()
+        self.rss_loop = _peak_rss_mb()
+
+    def summary(self, status: str = "complete", reason: str = "") -> dict:
+        """The run's JSON-ready summary (``sortreport``); ``status`` and ``reason`` say how it ended (a run that
+        ended ``complete`` with cells left in the channel is ``truncated``). The sinks are told how it ended."""
+        plant, settings, sinks = self.plant, self.settings, self.sinks_given
+        if status == "complete" and not plant.done:
+            status, reason = "truncated", _truncation(plant, settings, self.cap, self.drain_cap)
+        ledger = self.control.ledger
+        result = sortreport.summarise(self.sample, plant.truth(), self.events, ledger, self.scenario, settings,
+                                      partial=status != "complete")
+        result.update(status=status, reason=reason, wall_time_s=time.perf_counter() - self.started,
+                      setup_time_s=self.setup, idt_on_time_ms=self.idt_time * 1e3, steps=self.steps,
+                      # peak resident memory after the set-up, at the loop's end (its state), and with the report
+                      memory_mb={"after_setup": self.rss_setup, "after_loop": self.rss_loop, "peak": _peak_rss_mb()})
+        result["control"] = self.control.report()
+        result["controller_name"] = self.port.name
+        result["model"] = model_name(plant)
+        if isinstance(plant, contract.ReportsTimeSteps):     # feib: the dt used over time (--tolerance)
+            result["time_steps"] = plant.time_steps()
+        announce_end(sinks, result)
+        if isinstance(plant, contract.SwitchesModels):       # the auto plant: what it picked, when and why
+            result["auto"] = {"switches": [{"time_ms": t * 1e3, "model": model, "reason": why}
+                                           for t, model, why in plant.switches],
+                              "feib_fraction": plant.diagnostics()["feib_fraction"]}
+        return result
 
 
 def _peak_rss_mb() -> float | None:
@@ -314,7 +347,8 @@ def _peak_rss_mb() -> float | None:
 
 
 def _sightings(observation) -> list[Sighting]:
-    return [Sighting(c.key, c.x, c.y, c.area, c.brightness) for c in observation.cells]
+    """What the detector sees of an observation's cells (a plant's own views are kept: they are frozen)."""
+    return [c if type(c) is Sighting else Sighting(c.key, c.x, c.y, c.area, c.brightness) for c in observation.cells]
 
 
 def _field_payload(plant):

@@ -170,6 +170,23 @@ def _wire_parser(targets):
     wire_bench.set_defaults(handler=command_bench)
 
 
+def _gym_parser(targets):
+    gym_bench = targets.add_parser("gym", help="environment steps/s of the Gymnasium environment (vcyto/Sort-v0) "
+                                               "on rom, against the loop itself (needs the extra rl)")
+    scenario_options(gym_bench)
+    gym_bench.add_argument("--count", type=Integer(low=1, high=1_000_000), default="2000",
+                           help="cells offered per episode (default 2000)")
+    gym_bench.add_argument("--rate", type=Quantity("frequency", "Hz", low=0, low_open=True), default="1111.1",
+                           help="offered Poisson rate, cells/s (default 1111.1: 1,000 events/s after the dead time)")
+    gym_bench.add_argument("--min-spacing", type=Quantity("time", "ms", low=0), default="0.1", metavar="TIME",
+                           help="the inlet's dead time (ms; default 0.1)")
+    gym_bench.add_argument("--repeats", type=Integer(low=1, high=1000), default="5",
+                           help="episodes timed; the median (default 5)")
+    gym_bench.add_argument("--seed", type=Integer(low=0, high=2**63 - 1), default="0", help="reset seed (default 0)")
+    output_options(gym_bench)
+    gym_bench.set_defaults(handler=command_bench)
+
+
 def _controller_parser(targets):
     controller_bench = targets.add_parser("controller", help="decision latency of the sorting controller")
     controller_bench.add_argument("--events", type=Integer(low=1, high=10_000_000), default="20000",
@@ -297,6 +314,18 @@ def _wire(args, scenario, progress):
     return result, wire.wire_lines(result)
 
 
+def _gym(args, scenario, progress):
+    try:
+        import gymnasium  # noqa: F401
+    except ImportError:
+        raise UsageError("bench gym: needs Gymnasium, the optional extra rl: pip install 'vcyto[rl]'") from None
+    from ..bench import gym
+    check_cells_fit(scenario, ["RBC", "melanoma"])
+    result = gym.bench_gym(scenario, args.count, args.rate, args.min_spacing, repeats=args.repeats, seed=args.seed,
+                           progress=progress)
+    return result, gym.gym_lines(result)
+
+
 def _controller(args, scenario, progress):
     from ..bench import controller
     result = controller.bench_controller(args.events)
@@ -326,6 +355,7 @@ TARGETS = {
     "realtime": Target(_realtime_parser, _realtime),
     "wire": Target(_wire_parser, _wire),
     "controller": Target(_controller_parser, _controller, scenario=False),
+    "gym": Target(_gym_parser, _gym),
 }
 
 

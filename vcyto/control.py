@@ -249,6 +249,8 @@ class Control:
 
     def _take(self, decision: Decision, answered: float) -> None:
         earlier = self.ledger.decision_for(decision.event_id)
+        if earlier is not None and earlier.action == MISSED:     # a missed decision stays missed
+            return
         if decision.action == "sort":
             if earlier is not None and earlier.action != "sort":
                 raise ControllerError(f"event {decision.event_id} was decided {earlier.action!r}: a sort cannot "

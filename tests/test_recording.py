@@ -47,15 +47,24 @@ def messages(path):
                 if channel.message_encoding == "json"]
 
 
-def test_round_trip_one_message_per_step_monotonic_times_and_outcomes(plant, tmp_path):
+def test_round_trip_one_row_per_step_in_batches_monotonic_times_and_outcomes(plant, tmp_path):
+    """The per-step channels hold one column entry per step, in batches of ``flush_every`` (10) steps, each
+    message at its last step's time; the rows of /cells/rows are the cells in the channel at each step."""
     path = tmp_path / "run.mcap"
     result = record(plant, path)
     recorded = messages(path)
-    steps = [m for m in recorded if m[0] == "/loop/step"]
-    assert len(steps) == steps[-1][2]["step"] and [s[2]["step"] for s in steps] == list(range(1, len(steps) + 1))
+    batches = [m for m in recorded if m[0] == "/loop/steps"]
+    steps = [step for m in batches for step in m[2]["step"]]
+    times = [t for m in batches for t in m[2]["time"]]
+    assert steps == list(range(1, len(steps) + 1)) and len(steps) > 20 and times == sorted(times)
+    assert [len(m[2]["step"]) for m in batches[:-1]] == [10] * (len(batches) - 1)
     for topic in PER_STEP:
-        times = [m[1] for m in recorded if m[0] == topic]
-        assert len(times) == len(steps) and times == sorted(times) and len(set(times)) == len(times)
+        batch_times = [m[1] for m in recorded if m[0] == topic]
+        assert batch_times == [round(m[2]["time"][-1] * 1e9) for m in batches]
+    rows = [m[2] for m in recorded if m[0] == "/cells/rows"]
+    assert [t for r in rows for t in r["time"]] == times
+    assert [c for r in rows for c in r["count"]] == [n for m in batches for n in m[2]["cells_in_channel"]]
+    assert sum(len(r["key"]) for r in rows) == sum(c for r in rows for c in r["count"]) > 0
     outcomes = {m[2]["key"]: m[2]["outlet"] for m in recorded if m[0] == "/outcome"}
     assert outcomes == {cell["key"]: cell["outlet"] for cell in result["cells"]}
     decisions = {m[2]["event_id"]: m[2]["action"] for m in recorded if m[0] == "/controller/decision"}
@@ -176,10 +185,10 @@ def test_a_killed_run_keeps_every_step_up_to_the_last_flush(tmp_path):
     with open(path, "rb") as handle:
         try:
             for record in StreamReader(handle, skip_magic=False).records:
-                if isinstance(record, Channel) and record.topic == "/loop/step":
+                if isinstance(record, Channel) and record.topic == "/loop/steps":
                     step_channel = record.id
                 if isinstance(record, Message) and record.channel_id == step_channel:
-                    steps.append(json.loads(record.data)["step"])
+                    steps += json.loads(record.data)["step"]
         except McapError:
             pass                                   # the truncated tail: everything before it is intact
     assert len(steps) >= 20 and steps == list(range(1, len(steps) + 1))

@@ -145,7 +145,7 @@ def test_rerun_mcap_importer_draws_membranes_flow_and_log(feib, sort, tmp_path):
             assert "Image:buffer" in rows["/foxglove/speed"]
             first = next(iter(run["capture"].membranes.values()))[0]
             points = np.array(rows["/foxglove/membranes"]["Points3D:positions"][0])
-            assert np.allclose(points[:, :2], first, atol=1e-3) and np.all(points[:, 2] == 0)
+            assert np.allclose(points[:, :2] * 1e6, first, atol=1e-3) and np.all(points[:, 2] == 0)   # metres
         else:
             cells = run["result"]["cells"]
             detected = sum(c["detected_class"] is not None for c in cells)
@@ -228,7 +228,7 @@ def test_replay_shows_what_the_live_view_shows(sort, tmp_path):
         assert [t for t, _ in again[entity]] == [t for t, _ in live[entity]], entity
     assert [v for _, v in again["/log"]] == [v for _, v in live["/log"]]          # velocities and reasons too
     assert any("mm/s" in v["TextLog:text"][0] for _, v in again["/log"])
-    assert json.loads(done.stdout)["format"] == "2"
+    assert json.loads(done.stdout)["format"] == "3"
 
 
 def test_a_recording_of_the_first_format_still_replays(tmp_path):

@@ -44,7 +44,7 @@ def run(tmp_path_factory):
 def steps_in(mcap_path):
     from vcyto.replay import read_recording
     _, messages, _ = read_recording(mcap_path)
-    return sum(topic == "/loop/step" for topic, _ in messages)
+    return sum(len(data["step"]) for topic, data in messages if topic == "/loop/steps")
 
 
 def test_live_view_has_the_device_cells_idt_and_log(run):

@@ -163,7 +163,8 @@ def test_sweep_specs(sandbox, parameters, base, sweep):
     check(["sweep", str(spec), "--output", str(sandbox / "sweep-out")])
 
 
-TOPICS = ["/loop/step", "/cells", "/loop/steps", "/cells/rows", "/detector/event", "/controller/decision", "/outcome", "/flow/velocity"]
+TOPICS = ["/loop/step", "/cells", "/loop/steps", "/cells/rows", "/detector/event", "/controller/decision", "/outcome",
+          "/flow/velocity"]
 payloads = st.dictionaries(st.sampled_from(["time", "step", "idt", "cells", "key", "classification", "fluorescence",
                                             "event_id", "action", "type", "outlet", "shape", "x_um", "y_um"]),
                            st.one_of(toml_scalars, st.lists(st.integers(-3, 3), max_size=3),

@@ -128,7 +128,8 @@ def _run_with_sinks(args, scenario, settings, view, files, background, interrupt
             try:
                 if interrupted:
                     raise KeyboardInterrupt
-                result = stream.run_stream(scenario, settings, progress, sinks=[background] if background else [])
+                result = stream.run_stream(scenario, settings, progress, sinks=[background] if background else [],
+                                           table=files.path("cells.parquet") if files is not None else None)
             except stream.StreamStopped as error:
                 stopped, result = error, error.result
             except KeyboardInterrupt:                      # before the loop began (setting up the plant)
@@ -182,7 +183,7 @@ def _report_stream(args, result, stopped, view, files, settings, scenario):
     from .. import runfiles, stream
     if stopped is not None and stopped.status == "interrupted":
         result["reason"] = f"interrupted by {signals_seen.get('last', 'SIGINT')}"
-    lines = stream.report_lines(result) if result.get("cells") else []
+    lines = stream.report_lines(result) if "statistics" in result and "events" in result["statistics"] else []
     result["files"] = {}
     if files is not None and files.path("mcap") is not None:
         mcap = files.path("mcap")
@@ -195,10 +196,11 @@ def _report_stream(args, result, stopped, view, files, settings, scenario):
     if files is not None:
         result["run_id"] = files.run_id
         result["files"].update({"fcs": str(files.path("fcs")), "gatingml": str(files.path("gating.xml")),
-                                "summary": str(files.path("json"))})
+                                "cells": str(files.path("cells.parquet")), "summary": str(files.path("json"))})
         files.finish(result, settings, scenario)
         lines.append(f"detector events: {files.path('fcs')} (FCS 3.1; classification gate: "
-                     f"{files.path('gating.xml')}, Gating-ML 2.0); summary: {files.path('json')}")
+                     f"{files.path('gating.xml')}, Gating-ML 2.0); per-cell table: {files.path('cells.parquet')} "
+                     f"(Parquet); summary: {files.path('json')}")
     for note in view.notes:
         runfiles.say(note)
     emit(args, result, lines)

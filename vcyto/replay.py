@@ -24,7 +24,7 @@ from sim.scenario import Scenario
 from .classes import class_of_type, provisional_class
 from .config import scenario_from_toml
 from .outcomes import outcome_class
-from .rerunlog import RerunLogger, decision_text
+from .rerunlog import POINT_LIKE, RerunLogger, decision_text
 
 MEMBRANES = "/foxglove/membranes"
 
@@ -83,6 +83,7 @@ class _Replayer:
     def __init__(self, logger: RerunLogger, scenario: Scenario, origin_ns: int = 0, metres: bool = False):
         self.logger = logger
         self.origin_ns, self.scale = origin_ns, 1e6 if metres else 1.0       # point clouds' units to um
+        self.batches = metres                 # format 3
         self.waiting: list = []               # format 3: (topic, data) written before their batch's steps
         self.clouds: dict = {}                # format 3: time stamp (ns) -> points of the batch's steps
         self.rows = None                      # format 3: the batch's /cells/rows
@@ -108,6 +109,7 @@ class _Replayer:
         elif topic == "/controller/decision":
             self._decision(data)
         elif topic == "/outcome":
+            self.logger.figures.outcome(data["outlet"], self.true_class(data["type"]) == "II")
             name = data.get("class") or self._settle(data)
             logger.outcome(data["key"], name, f"cell {data['key']} ({data['type']}) left by: {data['outlet']} ({name})")
         elif topic == "/flow/velocity":
@@ -135,20 +137,25 @@ class _Replayer:
         logger, rows, waiting = self.logger, self.rows or {}, self.waiting
         starts = np.concatenate([[0], np.cumsum(rows.get("count", []))]).astype(int)
         shown = 0
-        for n, (time_s, step, idt) in enumerate(zip(steps["time"], steps["step"], steps["idt"])):
-            logger.time(time_s, step)
-            logger.idt(idt)
+        for n, (time_s, step) in enumerate(zip(steps["time"], steps["step"])):
+            logger.time(time_s, step)            # the drive: from the pulses, as the live view
             if n + 1 < len(starts):
                 cloud = self.clouds.get(self.origin_ns + int(round(time_s * 1e9)))
                 self.membranes = _by_key(cloud) if cloud is not None else {}
                 self.on("/cells", {"cells": [_row(rows, index) for index in range(starts[n], starts[n + 1])]})
             last = n + 1 == len(steps["time"])
+            outcomes = decided = False
             while shown < len(waiting) and (last or _time_of(waiting[shown]) <= time_s + 1e-12):
+                outcomes |= waiting[shown][0] == "/outcome"
+                decided |= waiting[shown][0] == "/controller/decision"
                 self.on(*waiting[shown])
                 shown += 1
+            if outcomes or decided:
+                logger.sort_figures()
         self.waiting, self.clouds, self.rows = [], {}, None
 
     def _event(self, data):
+        self.logger.figures.event(data["classification"])
         self.detected[data["key"]] = data["classification"]
         self.events[data["event_id"]] = data["key"]
         text = f"cell {data['key']}: detected type {data['classification']} (fluorescence {data['fluorescence']:.2f}"
@@ -159,13 +166,15 @@ class _Replayer:
         key = self.events.get(data["event_id"])
         if key is not None:
             self.actions[key] = data["action"]
+        self.logger.figures.decision(data["action"])
+        pulsed = data["event_id"] if self.batches else None          # format 3: the drive from the pulses
         self.logger.text(decision_text(data["event_id"], data["action"], data.get("reason")),
                          level="WARN" if data["action"] == "abort" else "INFO")
         if data["action"] == "sort" and data.get("pulse_on") is not None:
             self.pulses[data["event_id"]] = (data["pulse_on"], data["pulse_off"])
-            self.logger.pulse(data["pulse_on"], data["pulse_off"])
+            self.logger.pulse(data["pulse_on"], data["pulse_off"], event_id=pulsed)
         elif data["action"] == "abort" and data["event_id"] in self.pulses:
-            self.logger.pulse(*self.pulses.pop(data["event_id"]), aborted=True)
+            self.logger.pulse(*self.pulses.pop(data["event_id"]), aborted=True, event_id=pulsed)
 
     def _provisional(self, key: int) -> str:
         return provisional_class(self.detected.get(key), self.actions.get(key))
@@ -200,8 +209,9 @@ def _time_of(item) -> float:
 def replay(path: Path, target, progress=None) -> dict:
     metadata, messages, problem = read_recording(path)
     scenario = scenario_from_toml(metadata["scenario_toml"]) if "scenario_toml" in metadata else Scenario()
-    logger = RerunLogger(scenario, detection_window(metadata), target)
     columns = metadata.get("recording_format", "1") >= "3"
+    logger = RerunLogger(scenario, detection_window(metadata), target,
+                         membranes=metadata.get("model") not in POINT_LIKE)
     replayer = _Replayer(logger, scenario, int(metadata.get("time_origin_unix_ns", 0)), metres=columns)
     steps = 0
     last_time = 0.0

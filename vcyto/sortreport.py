@@ -8,7 +8,18 @@ Statistics (``statistics_of``), over the sample offered to the inlet:
 - abort_rate: aborts over type-II detections; co_deflected: correctly detected type-I cells that left by the
   sorted outlet, and of those ``co_deflected_unexpected``: the ones whose predicted offset from every sort's
   target lay outside the controller's widened envelope (purity and single modes should have none);
-- throughput: injected cells per second of simulated time.
+- throughput: injected cells per second of simulated time;
+- rare_cell (what a rare-cell sort is judged by): the targets' fraction of the sample offered; enrichment (targets
+  per other cell in the sorted outlet over the same ratio in the sample offered); recovery (targets in the sorted
+  outlet over the targets that left by the sorted or the waste outlet) and the recovery a core facility estimates
+  without knowing the truth, by re-analysing both tubes: each tube's count times the fraction of its cells the
+  detector gates as targets, sorted / (sorted + waste); purity's 95 % Clopper-Pearson interval; events per
+  target found.
+
+The report is built as the run goes (``SortLedger``, a sink of the loop): a cell's record is made once, when it
+leaves, counted (``Tally``: the figures above are sums over records, so memory does not grow with the run) and
+written to the per-cell table (``vcyto.celltable``); ``statistics_of`` applies the same ``Tally`` to a list of
+records (such as the table read back), so the two agree.
 
 ``yield_estimate``: the yield the controller should reach by the arrival statistics alone. With the inlet's
 dead time d, a Poisson sample of intensity r is admitted with probability A = 1 / (1 + r d), and the admitted
@@ -362,7 +373,8 @@ class Tally:
 
     def rare_cell(self, offered_targets: int, offered: int) -> dict:
         """What a rare-cell sort's user reads (module docstring): enrichment, recovery (exact and estimated from
-        the waste as a core facility does), purity with its 95 % Wilson interval, events per target found."""
+        the waste as a core facility does), purity with its 95 % Clopper-Pearson interval, events per target
+        found."""
         count = self.counts
         found, sorted_out = count["sorted_out_targets"], count["sorted_out"]
         others_sorted = sorted_out - found
@@ -376,7 +388,7 @@ class Tally:
                      if waste_estimate is not None and sorted_estimate + waste_estimate > 0 else None)
         return {"target_fraction_offered": _ratio(offered_targets, offered), "enrichment": enrichment,
                 "recovery": _ratio(found, found + count["waste_targets"]), "recovery_estimated": estimated,
-                "purity_interval_95": wilson_interval(found, sorted_out), "targets_found": found,
+                "purity_interval_95": purity_interval(found, sorted_out), "targets_found": found,
                 "events_per_target_found": _ratio(count["events"], found)}
 
 
@@ -384,13 +396,18 @@ def _ratio(numerator, denominator):
     return numerator / denominator if denominator else None
 
 
-def wilson_interval(successes: int, trials: int, confidence: float = 0.95):
-    """The Wilson score interval of a binomial proportion (scipy), [low, high]; None without trials."""
+def purity_interval(successes: int, trials: int, confidence: float = 0.95):
+    """The Clopper-Pearson ("exact") interval of a binomial proportion, [low, high] (never narrower than its
+    confidence promises, also for the few targets of a rare-cell sort); None without trials. The beta quantiles
+    are scipy.special's (scipy.stats gives the same interval, ``binomtest(...).proportion_ci()``, but its import
+    costs a run 1-2 s)."""
     if not trials:
         return None
-    from scipy.stats import binomtest
-    interval = binomtest(successes, trials).proportion_ci(confidence_level=confidence, method="wilson")
-    return [float(interval.low), float(interval.high)]
+    from scipy.special import betaincinv
+    tail = (1.0 - confidence) / 2
+    low = float(betaincinv(successes, trials - successes + 1, tail)) if successes else 0.0
+    high = float(betaincinv(successes + 1, trials - successes, 1.0 - tail)) if successes < trials else 1.0
+    return [low, high]
 
 
 def _unexpected(co_deflected, cells, settings) -> int | None:
@@ -562,6 +579,7 @@ def sort_report_lines(result: dict) -> list[str]:
         + (f"; {stats['not_yet_due']} cells of the sample were not yet due when the run stopped (not counted)"
            if stats.get("not_yet_due") else ""),
         f"throughput {throughput:.0f} cells/s of simulated time" if throughput else "throughput n/a",
+        *_rare_cell_lines(stats.get("rare_cell")),
         f"simulated {result['simulated_time_ms']:.3f} ms (IDT on {result['idt_on_time_ms']:.3f} ms) in "
         f"{result['wall_time_s']:.1f} s wall ({result['model']} model: set-up {result['setup_time_s']:.1f} s, loop "
         f"{result['wall_time_s'] - result['setup_time_s']:.3g} s); "
@@ -583,6 +601,21 @@ def sort_report_lines(result: dict) -> list[str]:
 
 
 __all__ = ["summarise", "statistics_of", "yield_estimate", "report_lines", "true_class", "DEFAULT_OUTLET"]
+
+
+def _rare_cell_lines(figures: dict | None) -> list[str]:
+    """The figures a rare-cell sort is judged by (``Tally.rare_cell``), for a sample whose targets are rare."""
+    if not figures or figures["target_fraction_offered"] is None or figures["target_fraction_offered"] > 0.05:
+        return []
+    interval = figures["purity_interval_95"]
+    enrichment, per_target = figures["enrichment"], figures["events_per_target_found"]
+    return [f"rare cells: targets {figures['target_fraction_offered']:.2g} of the sample, "
+            f"{figures['targets_found']} found in the sorted outlet; enrichment "
+            + (f"{enrichment:.3g}x" if enrichment is not None else "n/a (no other cell sorted)")
+            + f"; recovery {_percent(figures['recovery'])} (estimated from the waste as a core facility does: "
+            f"{_percent(figures['recovery_estimated'])}); purity 95 % interval "
+            + (f"{100 * interval[0]:.1f}-{100 * interval[1]:.1f} %" if interval else "n/a")
+            + (f"; {per_target:,.0f} events per target found" if per_target is not None else "")]
 
 
 def _no_coincidence(stats: dict, result: dict) -> str:

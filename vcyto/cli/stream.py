@@ -42,9 +42,10 @@ def add_command(commands):
                         help="name the run's files NAME.mcap, NAME.json, NAME.fcs, NAME.gating.xml, NAME.rrd (default "
                              "stream-DATE-TIME-MILLISECONDS-PID); a name whose files exist is refused")
     stream.add_argument("--no-record", action="store_true", help="no MCAP recording")
-    stream.add_argument("--flush-every", type=Integer(low=1), default="50", metavar="N",
-                        help="flush the recording every N recorded steps (control periods; with --tolerance, "
-                             "FE-IB steps): a crash loses at most N (default 50)")
+    stream.add_argument("--flush-every", type=Integer(low=1), default="400", metavar="N",
+                        help="write the recording's per-step columns and flush it every N recorded steps (control "
+                             "periods; with --tolerance, FE-IB steps): a crash loses at most the last N and the "
+                             "steps still queued for the recording's thread (default 400)")
     stream.add_argument("--field-every", type=Integer(low=0), default="200", metavar="N",
                         help="record the velocity field every N recorded steps (control periods; with "
                              "--tolerance, FE-IB steps), 0 = never (default 200)")
@@ -162,10 +163,10 @@ def _rerun_sink(args, scenario, settings, view, files) -> list:
     """The Rerun sink of ``view``; if Rerun refuses it (a viewer gone between the check and the connection, a
     file it cannot create), one line says so and the view goes to a new .rrd, else there is none."""
     from .. import runfiles
-    from ..rerunlog import RerunSink
+    from ..rerunlog import POINT_LIKE, RerunSink
     try:
         return [RerunSink(scenario, settings.detector.window, view.target(files and files.path("rrd")),
-                          field_every=args.field_every)]
+                          field_every=args.field_every, membranes=settings.model not in POINT_LIKE)]
     except (RuntimeError, OSError) as problem:
         reason = " ".join(str(problem).split())[:160]
         if view.kind == "connect" and files is not None:

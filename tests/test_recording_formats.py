@@ -291,3 +291,52 @@ def test_a_rerun_recording_does_not_import_pandas_and_pandas_stays_usable(tmp_pa
         assert done.returncode == 0, done.stderr
         assert done.stdout.split("\n")[:2] == [expected, "3 int64"], order
     assert RrdReader(str(tmp_path / "after.rrd")) is not None
+
+
+def test_the_view_draws_pulses_and_drive_as_steps_with_one_value_per_edge(sort):
+    """Each pulse the controller scheduled is two rows (1 at its start, 0 at its end, at those times), the drive
+    steps at the kept pulses' edges, both drawn with step-after interpolation; purity, yield and abort rate are
+    series; the cells' paths carry no labels (they piled up at the outlets)."""
+    rows, static = rrd_rows(sort["dir"] / "live.rrd")
+    pulses = [c for c in sort["result"]["cells"] if c["pulse_ms"]]
+    kept = [c["pulse_ms"] for c in pulses if c["decision"] == "sort"]
+    scheduled = rows["/pulses/scheduled"]
+    assert len(scheduled) == 2 * len(pulses) and kept
+    edges = sorted((round(t * 1e6), v) for on, off in kept for t, v in ((on, 1.0), (off, 0.0)))
+    assert set(edges) <= {(t, row["Scalars:scalars"][0]) for t, row in scheduled}
+    drive = [(t, row["Scalars:scalars"][0]) for t, row in rows["/idt"]]
+    assert [v for _, v in drive] == [0.0] + [1.0, 0.0] * (len(drive) // 2)       # one row per change
+    assert {t for t, v in drive if v == 1.0} <= {t for t, v in edges if v == 1.0}
+    step_after = 2                                                               # InterpolationMode.StepAfter
+    for entity in ("/idt", "/pulses/scheduled"):
+        assert static[entity]["SeriesLines:interpolation_mode"] == [step_after]
+    for name in ("purity", "yield", "abort_rate"):
+        assert rows[f"/sort/{name}"], name
+    last = {name: rows[f"/sort/{name}"][-1][1]["Scalars:scalars"][0] for name in ("purity", "yield")}
+    assert last["purity"] == pytest.approx(sort["result"]["statistics"]["purity"])
+    assert not any("LineStrips2D:labels" in row for e in rows if "/paths/" in e for _, row in rows[e])
+
+
+def test_the_speed_field_is_a_scalar_image_in_mm_per_s(feib):
+    """The flow speed is a DepthImage of float32 mm/s (hovering reads the value), meter 1, viridis, on the
+    legend's scale; a point-like plant (no field) shows no legend."""
+    rows, static = rrd_rows(feib["dir"] / "live.rrd")
+    image = rows["/device/flow/speed_mm_s"][0][1]
+    assert "DepthImage:buffer" in image and image["DepthImage:meter"] == [1.0]
+    assert image["DepthImage:depth_range"][0][0] == 0.0 and image["DepthImage:depth_range"][0][1] > 10
+    assert "/device/legend/bar" in static
+
+
+def test_foxglove_scene_is_in_metres_with_lifetimes(sort):
+    """Foxglove's conventions: the device outline spans the channel's 300 um as 3e-4 m; markers and paths expire."""
+    from mcap_protobuf.decoder import DecoderFactory
+    _, messages = mcap_messages(sort["dir"] / "run.mcap")
+    decode, entities = DecoderFactory(), []
+    for schema, channel, message in messages:
+        if channel.topic == "/foxglove/scene":
+            entities += decode.decoder_for("protobuf", schema)(message.data).entities
+    outline = next(e for e in entities if e.id == "device/outline")
+    assert max(p.x for p in outline.lines[0].points) == pytest.approx(300e-6)
+    temporary = [e for e in entities if e.id.startswith(("event/", "path/"))]
+    assert temporary and all(e.lifetime.ToNanoseconds() > 0 for e in temporary)
+    assert not outline.HasField("lifetime")

@@ -88,16 +88,16 @@ class SortLedger:
     A sink of the loop (not paced: it sees the steps the loop shows anyway): each detector event and decision is
     kept until its cell leaves; then the cell's record is built once, counted (``Tally``), written to the table
     (``vcyto.celltable``, if a path is given) and kept for the summary while the run has at most ``keep`` cells
-    (None: all). ``summary`` adds the cells still in the channel and those never injected."""
+    (None: all; by default ``KEEP_CELLS``). ``summary`` adds the cells still in the channel and those never injected."""
 
     paced = False
 
-    def __init__(self, sample, scenario, settings, predicted_arrival, table=None, keep: int | None = KEEP_CELLS):
+    def __init__(self, sample, scenario, settings, predicted_arrival, table=None, keep: int | None | str = "default"):
         from .celltable import CellTable
         self.sample, self.scenario, self.settings = sample, scenario, settings
         self.predicted_arrival = predicted_arrival
         self.table = CellTable(table) if table is not None else None
-        self.keep = keep
+        self.keep = KEEP_CELLS if keep == "default" else keep
         self.kept: list[dict] = []
         self.tally = Tally()
         self.samples = _TransitSamples()

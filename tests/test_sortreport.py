@@ -111,3 +111,12 @@ def test_a_rare_cell_sort_reports_its_figures(rom_plant):
     assert figures["events_per_target_found"] == stats["events"] / figures["targets_found"]
     line = next(line for line in sortreport.report_lines(result) if line.startswith("rare cells"))
     assert "events per target found" in line and "interval" in line
+
+
+def test_the_fcs_of_a_long_run_is_read_from_its_table(long_run):
+    """A summary without cells: the FCS events come from the table, the same as from the records."""
+    from vcyto.fcs import event_table
+    result, table, _ = long_run
+    records = sorted(celltable.records(table), key=lambda r: r["key"])
+    assert np.array_equal(event_table(result), event_table({"cells": records}))
+    assert len(event_table(result)) == result["statistics"]["events"]

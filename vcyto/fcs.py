@@ -44,8 +44,7 @@ def event_table(result: dict) -> np.ndarray:
     cells, else from its per-cell table (``vcyto.celltable``)."""
     cells = result.get("cells")
     if cells is None and result.get("cell_table"):
-        from .celltable import records
-        cells = records(result["cell_table"]["path"])
+        return _table_events(result["cell_table"]["path"])
     rows = []
     for cell in cells or ():
         if cell["detected_class"] is None:
@@ -55,6 +54,27 @@ def event_table(result: dict) -> np.ndarray:
                      DECISION_CODES.get(cell["decision"], -1), OUTLET_CODES.get(cell["outlet"], 3)])
     table = np.array(rows, dtype=float).reshape(-1, len(CHANNELS))
     return table[np.argsort(table[:, 0], kind="stable")]
+
+
+def _table_events(path) -> np.ndarray:
+    """``event_table`` read column by column from a per-cell table (memory: a few arrays of the events)."""
+    import pyarrow.compute as pc
+
+    from .celltable import read_table
+    table = read_table(path, columns=["detection_time_ms", "fluorescence", "scatter", "velocity_mm_s",
+                                      "detected_class", "decision", "outlet"])
+    table = table.filter(pc.is_valid(table["detected_class"]))
+
+    def coded(name, codes, missing):
+        values = table[name].to_numpy(zero_copy_only=False)
+        return np.array([codes.get(value, missing) for value in values.tolist()], dtype=float) if len(values) \
+            else np.zeros(0)
+    columns = [np.round(table["detection_time_ms"].to_numpy() * 1e-3 / TIMESTEP),
+               *(table[name].to_numpy() for name in ("fluorescence", "scatter", "velocity_mm_s")),
+               coded("detected_class", CLASS_CODES, 0), coded("decision", DECISION_CODES, -1),
+               coded("outlet", OUTLET_CODES, 3)]
+    events = np.column_stack(columns).astype(float) if len(table) else np.zeros((0, len(CHANNELS)))
+    return events[np.argsort(events[:, 0], kind="stable")]
 
 
 def fcs_bytes(events: np.ndarray, keywords: dict) -> bytes:

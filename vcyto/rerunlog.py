@@ -17,10 +17,10 @@ points down. Entities:
   (``SortFigures``: purity of the sorted outlet, targets sorted over the targets that left, aborts over type-II
   events), updated as cells leave;
 - ``device/paths/<slot>``: a cell's centroid path when it leaves, in slot ``key % PATH_SLOTS``, coloured by its
-  outcome class (named in the log): the view shows the paths of the last ``PATH_SLOTS`` cells (the MCAP keeps them
-  all);
+  outcome class (named in the log; labels hidden: they piled up where the cells leave): the view shows the
+  paths of the last ``PATH_SLOTS`` cells (the MCAP keeps them all);
 - ``device/events``: the newest ``RECENT_EVENTS`` detector events as markers where the cells were, at each
-  event's time, the newest labelled (labels do not pile up);
+  event's time, coloured by class, their labels hidden (shown on hover; the log has each event's line);
 - ``log``: detector events, decisions with their reasons, outcomes; ``device/flow/speed_mm_s``: the flow speed in
   mm/s as a scalar image (``DepthImage``, meter = 1, so hovering a pixel reads the speed in mm/s; viridis from 0 to
   the fixed ``speed_max_mm_s``), 1 pixel = 1 um, at the field cadence, with a colour bar ``device/legend`` above
@@ -200,6 +200,10 @@ class RerunLogger:
         self.stream.log("device", rr.Transform3D(translation=[0.0, self.height_um, 0.0], scale=[1.0, -1.0, 1.0]),
                         static=True)
         self._device(scenario, detection_window)
+        # paths and event markers carry no labels (their class names piled up where cells leave); the log names them
+        for slot in range(PATH_SLOTS):
+            self.stream.log(f"device/paths/{slot}", rr.LineStrips2D.from_fields(show_labels=False), static=True)
+        self.stream.log("device/events", rr.Points2D.from_fields(show_labels=False), static=True)
         step_after = rr.components.InterpolationMode.StepAfter
         for entity, name in (("idt", "IDT drive"), ("pulses/scheduled", "pulse scheduled"),
                              ("pulses/aborted", "pulse aborted")):
@@ -317,8 +321,7 @@ class RerunLogger:
         position = self.positions.get(key)
         if position is not None:
             self.recent_events.append((position, CLASS_IDS[class_name], label))
-            shown = [(at, class_id, "") for at, class_id, _ in list(self.recent_events)[:-1]]
-            self._add("device/events", shown + [self.recent_events[-1]], time_s)        # the newest labelled
+            self._add("device/events", list(self.recent_events), time_s)
         self.text(label)
 
     def pulse(self, on: float, off: float, aborted: bool = False, event_id: int | None = None):

@@ -24,7 +24,7 @@ SCHEMA = pa.schema([
     ("pulse_on_ms", pa.float64()), ("pulse_off_ms", pa.float64()), ("outlet", pa.string()),
     ("exit_time_ms", pa.float64()), ("exit_y_um", pa.float64()), ("area_ratio", pa.float64()),
     ("area_ratio_min", pa.float64()), ("area_ratio_max", pa.float64()), ("spacing_min_h", pa.float64()),
-    ("spacing_max_h", pa.float64()), ("area_corrected", pa.bool_()), ("outcome", pa.string()),
+    ("spacing_max_h", pa.float64()), ("area_corrected", pa.float64()), ("outcome", pa.string()),
 ])
 PAIRS = {"pulse_ms": ("pulse_on_ms", "pulse_off_ms"), "area_ratio_range": ("area_ratio_min", "area_ratio_max"),
          "spacing_over_h": ("spacing_min_h", "spacing_max_h")}

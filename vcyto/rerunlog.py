@@ -200,10 +200,12 @@ class RerunLogger:
         self.stream.log("device", rr.Transform3D(translation=[0.0, self.height_um, 0.0], scale=[1.0, -1.0, 1.0]),
                         static=True)
         self._device(scenario, detection_window)
-        # paths and event markers carry no labels (their class names piled up where cells leave); the log names them
+        # paths, event markers and membranes show no labels (their class names piled up on the cells' keys and
+        # where cells leave); the log names them
         for slot in range(PATH_SLOTS):
             self.stream.log(f"device/paths/{slot}", rr.LineStrips2D.from_fields(show_labels=False), static=True)
         self.stream.log("device/events", rr.Points2D.from_fields(show_labels=False), static=True)
+        self.stream.log("device/membranes", rr.LineStrips2D.from_fields(show_labels=False), static=True)
         step_after = rr.components.InterpolationMode.StepAfter
         for entity, name in (("idt", "IDT drive"), ("pulses/scheduled", "pulse scheduled"),
                              ("pulses/aborted", "pulse aborted")):

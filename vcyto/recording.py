@@ -57,7 +57,7 @@ from . import foxglove
 from .classes import CLASS_COLOURS, CLASS_IDS, CellClasses
 from .outputs import plain
 from .schemas import SCHEMAS
-from .sortreport import name_cells
+from .sortreport import EVENT_NAMES, name_cells
 
 PER_STEP = ("/loop/steps", "/cells/rows")
 # 1: JSON channels only, membranes in /cells; 2: Foxglove channels beside them (um); 3: the per-step channels as
@@ -227,6 +227,8 @@ class McapRecorder:
 
     def _event(self, event, cell):
         self._keys_by_event[event.event_id] = event.key
+        if len(self._keys_by_event) > 2 * EVENT_NAMES:         # the recent events: a decision names its neighbours
+            self._keys_by_event = {e: k for e, k in self._keys_by_event.items() if e > event.event_id - EVENT_NAMES}
         values = {key: getattr(event, key) for key in SCHEMAS["/detector/event"]["properties"]}
         self._write("/detector/event", event.time, values)
         text = (f"cell {event.key}: detected type {event.classification} (fluorescence {event.fluorescence:.2f}, "

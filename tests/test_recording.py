@@ -165,32 +165,42 @@ def test_a_deferred_sink_is_built_on_the_sinks_thread_and_writes_the_same_messag
             sink.close()
 
 
-def test_a_killed_run_keeps_every_step_up_to_the_last_flush(tmp_path):
-    command = [sys.executable, "-m", "vcyto.cli", "stream", "--model", "streamline", "--count", "400",
-               "--mix", "RBC:0.5,melanoma:0.5", "--rate", "2000", "--quiet", "--output", str(tmp_path),
-               "--flush-every", "20"]
+def killed_recording(command, directory, size: int, wait: float):
+    """Run ``command`` until its MCAP in ``directory`` passes ``size`` bytes, SIGKILL it; the MCAP's messages
+    readable up to its torn tail, by topic (JSON, decoded)."""
     process = subprocess.Popen(command, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     path = None
-    deadline = time.time() + 120
-    while time.time() < deadline:
-        files = list(tmp_path.glob("*.mcap"))
-        if files and files[0].stat().st_size > 200_000:
+    deadline = time.time() + wait
+    while time.time() < deadline and process.poll() is None:
+        files = list(directory.glob("*.mcap"))
+        if files and files[0].stat().st_size > size:
             path = files[0]
             break
         time.sleep(0.2)
     os.kill(process.pid, signal.SIGKILL)
     process.wait()
     assert path is not None, "the run never wrote enough to kill it mid-way"
-    steps, step_channel = [], None
+    channels, topics = {}, {}
     with open(path, "rb") as handle:
         try:
             for record in StreamReader(handle, skip_magic=False).records:
-                if isinstance(record, Channel) and record.topic == "/loop/steps":
-                    step_channel = record.id
-                if isinstance(record, Message) and record.channel_id == step_channel:
-                    steps += json.loads(record.data)["step"]
+                if isinstance(record, Channel):
+                    channels[record.id] = record.topic
+                elif isinstance(record, Message) and record.channel_id in channels:
+                    topic = channels[record.channel_id]
+                    if not topic.startswith("/foxglove/"):
+                        topics.setdefault(topic, []).append(json.loads(record.data))
         except McapError:
             pass                                   # the truncated tail: everything before it is intact
+    return topics
+
+
+def test_a_killed_run_keeps_every_step_up_to_the_last_flush(tmp_path):
+    command = [sys.executable, "-m", "vcyto.cli", "stream", "--model", "streamline", "--count", "400",
+               "--mix", "RBC:0.5,melanoma:0.5", "--rate", "2000", "--quiet", "--output", str(tmp_path),
+               "--flush-every", "20"]
+    topics = killed_recording(command, tmp_path, 200_000, 120)
+    steps = [step for batch in topics.get("/loop/steps", []) for step in batch["step"]]
     assert len(steps) >= 20 and steps == list(range(1, len(steps) + 1))
 
 
@@ -201,29 +211,8 @@ def test_a_killed_million_event_sort_keeps_its_recording_up_to_the_last_flush(tm
     command = [sys.executable, "-m", "vcyto.cli", "stream", "--model", "rom", "--count", "2000000", "--rate", "2000",
                "--arrivals", "poisson", "--mix", "RBC:0.9,melanoma:0.1", "--quiet", "--output", str(tmp_path),
                "--save", str(tmp_path / "run.rrd")]
-    process = subprocess.Popen(command, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-    path = None
-    deadline = time.time() + 600
-    while time.time() < deadline and process.poll() is None:
-        files = list(tmp_path.glob("*.mcap"))
-        if files and files[0].stat().st_size > 3_000_000:
-            path = files[0]
-            break
-        time.sleep(0.5)
-    os.kill(process.pid, signal.SIGKILL)
-    process.wait()
-    assert path is not None, "the run never wrote enough to kill it mid-way"
-    channels, steps, events = {}, [], []
-    with open(path, "rb") as handle:
-        try:
-            for record in StreamReader(handle, skip_magic=False).records:
-                if isinstance(record, Channel):
-                    channels[record.id] = record.topic
-                elif isinstance(record, Message) and channels.get(record.channel_id) == "/loop/steps":
-                    steps += json.loads(record.data)["time"]
-                elif isinstance(record, Message) and channels.get(record.channel_id) == "/detector/event":
-                    events.append(json.loads(record.data)["time"])
-        except McapError:
-            pass                                   # the torn tail
+    topics = killed_recording(command, tmp_path, 3_000_000, 600)
+    steps = [t for batch in topics.get("/loop/steps", []) for t in batch["time"]]
+    events = [event["time"] for event in topics.get("/detector/event", [])]
     assert len(steps) >= 400 and steps == sorted(steps) and len(set(steps)) == len(steps)
     assert len(events) > 100 and events == sorted(events)

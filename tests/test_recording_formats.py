@@ -188,7 +188,7 @@ def test_rerun_view_keeps_the_plants_coordinates(feib):
     assert compared >= 90
     flip = static["/device"]
     assert flip["Transform3D:scale"] == [[1.0, -1.0, 1.0]] and flip["Transform3D:translation"][0][1] == 220.0
-    assert any("Image:buffer" in values for _, values in rows["/device/flow"])
+    assert any("DepthImage:buffer" in values for _, values in rows["/device/flow/speed_mm_s"])
 
 
 def test_each_cell_is_coloured_by_its_outcome_class(sort):

@@ -17,8 +17,8 @@ points down. Entities:
   (``SortFigures``: purity of the sorted outlet, targets sorted over the targets that left, aborts over type-II
   events), updated as cells leave;
 - ``device/paths/<slot>``: a cell's centroid path when it leaves, in slot ``key % PATH_SLOTS``, coloured by its
-  outcome class (named in the log; labels hidden: they piled up where the cells leave): the view shows the
-  paths of the last ``PATH_SLOTS`` cells (the MCAP keeps them all);
+  outcome class, labelled "key: outcome class" (hidden, shown on hover: drawn, they piled up where the cells
+  leave): the view shows the paths of the last ``PATH_SLOTS`` cells (the MCAP keeps them all);
 - ``device/events``: the newest ``RECENT_EVENTS`` detector events as markers where the cells were, at each
   event's time, coloured by class, their labels hidden (shown on hover; the log has each event's line);
 - ``log``: detector events, decisions with their reasons, outcomes; ``device/flow/speed_mm_s``: the flow speed in
@@ -200,8 +200,8 @@ class RerunLogger:
         self.stream.log("device", rr.Transform3D(translation=[0.0, self.height_um, 0.0], scale=[1.0, -1.0, 1.0]),
                         static=True)
         self._device(scenario, detection_window)
-        # paths, event markers and membranes show no labels (their class names piled up on the cells' keys and
-        # where cells leave); the log names them
+        # paths, event markers and membranes keep their labels hidden (shown on hover: drawn, they piled up on the
+        # cells' keys and where cells leave)
         for slot in range(PATH_SLOTS):
             self.stream.log(f"device/paths/{slot}", rr.LineStrips2D.from_fields(show_labels=False), static=True)
         self.stream.log("device/events", rr.Points2D.from_fields(show_labels=False), static=True)
@@ -310,7 +310,8 @@ class RerunLogger:
         self.positions.pop(key, None)
         if path:
             class_id = CLASS_IDS.get(class_name, CLASS_IDS["lost"])
-            self._add(f"device/paths/{key % PATH_SLOTS}", (np.asarray(path, dtype=float), class_id))
+            self._add(f"device/paths/{key % PATH_SLOTS}", (np.asarray(path, dtype=float), class_id,
+                                                            f"{key}: {class_name}"))
         self.text(text, "INFO" if class_name in ("sorted", "passed") else "WARN")
 
     def sort_figures(self):
@@ -391,7 +392,7 @@ class RerunLogger:
         if entity.startswith("device/paths/"):
             return rr.LineStrips2D.columns(strips=_strips(rr, [v[0] for v in values]),
                                            class_ids=np.array([v[1] for v in values], dtype=np.uint16),
-                                           radii=np.full(len(values), 0.3, np.float32))
+                                           labels=[v[2] for v in values], radii=np.full(len(values), 0.3, np.float32))
         if entity == "log":
             return rr.TextLog.columns(text=[v[0] for v in values], level=[v[1] for v in values])
         return rr.Scalars.columns(scalars=np.array(values, dtype=float))

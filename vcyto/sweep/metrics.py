@@ -47,5 +47,6 @@ def metric_value(result: dict, name: str):
     group, _, outlet = name.partition(".")
     if group == "outlet":
         return outlets.get(outlet, 0)
-    cells = [cell for cell in result["cells"] if cell["type"] == group]
+    # a run of more than sortreport.KEEP_CELLS cells lists none in its summary: the metric is then undefined
+    cells = [cell for cell in result.get("cells") or () if cell["type"] == group]
     return sum(cell["outlet"] == outlet for cell in cells) / len(cells) if cells else None

@@ -11,7 +11,7 @@ import pytest
 from sim.arrivals import Arrivals
 from sim.scenario import Scenario
 from vcyto import __version__
-from vcyto.fcs import CHANNELS, gate_consistent, write_fcs
+from vcyto.fcs import CHANNELS, write_fcs
 from vcyto.gatingml import GATE_IDS, write_gatingml
 from vcyto.stream import StreamSettings, run_stream
 
@@ -51,17 +51,43 @@ def test_every_channel_is_bounded_by_its_range_and_described(exported):
         assert metadata[f"p{index}n"] == name and metadata[f"p{index}s"]
         assert events[:, index - 1].max() <= float(metadata[f"p{index}r"]) and metadata[f"p{index}e"] == "0,0"
     assert float(metadata["p2r"]) <= 10                      # fluorescence of 0-2: a range a logicle display spreads
-    assert metadata["timestep"] == "0.001" and "vcyto" in metadata["cyt"]
+    assert float(metadata["timestep"]) == 1e-7 and "vcyto" in metadata["cyt"]
     assert re.fullmatch(r"\d\d-[A-Z]{3}-\d{4}", metadata["date"]) and re.fullmatch(r"\d\d:\d\d:\d\d", metadata["btim"])
     assert metadata["vcyto_detector_gate"] == "0.45" and metadata["vcyto_channel_um"] == "300x220"
 
 
-def test_float32_rounding_never_moves_a_value_across_the_gate():
-    gate = 0.1                                                    # not a float32 number
-    below, above = np.nextafter(gate, 0.0), gate
-    values = gate_consistent(np.array([below, above, 0.05, 0.2]), np.array([1, 2, 1, 2]), gate)
-    assert values.dtype == np.float32
-    assert list(values >= np.float32(gate)) == [False, True, False, True]
+def test_scatter_is_scatter_and_fluorescence_is_the_detectors_value(exported):
+    """FlowKit classifies FSC-A as scatter and FL1-A as fluorescence (channel names as analysis tools expect);
+    FL1-A holds the detector's float64 fluorescence, bit for bit, in event order."""
+    flowkit = pytest.importorskip("flowkit")
+    fcs_path, _, result = exported
+    sample = flowkit.Sample(str(fcs_path))
+    names = sample.pnn_labels
+    assert [names[i] for i in sample.scatter_indices] == ["FSC-A"]
+    assert "FL1-A" in [names[i] for i in sample.fluoro_indices] and names[sample.time_index] == "Time"
+    assert [sample.pns_labels[i] for i in range(3)] == ["Time", "Fluorescence", "Forward scatter"]
+    detected = sorted((c for c in result["cells"] if c["detected_class"]), key=lambda c: c["detection_time_ms"])
+    events = sample.get_events(source="raw")
+    assert events[:, 1].tolist() == [c["fluorescence"] for c in detected]
+
+
+def test_fcs_time_ticks_are_exact_over_ten_thousand_seconds(tmp_path):
+    """Detection times up to 10^4 s come back from the file within half a tick (0.05 us), where float32
+    milliseconds lose ~0.5 ms; FlowKit reads the same times (ticks x $TIMESTEP)."""
+    from vcyto.fcs import TIMESTEP, read_fcs
+    rng = np.random.default_rng(1)
+    times_s = np.sort(np.concatenate([[1e4 - 1.234567e-6, 9999.9999999], rng.uniform(0, 1e4, 200)]))
+    cells = [{"detected_class": "I", "detection_time_ms": t * 1e3, "fluorescence": 0.1, "scatter": 80.0,
+              "velocity_mm_s": 50.0, "decision": "pass", "outlet": "lower"} for t in times_s]
+    path = write_fcs(tmp_path / "long.fcs", {"cells": cells, "model": "rom", "seed": 0})
+    _, events, keywords = read_fcs(path)
+    assert float(keywords["timestep"]) == TIMESTEP <= 1e-6
+    assert np.all(events[:, 0] == np.round(events[:, 0]))                      # integer ticks
+    assert np.max(np.abs(events[:, 0] * TIMESTEP - times_s)) <= 0.5 * TIMESTEP + 1e-12
+    assert np.max(np.abs(np.float32(times_s * 1e3) * 1e-3 - times_s)) > 1e-4     # what float32 ms would lose
+    flowkit = pytest.importorskip("flowkit")
+    seconds = flowkit.Sample(str(path)).get_events(source="raw")[:, 0]          # FlowKit scales by $TIMESTEP
+    assert np.max(np.abs(seconds - times_s)) <= 0.5 * TIMESTEP + 1e-9
 
 
 def test_python_m_vcyto_prints_the_version():

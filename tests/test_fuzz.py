@@ -167,7 +167,8 @@ def test_sweep_specs(sandbox, parameters, base, sweep):
     check(["sweep", str(spec), "--output", str(sandbox / "sweep-out")])
 
 
-TOPICS = ["/loop/step", "/cells", "/detector/event", "/controller/decision", "/outcome", "/flow/velocity"]
+TOPICS = ["/loop/step", "/cells", "/loop/steps", "/cells/rows", "/detector/event", "/controller/decision", "/outcome",
+          "/flow/velocity"]
 payloads = st.dictionaries(st.sampled_from(["time", "step", "idt", "cells", "key", "classification", "fluorescence",
                                             "event_id", "action", "type", "outlet", "shape", "x_um", "y_um"]),
                            st.one_of(toml_scalars, st.lists(st.integers(-3, 3), max_size=3),
@@ -177,8 +178,8 @@ payloads = st.dictionaries(st.sampled_from(["time", "step", "idt", "cells", "key
 
 @FUZZ
 @given(messages=st.lists(st.tuples(st.sampled_from(TOPICS), payloads), max_size=6),
-       metadata=st.dictionaries(st.sampled_from(["scenario_toml", "detector", "seed"]), st.text(max_size=30),
-                                max_size=2),
+       metadata=st.dictionaries(st.sampled_from(["scenario_toml", "detector", "seed", "recording_format"]),
+                                st.text(max_size=30), max_size=2),
        cut=st.one_of(st.none(), st.integers(0, 400)))
 def test_crafted_recordings(sandbox, messages, metadata, cut):
     from mcap.writer import Writer

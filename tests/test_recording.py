@@ -47,15 +47,24 @@ def messages(path):
                 if channel.message_encoding == "json"]
 
 
-def test_round_trip_one_message_per_step_monotonic_times_and_outcomes(plant, tmp_path):
+def test_round_trip_one_row_per_step_in_batches_monotonic_times_and_outcomes(plant, tmp_path):
+    """The per-step channels hold one column entry per step, in batches of ``flush_every`` (10) steps, each
+    message at its last step's time; the rows of /cells/rows are the cells in the channel at each step."""
     path = tmp_path / "run.mcap"
     result = record(plant, path)
     recorded = messages(path)
-    steps = [m for m in recorded if m[0] == "/loop/step"]
-    assert len(steps) == steps[-1][2]["step"] and [s[2]["step"] for s in steps] == list(range(1, len(steps) + 1))
+    batches = [m for m in recorded if m[0] == "/loop/steps"]
+    steps = [step for m in batches for step in m[2]["step"]]
+    times = [t for m in batches for t in m[2]["time"]]
+    assert steps == list(range(1, len(steps) + 1)) and len(steps) > 20 and times == sorted(times)
+    assert [len(m[2]["step"]) for m in batches[:-1]] == [10] * (len(batches) - 1)
     for topic in PER_STEP:
-        times = [m[1] for m in recorded if m[0] == topic]
-        assert len(times) == len(steps) and times == sorted(times) and len(set(times)) == len(times)
+        batch_times = [m[1] for m in recorded if m[0] == topic]
+        assert batch_times == [round(m[2]["time"][-1] * 1e9) for m in batches]
+    rows = [m[2] for m in recorded if m[0] == "/cells/rows"]
+    assert [t for r in rows for t in r["time"]] == times
+    assert [c for r in rows for c in r["count"]] == [n for m in batches for n in m[2]["cells_in_channel"]]
+    assert sum(len(r["key"]) for r in rows) == sum(c for r in rows for c in r["count"]) > 0
     outcomes = {m[2]["key"]: m[2]["outlet"] for m in recorded if m[0] == "/outcome"}
     assert outcomes == {cell["key"]: cell["outlet"] for cell in result["cells"]}
     decisions = {m[2]["event_id"]: m[2]["action"] for m in recorded if m[0] == "/controller/decision"}
@@ -156,30 +165,54 @@ def test_a_deferred_sink_is_built_on_the_sinks_thread_and_writes_the_same_messag
             sink.close()
 
 
-def test_a_killed_run_keeps_every_step_up_to_the_last_flush(tmp_path):
-    command = [sys.executable, "-m", "vcyto.cli", "stream", "--model", "streamline", "--count", "400",
-               "--mix", "RBC:0.5,melanoma:0.5", "--rate", "2000", "--quiet", "--output", str(tmp_path),
-               "--flush-every", "20"]
+def killed_recording(command, directory, size: int, wait: float):
+    """Run ``command`` until its MCAP in ``directory`` passes ``size`` bytes, SIGKILL it; the MCAP's messages
+    readable up to its torn tail, by topic (JSON, decoded)."""
     process = subprocess.Popen(command, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     path = None
-    deadline = time.time() + 120
-    while time.time() < deadline:
-        files = list(tmp_path.glob("*.mcap"))
-        if files and files[0].stat().st_size > 200_000:
+    deadline = time.time() + wait
+    while time.time() < deadline and process.poll() is None:
+        files = list(directory.glob("*.mcap"))
+        if files and files[0].stat().st_size > size:
             path = files[0]
             break
         time.sleep(0.2)
     os.kill(process.pid, signal.SIGKILL)
     process.wait()
     assert path is not None, "the run never wrote enough to kill it mid-way"
-    steps, step_channel = [], None
+    channels, topics = {}, {}
     with open(path, "rb") as handle:
         try:
             for record in StreamReader(handle, skip_magic=False).records:
-                if isinstance(record, Channel) and record.topic == "/loop/step":
-                    step_channel = record.id
-                if isinstance(record, Message) and record.channel_id == step_channel:
-                    steps.append(json.loads(record.data)["step"])
+                if isinstance(record, Channel):
+                    channels[record.id] = record.topic
+                elif isinstance(record, Message) and record.channel_id in channels:
+                    topic = channels[record.channel_id]
+                    if not topic.startswith("/foxglove/"):
+                        topics.setdefault(topic, []).append(json.loads(record.data))
         except McapError:
             pass                                   # the truncated tail: everything before it is intact
+    return topics
+
+
+def test_a_killed_run_keeps_every_step_up_to_the_last_flush(tmp_path):
+    command = [sys.executable, "-m", "vcyto.cli", "stream", "--model", "streamline", "--count", "400",
+               "--mix", "RBC:0.5,melanoma:0.5", "--rate", "2000", "--quiet", "--output", str(tmp_path),
+               "--flush-every", "20"]
+    topics = killed_recording(command, tmp_path, 200_000, 120)
+    steps = [step for batch in topics.get("/loop/steps", []) for step in batch["step"]]
     assert len(steps) >= 20 and steps == list(range(1, len(steps) + 1))
+
+
+@pytest.mark.slow
+def test_a_killed_million_event_sort_keeps_its_recording_up_to_the_last_flush(tmp_path):
+    """A rom sort of 10^6 events (2 x 10^6 offered at 2,000/s) with MCAP and Rerun, killed once its recording
+    has grown: the steps up to the last whole batch read back in order, with the events of those steps."""
+    command = [sys.executable, "-m", "vcyto.cli", "stream", "--model", "rom", "--count", "2000000", "--rate", "2000",
+               "--arrivals", "poisson", "--mix", "RBC:0.9,melanoma:0.1", "--quiet", "--output", str(tmp_path),
+               "--save", str(tmp_path / "run.rrd")]
+    topics = killed_recording(command, tmp_path, 3_000_000, 600)
+    steps = [t for batch in topics.get("/loop/steps", []) for t in batch["time"]]
+    events = [event["time"] for event in topics.get("/detector/event", [])]
+    assert len(steps) >= 400 and steps == sorted(steps) and len(set(steps)) == len(steps)
+    assert len(events) > 100 and events == sorted(events)

@@ -145,7 +145,7 @@ def test_rerun_mcap_importer_draws_membranes_flow_and_log(feib, sort, tmp_path):
             assert "Image:buffer" in rows["/foxglove/speed"]
             first = next(iter(run["capture"].membranes.values()))[0]
             points = np.array(rows["/foxglove/membranes"]["Points3D:positions"][0])
-            assert np.allclose(points[:, :2], first, atol=1e-3) and np.all(points[:, 2] == 0)
+            assert np.allclose(points[:, :2] * 1e6, first, atol=1e-3) and np.all(points[:, 2] == 0)   # metres
         else:
             cells = run["result"]["cells"]
             detected = sum(c["detected_class"] is not None for c in cells)
@@ -188,7 +188,7 @@ def test_rerun_view_keeps_the_plants_coordinates(feib):
     assert compared >= 90
     flip = static["/device"]
     assert flip["Transform3D:scale"] == [[1.0, -1.0, 1.0]] and flip["Transform3D:translation"][0][1] == 220.0
-    assert any("Image:buffer" in values for _, values in rows["/device/flow"])
+    assert any("DepthImage:buffer" in values for _, values in rows["/device/flow/speed_mm_s"])
 
 
 def test_each_cell_is_coloured_by_its_outcome_class(sort):
@@ -228,7 +228,7 @@ def test_replay_shows_what_the_live_view_shows(sort, tmp_path):
         assert [t for t, _ in again[entity]] == [t for t, _ in live[entity]], entity
     assert [v for _, v in again["/log"]] == [v for _, v in live["/log"]]          # velocities and reasons too
     assert any("mm/s" in v["TextLog:text"][0] for _, v in again["/log"])
-    assert json.loads(done.stdout)["format"] == "2"
+    assert json.loads(done.stdout)["format"] == "3"
 
 
 def test_a_recording_of_the_first_format_still_replays(tmp_path):
@@ -266,8 +266,11 @@ def test_the_flow_colours_are_matplotlibs_viridis_and_a_warm_process_needs_no_ma
     assert np.array_equal(viridis(values), expected) and viridis(0.0).tolist() == expected[0].tolist()
     script = ("import sys; import vcyto.cache as c; c.install_default(); from sim.scenario import Scenario; "
               "from vcyto.rerunlog import RerunLogger; from controller.detector import DetectorSettings; "
-              "RerunLogger(Scenario(), DetectorSettings().window, ('save', sys.argv[1])); "
-              "print('matplotlib' in sys.modules)")
+              "from vcyto.recording import velocity_field; import numpy as np; "
+              "logger = RerunLogger(Scenario(), DetectorSettings().window, ('save', sys.argv[1])); "
+              "x, y = np.linspace(0, 300e-6, 4), np.linspace(0, 220e-6, 3); X, Y = np.meshgrid(x, y); "
+              "logger.field(velocity_field(np.array([X.ravel(), Y.ravel()]), np.ones((2, 12)) * 0.05, np.zeros(12), "
+              "x, y, 0.0)); logger.close(); print('matplotlib' in sys.modules)")
     environment = {**os.environ, "VCYTO_CACHE_DIR": str(tmp_path / "cache")}
     imported = [subprocess.run([sys.executable, "-c", script, str(tmp_path / f"{n}.rrd")], capture_output=True,
                                text=True, env=environment, timeout=120).stdout.strip() for n in range(2)]
@@ -299,3 +302,52 @@ def test_a_rerun_recording_does_not_import_pandas_and_pandas_stays_usable(tmp_pa
         if process == "library":
             assert lines[2].startswith("dictionary<"), lines[2]         # pyarrow's own pandas conversion
     assert RrdReader(str(tmp_path / "after-command.rrd")) is not None
+
+
+def test_the_view_draws_pulses_and_drive_as_steps_with_one_value_per_edge(sort):
+    """Each pulse the controller scheduled is two rows (1 at its start, 0 at its end, at those times), the drive
+    steps at the kept pulses' edges, both drawn with step-after interpolation; purity, yield and abort rate are
+    series; the cells' paths keep their labels hidden (drawn, they piled up at the outlets)."""
+    rows, static = rrd_rows(sort["dir"] / "live.rrd")
+    pulses = [c for c in sort["result"]["cells"] if c["pulse_ms"]]
+    kept = [c["pulse_ms"] for c in pulses if c["decision"] == "sort"]
+    scheduled = rows["/pulses/scheduled"]
+    assert len(scheduled) == 2 * len(pulses) and kept
+    edges = sorted((round(t * 1e6), v) for on, off in kept for t, v in ((on, 1.0), (off, 0.0)))
+    assert set(edges) <= {(t, row["Scalars:scalars"][0]) for t, row in scheduled}
+    drive = [(t, row["Scalars:scalars"][0]) for t, row in rows["/idt"]]
+    assert [v for _, v in drive] == [0.0] + [1.0, 0.0] * (len(drive) // 2)       # one row per change
+    assert {t for t, v in drive if v == 1.0} <= {t for t, v in edges if v == 1.0}
+    step_after = 2                                                               # InterpolationMode.StepAfter
+    for entity in ("/idt", "/pulses/scheduled"):
+        assert static[entity]["SeriesLines:interpolation_mode"] == [step_after]
+    for name in ("purity", "yield", "abort_rate"):
+        assert rows[f"/sort/{name}"], name
+    last = {name: rows[f"/sort/{name}"][-1][1]["Scalars:scalars"][0] for name in ("purity", "yield")}
+    assert last["purity"] == pytest.approx(sort["result"]["statistics"]["purity"])
+    assert all(static[f"/device/paths/{slot}"]["LineStrips2D:show_labels"] == [False] for slot in range(16))
+
+
+def test_the_speed_field_is_a_scalar_image_in_mm_per_s(feib):
+    """The flow speed is a DepthImage of float32 mm/s (hovering reads the value), meter 1, viridis, on the
+    legend's scale; a point-like plant (no field) shows no legend."""
+    rows, static = rrd_rows(feib["dir"] / "live.rrd")
+    image = rows["/device/flow/speed_mm_s"][0][1]
+    assert "DepthImage:buffer" in image and image["DepthImage:meter"] == [1.0]
+    assert image["DepthImage:depth_range"][0][0] == 0.0 and image["DepthImage:depth_range"][0][1] > 10
+    assert "/device/legend/bar" in static
+
+
+def test_foxglove_scene_is_in_metres_with_lifetimes(sort):
+    """Foxglove's conventions: the device outline spans the channel's 300 um as 3e-4 m; markers and paths expire."""
+    from mcap_protobuf.decoder import DecoderFactory
+    _, messages = mcap_messages(sort["dir"] / "run.mcap")
+    decode, entities = DecoderFactory(), []
+    for schema, channel, message in messages:
+        if channel.topic == "/foxglove/scene":
+            entities += decode.decoder_for("protobuf", schema)(message.data).entities
+    outline = next(e for e in entities if e.id == "device/outline")
+    assert max(p.x for p in outline.lines[0].points) == pytest.approx(300e-6)
+    temporary = [e for e in entities if e.id.startswith(("event/", "path/"))]
+    assert temporary and all(e.lifetime.ToNanoseconds() > 0 for e in temporary)
+    assert not outline.HasField("lifetime")

@@ -1,16 +1,18 @@
-"""FCS 3.1 export of a stream's detector events (flowio), readable and gateable by standard flow-cytometry tools.
+"""FCS 3.1 export of a stream's detector events, readable and gateable by standard flow-cytometry tools.
 
-One event per detected cell, channels ($PnN, with $PnS saying what and in which unit): Time (ms; $TIMESTEP 0.001 s),
-FL1 (fluorescence, a.u.), FSC (forward scatter: the cell's area with noise, um^2), Velocity (mm/s), Class (1 = type
-I, 2 = type II), Decision (0 pass, 1 sort, 2 abort), Outlet (0 lower, 1 upper, 2 wall, 3 lost, 4 still in the
-channel when a partial run stopped). Every $PnR bounds its channel's values (a 1, 2 or 5 x 10^k at or above the
-largest), so a logicle or biexponential display spreads the events over the axis; $PnE is 0,0 (linear, float data).
-The run is described by $CYT, $DATE, $BTIM, $ETIM and VCYTO_* keywords (model, seed, codes, device, detector and
-controller settings).
+One event per detected cell, channels ($PnN as analysis tools expect: scatter and fluorescence as ``-A`` areas;
+$PnS a short name): Time (integer ticks of $TIMESTEP = ``TIMESTEP`` s, the detection time), FL1-A (fluorescence,
+a.u.), FSC-A (forward scatter: the cell's area with noise, um^2), Velocity (mm/s), Class (1 = type I, 2 = type II),
+Decision (0 pass, 1 sort, 2 abort), Outlet (0 lower, 1 upper, 2 wall, 3 lost, 4 still in the channel when a partial
+run stopped). The data are float64 ($DATATYPE D), so Time is an exact integer tick count over any run shorter than
+~28 years and FL1-A is the detector's own value (the exported gate, ``vcyto.gatingml``, applied to the file counts
+exactly the detector's classifications). Every $PnR bounds its channel's values (a 1, 2 or 5 x 10^k at or above
+the largest), so a logicle or biexponential display spreads the events over the axis; $PnE is 0,0 (linear). The run
+is described by $CYT, $DATE, $BTIM, $ETIM and VCYTO_* keywords (model, seed, codes, device, detector and controller
+settings).
 
-FL1 values are written as float32: where rounding to float32 would move a value across the classification gate,
-it is moved by one float32 step back to its side, so that the exported gate (``vcyto.gatingml``) applied to the
-file counts exactly the detector's classifications.
+flowio (the reader here, and FlowKit's) writes float32 data only, which cannot hold microsecond ticks past 16 s;
+``fcs_bytes`` writes the FCS 3.1 segments (header, TEXT, DATA) for float64 itself.
 """
 
 from __future__ import annotations
@@ -25,35 +27,86 @@ import numpy as np
 
 from . import outputs
 
-CHANNELS = ("Time", "FL1", "FSC", "Velocity", "Class", "Decision", "Outlet")
-DESCRIPTIONS = ("time of detection (ms)", "fluorescence (a.u.)", "forward scatter, cell area (um^2)",
+CHANNELS = ("Time", "FL1-A", "FSC-A", "Velocity", "Class", "Decision", "Outlet")
+SHORT_NAMES = ("Time", "Fluorescence", "Forward scatter", "Velocity mm/s", "Class", "Decision", "Outlet")
+DESCRIPTIONS = ("time of detection (ticks of $TIMESTEP s)", "fluorescence (a.u.)", "forward scatter, cell area (um^2)",
                 "velocity through the detection window (mm/s)", "detected class (1=I, 2=II)",
                 "decision (0=pass, 1=sort, 2=abort)", "outlet (0=lower, 1=upper, 2=wall, 3=lost, 4=in channel)")
+TIMESTEP = 1e-7               # s: Time's tick (0.1 us)
 CLASS_CODES = {"I": 1, "II": 2}
 DECISION_CODES = {"pass": 0, "sort": 1, "abort": 2, "missed": 3}
 OUTLET_CODES = {"lower": 0, "upper": 1, "wall": 2, "lost": 3, "in_channel": 4}
+_TEXT_START = 58              # the TEXT segment follows the header
 
 
 def event_table(result: dict) -> np.ndarray:
-    """Rows of detected cells in event order, columns as ``CHANNELS`` (float64)."""
+    """Rows of detected cells in event order, columns as ``CHANNELS`` (float64; Time in ticks): from the summary's
+    cells, else from its per-cell table (``vcyto.celltable``)."""
+    cells = result.get("cells")
+    if cells is None and result.get("cell_table"):
+        return _table_events(result["cell_table"]["path"])
     rows = []
-    for cell in result["cells"]:
+    for cell in cells or ():
         if cell["detected_class"] is None:
             continue
-        rows.append([cell["detection_time_ms"], cell["fluorescence"], cell["scatter"], cell["velocity_mm_s"],
-                     CLASS_CODES[cell["detected_class"]], DECISION_CODES.get(cell["decision"], -1),
-                     OUTLET_CODES.get(cell["outlet"], 3)])
+        rows.append([round(cell["detection_time_ms"] * 1e-3 / TIMESTEP), cell["fluorescence"], cell["scatter"],
+                     cell["velocity_mm_s"], CLASS_CODES[cell["detected_class"]],
+                     DECISION_CODES.get(cell["decision"], -1), OUTLET_CODES.get(cell["outlet"], 3)])
     table = np.array(rows, dtype=float).reshape(-1, len(CHANNELS))
     return table[np.argsort(table[:, 0], kind="stable")]
 
 
-def gate_consistent(fluorescence: np.ndarray, classes: np.ndarray, gate: float) -> np.ndarray:
-    """float32 fluorescence on the same side of ``gate`` (as float32) as the detector's class (2: >= gate)."""
-    values = fluorescence.astype(np.float32)
-    threshold = np.float32(gate)
-    above = classes == CLASS_CODES["II"]
-    values = np.where(above & (values < threshold), threshold, values)
-    return np.where(~above & (values >= threshold), np.nextafter(threshold, np.float32(-np.inf)), values)
+def _table_events(path) -> np.ndarray:
+    """``event_table`` read column by column from a per-cell table (memory: a few arrays of the events)."""
+    import pyarrow.compute as pc
+
+    from .celltable import read_table
+    table = read_table(path, columns=["detection_time_ms", "fluorescence", "scatter", "velocity_mm_s",
+                                      "detected_class", "decision", "outlet"])
+    table = table.filter(pc.is_valid(table["detected_class"]))
+
+    def coded(name, codes, missing):
+        values = table[name].to_numpy(zero_copy_only=False)
+        return np.array([codes.get(value, missing) for value in values.tolist()], dtype=float) if len(values) \
+            else np.zeros(0)
+    columns = [np.round(table["detection_time_ms"].to_numpy() * 1e-3 / TIMESTEP),
+               *(table[name].to_numpy() for name in ("fluorescence", "scatter", "velocity_mm_s")),
+               coded("detected_class", CLASS_CODES, 0), coded("decision", DECISION_CODES, -1),
+               coded("outlet", OUTLET_CODES, 3)]
+    events = np.column_stack(columns).astype(float) if len(table) else np.zeros((0, len(CHANNELS)))
+    return events[np.argsort(events[:, 0], kind="stable")]
+
+
+def fcs_bytes(events: np.ndarray, keywords: dict) -> bytes:
+    """An FCS 3.1 file of ``events`` (rows of float64, little-endian, list mode) with ``keywords`` (the channels'
+    $PnN, $PnS, $PnR and any others; the segment offsets and data layout are added)."""
+    events = np.ascontiguousarray(events, dtype="<f8")
+    count, channels = events.shape
+    fixed = {"$BEGINANALYSIS": "0", "$ENDANALYSIS": "0", "$BEGINSTEXT": "0", "$ENDSTEXT": "0",
+             "$BYTEORD": "1,2,3,4", "$DATATYPE": "D", "$MODE": "L", "$NEXTDATA": "0", "$PAR": str(channels),
+             "$TOT": str(count), **{f"$P{i}{key}": value for i in range(1, channels + 1)
+                                    for key, value in (("B", "64"), ("E", "0,0"))}}
+    data, begin = events.tobytes(), 0
+    while True:                         # the offsets are in the TEXT whose length they set: until they hold
+        end = begin + len(data) - 1 if data else 0
+        text = _text({**fixed, **keywords, "$BEGINDATA": str(begin if data else 0), "$ENDDATA": str(end)})
+        start = _TEXT_START + len(text)
+        if begin == start or not data:
+            break
+        begin = start
+    offsets = [_TEXT_START, _TEXT_START + len(text) - 1, begin if data else 0, end, 0, 0]
+    header = "FCS3.1    " + "".join(f"{value if value <= 99_999_999 else 0:>8}" for value in offsets)
+    return header.encode("ascii") + text + data
+
+
+def _text(keywords: dict) -> bytes:
+    """The TEXT segment: / delimited, a / inside a keyword or value doubled (FCS 3.1), UTF-8."""
+    return ("/" + "/".join(f"{_escape(key)}/{_escape(str(value))}" for key, value in keywords.items())
+            + "/").encode("utf-8")
+
+
+def _escape(text: str) -> str:
+    return text.replace("/", "//")
 
 
 def channel_range(values: np.ndarray) -> str:
@@ -62,7 +115,7 @@ def channel_range(values: np.ndarray) -> str:
     if not top > 1:
         return "1"
     decade = 10.0 ** math.floor(math.log10(top))
-    return f"{next(step * decade for step in (1, 2, 5, 10) if step * decade >= top):g}"
+    return f"{next(step * decade for step in (1, 2, 5, 10) if step * decade >= top):.0f}"
 
 
 def _settings_keywords(settings) -> dict:
@@ -92,26 +145,26 @@ def write_fcs(path: Path, result: dict, metadata: dict | None = None, settings=N
     add the detector, controller and device keywords; ``metadata``: extra keywords."""
     table = event_table(result)
     gate = settings.detector.gate if settings is not None else 0.5
-    table32 = table.astype(np.float32)
-    table32[:, 1] = gate_consistent(table[:, 1], table[:, 4], gate)
     ended = time.time()
     began = ended - float(result.get("wall_time_s", 0.0))
-    keywords = {"$CYT": f"vcyto virtual cytometer ({result['model']} model)", "$TIMESTEP": "0.001",
+    keywords = {"$CYT": f"vcyto virtual cytometer ({result['model']} model)", "$TIMESTEP": f"{TIMESTEP:g}",
                 "$DATE": time.strftime("%d-%b-%Y", time.localtime(began)).upper(),
                 "$BTIM": time.strftime("%H:%M:%S", time.localtime(began)),
                 "$ETIM": time.strftime("%H:%M:%S", time.localtime(ended)),
-                "VCYTO_MODEL": result["model"], "VCYTO_SEED": str(result["seed"]), "VCYTO_GATE_FL1": f"{gate!r}",
+                "VCYTO_MODEL": result["model"], "VCYTO_SEED": str(result["seed"]), "VCYTO_GATE_FL1_A": f"{gate!r}",
                 "VCYTO_CLASS_CODES": "1=I,2=II", "VCYTO_DECISION_CODES": "0=pass,1=sort,2=abort,3=missed",
                 "VCYTO_OUTLET_CODES": "0=lower,1=upper,2=wall,3=lost,4=in_channel"}
     keywords.update(_settings_keywords(settings))
     keywords.update(_device_keywords(scenario))
-    for index in range(len(CHANNELS)):
-        keywords[f"$P{index + 1}R"] = channel_range(table32[:, index])
+    for index, (name, short, description) in enumerate(zip(CHANNELS, SHORT_NAMES, DESCRIPTIONS), start=1):
+        keywords.update({f"$P{index}N": name, f"$P{index}S": short, f"$P{index}R": channel_range(table[:, index - 1]),
+                         f"VCYTO_P{index}_DESCRIPTION": description})
     keywords.update({key: str(value) for key, value in (metadata or {}).items()})
+    data = fcs_bytes(table, keywords)
+
     def write(temporary):
         with open(temporary, "wb") as handle:
-            flowio.create_fcs(handle, table32.flatten(), list(CHANNELS), opt_channel_names=list(DESCRIPTIONS),
-                              metadata_dict=keywords)
+            handle.write(data)
     outputs.write_whole(path, write)
     return path
 

@@ -3,7 +3,10 @@
 Any tool that knows the Foxglove schemas draws these with no vcyto installed: Foxglove's 3D panel (scene and
 point cloud), Image panel (speed), Log panel (events); Rerun's MCAP importer turns ``foxglove.PointCloud`` into
 ``Points3D``, ``foxglove.RawImage`` into ``Image`` and ``foxglove.Log`` into ``TextLog``. Coordinates are the
-plant's, in micrometres, y up (frame ``channel``: x along the channel, y across it, z = 0).
+plant's in metres, as Foxglove's conventions have them, y up (frame ``channel``: x along the channel, y across
+it, z = 0); the functions here take micrometres (the plant's figures read in um) and write metres. Detector
+markers and cell paths have lifetimes (``MARKER_LIFETIME``, ``PATH_LIFETIME`` of simulated time, which is the
+recording's timeline), so the 3D panel shows the recent ones, not every cell of a long run.
 """
 
 from __future__ import annotations
@@ -25,6 +28,7 @@ from foxglove_schemas_protobuf.SceneUpdate_pb2 import SceneUpdate
 from foxglove_schemas_protobuf.SpherePrimitive_pb2 import SpherePrimitive
 from foxglove_schemas_protobuf.TextPrimitive_pb2 import TextPrimitive
 from foxglove_schemas_protobuf.Vector3_pb2 import Vector3
+from google.protobuf.duration_pb2 import Duration
 from google.protobuf.timestamp_pb2 import Timestamp
 
 FRAME = "channel"
@@ -37,6 +41,9 @@ _POINT = struct.Struct("<fffBBBBIB")                 # one row of POINT
 POINT_FIELDS = [PackedElementField(name=name, offset=POINT.fields[name][1], type=_NUMERIC[POINT.fields[name][0].str])
                 for name in POINT.names]
 SPEED_PIXEL_UM = 2.0
+METRE = 1e-6                                     # metres per micrometre: what the functions write
+MARKER_LIFETIME = Duration(nanos=2_000_000)      # 2 ms of simulated time
+PATH_LIFETIME = Duration(nanos=10_000_000)       # 10 ms
 LEVELS = {"INFO": Log.INFO, "WARN": Log.WARNING, "WARNING": Log.WARNING, "ERROR": Log.ERROR}
 
 
@@ -45,11 +52,11 @@ def stamp(unix_ns: int) -> Timestamp:
 
 
 def _binary(values_um):
-    """Micrometres rounded to 1/1024 um (about 1 nm): float32 with zero low mantissa bits, which compress (an
-    array, or a tuple of Python floats for a tuple)."""
+    """Micrometres in metres, rounded to 1/1024 um (about 1 nm), as float32 (an array, or a tuple of Python floats
+    for a tuple)."""
     if isinstance(values_um, tuple):
-        return tuple(round(value * 1024.0) / 1024.0 for value in values_um)
-    return (np.round(np.asarray(values_um, dtype=float) * 1024.0) / 1024.0).astype(np.float32)
+        return tuple(round(value * 1024.0) / 1024.0 * METRE for value in values_um)
+    return (np.round(np.asarray(values_um, dtype=float) * 1024.0) / 1024.0 * METRE).astype(np.float32)
 
 
 # a pose with every field set: Rerun's MCAP importer reads an absent position as a column it cannot decode
@@ -60,8 +67,27 @@ def membranes(unix_ns: int, cells) -> PointCloud:
     """Every cell's membrane points (or its centroid for point-like models) with its key, class id and colour.
 
     ``cells``: (key, class id, RGB, points in um: an (n, 2) array, or an (x, y) pair for a point-like cell)."""
+    return PointCloud.FromString(Membranes().message(unix_ns, cells))
+
+
+class Membranes:
+    """``membranes`` serialised fast, for every step of a recording: the fields that never change (frame, pose,
+    point layout) are serialised once, the step's timestamp and points around them in field order (protobuf reads
+    the concatenation as one message, and it is the bytes that message serialises to)."""
+
+    def __init__(self):
+        self._fixed = PointCloud(frame_id=FRAME, pose=_IDENTITY, point_stride=POINT.itemsize,
+                                 fields=POINT_FIELDS).SerializeToString()
+
+    def message(self, unix_ns: int, cells) -> bytes:
+        return (PointCloud(timestamp=stamp(unix_ns)).SerializeToString() + self._fixed
+                + PointCloud(data=_points(cells)).SerializeToString())
+
+
+def _points(cells) -> bytes:
+    """The packed ``POINT`` rows of ``membranes``' cells."""
     if all(isinstance(points, tuple) for _, _, _, points in cells):       # point-like cells: one row each
-        data = b"".join(_POINT.pack(*_binary(points), 0.0, *colour, 255, key, class_id)
+        return b"".join(_POINT.pack(*_binary(points), 0.0, *colour, 255, key, class_id)
                         for key, class_id, colour, points in cells)
     else:
         arrays = [np.asarray(points, dtype=float).reshape(-1, 2) for _, _, _, points in cells]
@@ -73,13 +99,12 @@ def membranes(unix_ns: int, cells) -> PointCloud:
         data["red"], data["green"], data["blue"], data["alpha"] = colours[:, 0], colours[:, 1], colours[:, 2], 255
         data["key"] = np.repeat([key for key, _, _, _ in cells], counts)
         data["class"] = np.repeat([class_id for _, class_id, _, _ in cells], counts)
-        data = data.tobytes()
-    return PointCloud(timestamp=stamp(unix_ns), frame_id=FRAME, pose=_IDENTITY,
-                      point_stride=POINT.itemsize, fields=POINT_FIELDS, data=data)
+        return data.tobytes()
 
 
 def membrane_points(message: PointCloud) -> np.ndarray:
-    """The structured points of a ``membranes`` message (fields of ``POINT``)."""
+    """The structured points of a ``membranes`` message (fields of ``POINT``; x and y in metres, recordings of
+    format 2 in um)."""
     return np.frombuffer(message.data, dtype=POINT)
 
 
@@ -91,14 +116,16 @@ def _colour(rgb, alpha: float = 1.0) -> Color:
     return Color(r=rgb[0] / 255, g=rgb[1] / 255, b=rgb[2] / 255, a=alpha)
 
 
-def _line(points_um, rgb, thickness: float = 1.0, loop: bool = False) -> LinePrimitive:
+def _line(points_um, rgb, thickness: float = METRE, loop: bool = False) -> LinePrimitive:
     return LinePrimitive(type=LinePrimitive.LINE_LOOP if loop else LinePrimitive.LINE_STRIP, thickness=thickness,
                          pose=_IDENTITY, color=_colour(rgb),
-                         points=[Point3(x=float(x), y=float(y), z=0.0) for x, y in points_um])
+                         points=[Point3(x=float(x) * METRE, y=float(y) * METRE, z=0.0) for x, y in points_um])
 
 
 def _text(x: float, y: float, text: str, rgb=(230, 230, 230)) -> TextPrimitive:
-    return TextPrimitive(pose=Pose(position=Vector3(x=x, y=y, z=0.0), orientation={"w": 1.0}), billboard=True,
+    """A label at (x, y) um."""
+    return TextPrimitive(pose=Pose(position=Vector3(x=x * METRE, y=y * METRE, z=0.0), orientation={"w": 1.0}),
+                         billboard=True,
                          font_size=12.0, scale_invariant=True, color=_colour(rgb), text=text)
 
 
@@ -113,20 +140,23 @@ def device(unix_ns: int, outlines) -> SceneUpdate:
     return SceneUpdate(entities=entities)
 
 
-def marker(unix_ns: int, entity_id: str, x_um: float, y_um: float, rgb, label: str) -> SceneUpdate:
-    """A detector event: a sphere where the cell was when it was detected, with its label."""
-    sphere = SpherePrimitive(pose=Pose(position=Vector3(x=x_um, y=y_um, z=0.0), orientation={"w": 1.0}),
-                             size=Vector3(x=4.0, y=4.0, z=4.0), color=_colour(rgb, 0.8))
-    return SceneUpdate(entities=[SceneEntity(timestamp=stamp(unix_ns), frame_id=FRAME, id=entity_id, spheres=[sphere],
-                                             texts=[_text(x_um, y_um + 5.0, label, rgb)])])
+def marker(unix_ns: int, entity_id: str, x_um: float, y_um: float, rgb, label: str) -> SceneEntity:
+    """A detector event: a sphere where the cell was when it was detected, with its label, for
+    ``MARKER_LIFETIME``."""
+    sphere = SpherePrimitive(pose=Pose(position=Vector3(x=x_um * METRE, y=y_um * METRE, z=0.0),
+                                       orientation={"w": 1.0}),
+                             size=Vector3(x=4.0 * METRE, y=4.0 * METRE, z=4.0 * METRE), color=_colour(rgb, 0.8))
+    return SceneEntity(timestamp=stamp(unix_ns), frame_id=FRAME, id=entity_id, lifetime=MARKER_LIFETIME,
+                       spheres=[sphere], texts=[_text(x_um, y_um + 5.0, label, rgb)])
 
 
-def path(unix_ns: int, key: int, points_um, rgb, label: str) -> SceneUpdate:
-    """A cell's centroid path, drawn when it has left, in the colour of its outcome class."""
+def path(unix_ns: int, key: int, points_um, rgb, label: str) -> SceneEntity:
+    """A cell's centroid path, drawn when it has left, in the colour of its outcome class, for
+    ``PATH_LIFETIME``."""
     points = np.asarray(points_um, dtype=float).reshape(-1, 2)
-    return SceneUpdate(entities=[SceneEntity(timestamp=stamp(unix_ns), frame_id=FRAME, id=f"path/{key}",
-                                             lines=[_line(points, rgb, thickness=0.5)],
-                                             texts=[_text(float(points[-1, 0]), float(points[-1, 1]), label, rgb)])])
+    return SceneEntity(timestamp=stamp(unix_ns), frame_id=FRAME, id=f"path/{key}", lifetime=PATH_LIFETIME,
+                       lines=[_line(points, rgb, thickness=0.5 * METRE)],
+                       texts=[_text(float(points[-1, 0]), float(points[-1, 1]), label, rgb)])
 
 
 def speed_grid(payload: dict, pixel_um: float) -> np.ndarray:

@@ -2,8 +2,9 @@
 Gating-ML (FlowKit, FlowJo, Cytobank ...).
 
 The detector calls a cell type II when its fluorescence is at or above the gate, else type I. Gating-ML's
-rectangle gate includes its ``min`` and excludes its ``max``, so two rectangle gates on the FCS channel ``FL1``
-(uncompensated, untransformed) reproduce it exactly: ``typeII`` with min = gate and ``typeI`` with max = gate.
+rectangle gate includes its ``min`` and excludes its ``max``, so two rectangle gates on the FCS channel
+``FL1-A`` (uncompensated, untransformed; the file holds the detector's float64 values) reproduce it exactly:
+``typeII`` with min = gate and ``typeI`` with max = gate.
 """
 
 from __future__ import annotations
@@ -28,7 +29,7 @@ def _rectangle(root, gate_id: str, channel: str, bound: str, value: float, note:
     ET.SubElement(dimension, f"{{{DATA_TYPE}}}fcs-dimension", {f"{{{DATA_TYPE}}}name": channel})
 
 
-def classification_gates(gate: float, channel: str = "FL1") -> ET.ElementTree:
+def classification_gates(gate: float, channel: str = "FL1-A") -> ET.ElementTree:
     """The Gating-ML document of the classification at ``gate`` (fluorescence, a.u.)."""
     for prefix, uri in (("gating", GATING), ("data-type", DATA_TYPE), ("transforms", TRANSFORMS)):
         ET.register_namespace(prefix, uri)
@@ -39,7 +40,7 @@ def classification_gates(gate: float, channel: str = "FL1") -> ET.ElementTree:
     return ET.ElementTree(root)
 
 
-def write_gatingml(path: Path, gate: float, channel: str = "FL1") -> Path:
+def write_gatingml(path: Path, gate: float, channel: str = "FL1-A") -> Path:
     outputs.write_whole(path, lambda temporary: classification_gates(gate, channel).write(
         temporary, encoding="UTF-8", xml_declaration=True))
     return Path(path)

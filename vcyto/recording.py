@@ -1,32 +1,39 @@
 """MCAP recording of a closed-loop run: Foxglove well-known channels any tool draws, vcyto's typed channels
 for analysis and replay, crash safety.
 
-Foxglove channels (protobuf; ``vcyto.foxglove``): ``/foxglove/scene`` (``foxglove.SceneUpdate``: the device once,
-a marker per detector event, each cell's centroid path when it has left, coloured by outcome class),
-``/foxglove/membranes`` (``foxglove.PointCloud`` every control period: the membrane points of the cells in the
-channel, with fields key, class and a colour), ``/foxglove/speed`` (``foxglove.RawImage``, 32FC1 in mm/s, at the
-field cadence) and ``/foxglove/log`` (``foxglove.Log``: events, decisions with their reasons, outcomes).
+Foxglove channels (protobuf, Foxglove's official schemas; ``vcyto.foxglove``; coordinates in metres, frame
+``channel``): ``/foxglove/scene`` (``foxglove.SceneUpdate``: the device once, then per batch a marker per detector
+event and each cell's centroid path when it has left, coloured by outcome class, each with a lifetime so that the
+scene holds the recent ones), ``/foxglove/membranes`` (``foxglove.PointCloud`` every step shown: the membrane
+points of the cells in the channel, with fields key, class and a colour), ``/foxglove/speed``
+(``foxglove.RawImage``, 32FC1 in mm/s, at the field cadence) and ``/foxglove/log`` (``foxglove.Log``: events,
+decisions with their reasons, outcomes).
 
-vcyto's channels (JSON, each with a JSON Schema stating required fields and units; ``SCHEMAS``):
-- ``/loop/step``         every control period: time, step, IDT drive, cells in the channel, wall time,
-                         plant diagnostics (dt, physics steps, cumulative solver times: wall-clock);
-- ``/cells``             every control period: each cell's key, type, class, centroid, area ratio, fate,
-                         perimeter and smallest/largest point spacing / h (null for models without membranes);
-                         its membrane is in ``/foxglove/membranes`` (recordings before that carried ``membrane_um``);
+vcyto's channels (JSON, each with a JSON Schema stating required fields and units; ``vcyto.schemas.SCHEMAS``).
+The per-step ones are columns, one message per batch of steps (``flush_every``):
+- ``/loop/steps``        per step: time, step, IDT drive, cells the optics see, wall time, plant diagnostics
+                         (dt, physics steps, cumulative solver times: wall-clock);
+- ``/cells/rows``        per step its row count, then per row (a cell in the channel at that step): key, type,
+                         class, centroid (um), area ratio, perimeter and smallest/largest point spacing / h (null
+                         for models without membranes); the membranes are in ``/foxglove/membranes``;
 - ``/detector/event``    each detector event (fluorescence, scatter, velocity, class);
-- ``/controller/decision`` each decision (sort / pass / abort, predicted arrival, pulse, reason);
+- ``/controller/decision`` each decision (sort / pass / abort, predicted arrival, pulse, reason) and when it was
+                         shown;
 - ``/outcome``           each cell when it leaves (outlet, exit time and ordinate, outcome class);
-- ``/flow/velocity``     every ``field_every`` control periods (0: never): velocity (m/s) and pressure (Pa) at
-                         the mesh vertices (float32, base64) with the grid.
+- ``/flow/velocity``     every ``field_every`` steps (0: never): velocity (m/s) and pressure (Pa) at the mesh
+                         vertices (float32, base64) with the grid.
+Events, decisions and outcomes of a batch are written before its ``/loop/steps`` message (``vcyto.replay`` puts
+them back among the steps by their times).
 
 Log and publish times are the wall-clock start of the run (``time_origin_unix_ns`` in the metadata) plus the
 simulated time, so MCAP tools show a date and a timeline as long as the simulated run; every message also
 carries its simulated time. Run metadata (scenario TOML, seed, settings as JSON text, command line, versions) is
 an MCAP metadata record named ``run``, every value a plain string.
 
-The writer (the Foxglove SDK's, compiled) flushes every ``flush_every`` control periods, so a killed process
-loses at most that many steps; ``close`` finishes the file (summary and index) and is called on normal exit,
-Ctrl-C and SIGTERM. State is bounded: only the cells in the channel are remembered (their paths until they leave).
+The writer (the Foxglove SDK's, compiled) is flushed after each batch, so a killed process loses at most the
+batch being gathered (and the batches the background thread had not written yet, ``vcyto.sinks``); ``close``
+finishes the file (summary and index) and is called on normal exit, Ctrl-C and SIGTERM. State is bounded: the
+cells in the channel (their paths until they leave) and one batch.
 """
 
 from __future__ import annotations
@@ -34,6 +41,7 @@ from __future__ import annotations
 import base64
 import dataclasses
 import json
+import math
 import time
 from pathlib import Path
 
@@ -49,10 +57,12 @@ from . import foxglove
 from .classes import CLASS_COLOURS, CLASS_IDS, CellClasses
 from .outputs import plain
 from .schemas import SCHEMAS
-from .sortreport import name_cells
+from .sortreport import EVENT_NAMES, name_cells
 
-PER_STEP = ("/loop/step", "/cells")
-FORMAT = "2"                  # 1: JSON channels only, membranes in /cells; 2: Foxglove channels beside them
+PER_STEP = ("/loop/steps", "/cells/rows")
+# 1: JSON channels only, membranes in /cells; 2: Foxglove channels beside them (um); 3: the per-step channels as
+# columns per batch (/loop/steps, /cells/rows), Foxglove coordinates in metres, scene entities with lifetimes
+FORMAT = "3"
 
 
 def plain_metadata(metadata: dict) -> dict:
@@ -92,9 +102,10 @@ def _scenario_of(metadata: dict) -> Scenario:
 
 
 class McapRecorder:
-    """A sink of the closed loop that writes every step to an MCAP file."""
+    """A sink of the closed loop that writes every step to an MCAP file: the per-step channels as columns, one
+    message each per batch of ``flush_every`` steps (then the file is flushed), the events as they come."""
 
-    def __init__(self, path: Path, metadata: dict, flush_every: int = 50, field_every: int = 100,
+    def __init__(self, path: Path, metadata: dict, flush_every: int = 200, field_every: int = 100,
                  scenario: Scenario | None = None, detection_window=None):
         self.path = Path(path)
         # the Foxglove SDK's MCAP writer (compiled): a message costs a few microseconds instead of ~15 in the pure
@@ -118,11 +129,13 @@ class McapRecorder:
                                                            "recording_format": FORMAT}))
         self.flush_every = max(1, flush_every)
         self.field_every = field_every
-        self._steps = 0
         self._classes = CellClasses(scenario)
         self._paths: dict[int, list] = {}        # the cells in the channel: their centroid paths (um)
         self._reported: set[int] = set()         # cells that left, while ``truth`` still lists them
         self._keys_by_event: dict[int, int] = {}  # detector events' cells, for the log's decision lines
+        self._steps, self._rows = _columns(STEP_COLUMNS), _columns(ROW_COLUMNS)
+        self._scene: list = []                   # the scene's entities of the batch (markers, paths)
+        self._cloud = foxglove.Membranes()
         outlines = device_outlines(scenario, detection_window)
         self._write_proto("/foxglove/scene", 0.0, foxglove.device(self.origin_ns, outlines))
         self._writer.flush()
@@ -142,42 +155,58 @@ class McapRecorder:
         self._add(topic, time_s, data)
 
     def _write_proto(self, topic: str, time_s: float, message):
-        self._add(topic, time_s, message.SerializeToString())
+        self._add(topic, time_s, message if isinstance(message, bytes) else message.SerializeToString())
 
     def _log(self, time_s: float, text: str, level: str = "INFO"):
         self._write_proto("/foxglove/log", time_s, foxglove.log(self._stamp(time_s), text, level))
 
+    def on_steps(self, records):
+        """Write a batch of steps (``vcyto.sinks.BackgroundSinks`` hands them over together)."""
+        for record in records:
+            self.on_step(record)
+
     def on_step(self, record):
-        """Write one step (``vcyto.steps.StepRecord``)."""
+        """Take one step (``vcyto.steps.StepRecord``): its events, decisions and outcomes are written now, its
+        per-step rows with the batch's (every ``flush_every`` steps, then the file is flushed)."""
         step, observation, truth, actuation = record.step, record.observation, record.truth, record.actuation
         events, decisions, fields, diagnostics = record.events, record.decisions, record.fields, record.diagnostics
         now = observation.time
         self._classes.observe(events, decisions)
         in_channel = [cell for cell in truth.cells if cell.fate == "in_channel"]
-        left = self._left(truth)
-        self._write("/loop/step", now, {"time": now, "step": step, "idt": actuation,
-                                        "cells_in_channel": len(observation.cells), "wall_time": time.time(),
-                                        "diagnostics": diagnostics or {}})
+        _append(self._steps, (now, step, actuation, len(observation.cells), time.time(), diagnostics or {},
+                              len(in_channel)))
         self._membranes(now, in_channel)
-        self._write("/cells", now, {"time": now, "cells": [self._cell(cell) for cell in in_channel]})
+        for cell in in_channel:
+            self._cell(now, cell)
         positions = {cell.key: cell for cell in in_channel}
         for event in events:
             self._event(event, positions.get(event.key))
         for decision in decisions:
-            self._write("/controller/decision", now, {key: getattr(decision, key)
-                                                      for key in SCHEMAS["/controller/decision"]["properties"]})
+            self._write("/controller/decision", now, {"time": now, **{key: getattr(decision, key) for key in
+                                                                    DECISION_FIELDS}})
             reason = f" ({decision.reason})" if decision.reason else ""
             self._log(now, name_cells(f"event {decision.event_id}: {decision.action}{reason}", self._keys_by_event),
                       "WARN" if decision.action == "abort" else "INFO")
-        for cell in left:
+        for cell in self._left(truth):
             self._outcome(now, cell)
         if fields is not None and self.field_every and step % self.field_every == 0:
             payload = fields()
             self._write("/flow/velocity", now, payload)
             self._write_proto("/foxglove/speed", now, foxglove.speed_image(self._stamp(now), payload))
-        self._steps += 1
-        if self._steps % self.flush_every == 0:
-            self._writer.flush()
+        if len(self._steps["time"]) >= self.flush_every:
+            self.flush()
+
+    def flush(self):
+        """Write the batch's per-step columns and scene entities, then flush the file (a kill keeps this)."""
+        steps = self._steps
+        if steps["time"]:
+            now = steps["time"][-1]
+            if self._scene:
+                self._write_proto("/foxglove/scene", now, foxglove.SceneUpdate(entities=self._scene))
+            self._write("/cells/rows", now, {"time": steps["time"], "count": steps["rows"], **self._rows})
+            self._write("/loop/steps", now, {key: steps[key] for key in STEP_COLUMNS if key != "rows"})
+            self._steps, self._rows, self._scene = _columns(STEP_COLUMNS), _columns(ROW_COLUMNS), []
+        self._writer.flush()
 
     def _left(self, truth) -> list:
         """The cells that left since the previous step (each once: ``truth`` may list them again)."""
@@ -194,10 +223,12 @@ class McapRecorder:
             name = self._classes.provisional(cell.key)
             points = np.asarray(cell.membrane) / UM if cell.membrane is not None else centroid
             rows.append((cell.key, CLASS_IDS[name], CLASS_COLOURS[name], points))
-        self._write_proto("/foxglove/membranes", now, foxglove.membranes(self._stamp(now), rows))
+        self._write_proto("/foxglove/membranes", now, self._cloud.message(self._stamp(now), rows))
 
     def _event(self, event, cell):
         self._keys_by_event[event.event_id] = event.key
+        if len(self._keys_by_event) > 2 * EVENT_NAMES:         # the recent events: a decision names its neighbours
+            self._keys_by_event = {e: k for e, k in self._keys_by_event.items() if e > event.event_id - EVENT_NAMES}
         values = {key: getattr(event, key) for key in SCHEMAS["/detector/event"]["properties"]}
         self._write("/detector/event", event.time, values)
         text = (f"cell {event.key}: detected type {event.classification} (fluorescence {event.fluorescence:.2f}, "
@@ -205,44 +236,62 @@ class McapRecorder:
         self._log(event.time, text)
         if cell is not None:
             name = self._classes.provisional(event.key)
-            self._write_proto("/foxglove/scene", event.time,
-                              foxglove.marker(self._stamp(event.time), f"event/{event.event_id}", cell.x / UM,
-                                              cell.y / UM, CLASS_COLOURS[name], f"event {event.event_id}: "
-                                              f"type {event.classification}"))
+            self._scene.append(foxglove.marker(self._stamp(event.time), f"event/{event.event_id}", cell.x / UM,
+                                               cell.y / UM, CLASS_COLOURS[name],
+                                               f"event {event.event_id}: type {event.classification}"))
 
     def _outcome(self, now: float, cell):
         name = self._classes.settle(cell)
-        self._write("/outcome", now, {"key": cell.key, "type": cell.type, "outlet": cell.fate, "class": name,
-                                      "exit_time": cell.exit_time, "exit_y_um": cell.exit_y / UM})
+        self._write("/outcome", now, {"time": now, "key": cell.key, "type": cell.type, "outlet": cell.fate,
+                                      "class": name, "exit_time": cell.exit_time, "exit_y_um": cell.exit_y / UM})
         self._log(now, f"cell {cell.key} ({cell.type}) left by: {cell.fate} ({name})",
                   "INFO" if name in ("sorted", "passed") else "WARN")
         path = self._paths.pop(cell.key, None) or [(cell.x / UM, cell.y / UM)]
-        self._write_proto("/foxglove/scene", now, foxglove.path(self._stamp(now), cell.key, path,
-                                                                CLASS_COLOURS[name], f"{cell.key}: {name}"))
+        self._scene.append(foxglove.path(self._stamp(now), cell.key, path, CLASS_COLOURS[name], f"{cell.key}: {name}"))
 
-    def _cell(self, cell) -> dict:
-        shape = cell.measures
-        row = {"key": cell.key, "type": cell.type, "class": self._classes.provisional(cell.key),
-               "x_um": round(cell.x * 1e6, 4), "y_um": round(cell.y * 1e6, 4),
-               "area_ratio": round(cell.area_ratio, 6), "fate": cell.fate}
-        if not shape:                          # a model without membranes (JSON: null)
-            row.update(perimeter_um=None, spacing_min_h=None, spacing_max_h=None)
-            return row
-        # a missing or non-finite figure is written as null (``_write``)
-        row.update(perimeter_um=round(shape.get("perimeter", float("nan")) * 1e6, 4),
-                   spacing_min_h=round(shape.get("spacing_min", float("nan")), 4),
-                   spacing_max_h=round(shape.get("spacing_max", float("nan")), 4))
-        return row
+    def _cell(self, now: float, cell):
+        """A row of ``/cells/rows``: a cell in the channel at this step (null figures for models without
+        membranes, and for a missing or non-finite one)."""
+        shape = cell.measures or {}
+        _append(self._rows, (cell.key, cell.type, self._classes.provisional(cell.key), round(cell.x * 1e6, 4),
+                             round(cell.y * 1e6, 4), round(cell.area_ratio, 6),
+                             _rounded(shape.get("perimeter"), 1e6), _rounded(shape.get("spacing_min"), 1.0),
+                             _rounded(shape.get("spacing_max"), 1.0)))
 
     def on_end(self, ending: dict):
         """How the run ended (complete, truncated, interrupted, failed; why; its sort figures): the metadata record
         ``run_end``, so that a recording of a partial run says so."""
+        self.flush()
         self._writer.write_metadata("run_end", plain_metadata(ending))
 
     def close(self):
         if not self.closed:
             self.closed = True
-            self._writer.close()
+            try:
+                self.flush()
+            finally:
+                self._writer.close()
+
+
+STEP_COLUMNS = ("time", "step", "idt", "cells_in_channel", "wall_time", "diagnostics", "rows")
+ROW_COLUMNS = ("key", "type", "class", "x_um", "y_um", "area_ratio", "perimeter_um", "spacing_min_h", "spacing_max_h")
+DECISION_FIELDS = ("event_id", "action", "arrival", "pulse_on", "pulse_off", "reason")
+
+
+def _columns(names) -> dict:
+    return {name: [] for name in names}
+
+
+def _append(columns: dict, values):
+    for column, value in zip(columns.values(), values):
+        column.append(value)
+
+
+def _rounded(value, scale: float):
+    """``value * scale`` to 4 decimals (6 for ratios), None for a missing or non-finite one (JSON null)."""
+    if value is None or not math.isfinite(value):
+        return None
+    return round(value * scale, 4)
 
 
 def velocity_field(vertices: np.ndarray, velocity: np.ndarray, pressure: np.ndarray, grid_x, grid_y,

@@ -1,7 +1,9 @@
 """`vcyto replay FILE.mcap`: re-log a recording to Rerun; damaged files replay what can be recovered.
 
-Reads recordings of both formats: 1 (JSON channels only, membranes in ``/cells``) and 2 (membranes in the
-Foxglove point cloud ``/foxglove/membranes``, classes in ``/cells`` and ``/outcome``). The replayed view shows
+Reads recordings of the three formats: 1 (JSON channels only, membranes in ``/cells``), 2 (membranes in the
+Foxglove point cloud ``/foxglove/membranes``, in um; classes in ``/cells`` and ``/outcome``) and 3 (the per-step
+channels as columns per batch, ``/loop/steps`` and ``/cells/rows``, written after the batch's events, decisions
+and outcomes, which are put back at their steps by their times; point clouds in metres). The replayed view shows
 what the live one did: cells coloured by class, detector event markers, pulses, decisions with their reasons.
 """
 
@@ -11,6 +13,7 @@ import json
 import struct
 from pathlib import Path
 
+import numpy as np
 from mcap.exceptions import McapError
 from mcap.records import Channel, Message, Metadata
 from mcap.stream_reader import StreamReader
@@ -21,7 +24,7 @@ from sim.scenario import Scenario
 from .classes import class_of_type, provisional_class
 from .config import scenario_from_toml
 from .outcomes import outcome_class
-from .rerunlog import RerunLogger, decision_text
+from .rerunlog import POINT_LIKE, RerunLogger, decision_text
 
 MEMBRANES = "/foxglove/membranes"
 
@@ -31,9 +34,10 @@ class ReplayError(ValueError):
 
 
 def _decode(topic: str, data: bytes):
-    if topic == MEMBRANES:
+    if topic == MEMBRANES:          # (its time stamp in ns, its points)
         from . import foxglove
-        return foxglove.membrane_points(foxglove.PointCloud.FromString(data))
+        cloud = foxglove.PointCloud.FromString(data)
+        return cloud.timestamp.seconds * 1_000_000_000 + cloud.timestamp.nanos, foxglove.membrane_points(cloud)
     return json.loads(data)
 
 
@@ -76,8 +80,13 @@ def detection_window(metadata: dict):
 class _Replayer:
     """Turns the messages of a recording into the calls the live view makes."""
 
-    def __init__(self, logger: RerunLogger, scenario: Scenario):
+    def __init__(self, logger: RerunLogger, scenario: Scenario, origin_ns: int = 0, metres: bool = False):
         self.logger = logger
+        self.origin_ns, self.scale = origin_ns, 1e6 if metres else 1.0       # point clouds' units to um
+        self.batches = metres                 # format 3
+        self.waiting: list = []               # format 3: (topic, data) written before their batch's steps
+        self.clouds: dict = {}                # format 3: time stamp (ns) -> points of the batch's steps
+        self.rows = None                      # format 3: the batch's /cells/rows
         self.true_class = class_of_type(scenario)
         self.membranes = {}                   # key -> points of the step being read (format 2)
         self.detected, self.actions, self.events = {}, {}, {}     # of the cells in the channel (format 1 classes)
@@ -86,12 +95,13 @@ class _Replayer:
     def on(self, topic: str, data):
         logger = self.logger
         if topic == MEMBRANES:
-            self.membranes = {key: data[data["key"] == key] for key in set(data["key"].tolist())}
+            self.membranes = _by_key(data[1])
         elif topic == "/cells":
             for cell in data["cells"]:
                 if "membrane_um" not in cell and cell["key"] in self.membranes:
                     points = self.membranes[cell["key"]]
-                    cell["membrane_um"] = list(zip(points["x"].astype(float), points["y"].astype(float)))
+                    cell["membrane_um"] = list(zip(points["x"].astype(float) * self.scale,
+                                                   points["y"].astype(float) * self.scale))
                 cell.setdefault("class", self._provisional(cell["key"]))
             logger.cells(data["cells"])
         elif topic == "/detector/event":
@@ -99,12 +109,53 @@ class _Replayer:
         elif topic == "/controller/decision":
             self._decision(data)
         elif topic == "/outcome":
+            self.logger.figures.outcome(data["outlet"], self.true_class(data["type"]) == "II")
             name = data.get("class") or self._settle(data)
             logger.outcome(data["key"], name, f"cell {data['key']} ({data['type']}) left by: {data['outlet']} ({name})")
         elif topic == "/flow/velocity":
             logger.field(data)
 
+    def batched(self, topic: str, data):
+        """A message of a format-3 recording: kept until its batch's ``/loop/steps``, which replays them."""
+        if topic == "/loop/steps":
+            self._steps(data)
+        elif topic == "/cells/rows":
+            self.rows = data
+        elif topic == MEMBRANES:
+            self.clouds[data[0]] = data[1]
+        else:
+            self.waiting.append((topic, data))
+
+    def on_all_waiting(self):
+        for item in self.waiting:
+            self.on(*item)
+        self.waiting = []
+
+    def _steps(self, steps):
+        """A batch's steps in order, each with its cells and then the events, decisions and outcomes shown with it
+        (those at or before its time and after the previous step's)."""
+        logger, rows, waiting = self.logger, self.rows or {}, self.waiting
+        starts = np.concatenate([[0], np.cumsum(rows.get("count", []))]).astype(int)
+        shown = 0
+        for n, (time_s, step) in enumerate(zip(steps["time"], steps["step"])):
+            logger.time(time_s, step)            # the drive: from the pulses, as the live view
+            if n + 1 < len(starts):
+                cloud = self.clouds.get(self.origin_ns + int(round(time_s * 1e9)))
+                self.membranes = _by_key(cloud) if cloud is not None else {}
+                self.on("/cells", {"cells": [_row(rows, index) for index in range(starts[n], starts[n + 1])]})
+            last = n + 1 == len(steps["time"])
+            outcomes = decided = False
+            while shown < len(waiting) and (last or _time_of(waiting[shown]) <= time_s + 1e-12):
+                outcomes |= waiting[shown][0] == "/outcome"
+                decided |= waiting[shown][0] == "/controller/decision"
+                self.on(*waiting[shown])
+                shown += 1
+            if outcomes or decided:
+                logger.sort_figures()
+        self.waiting, self.clouds, self.rows = [], {}, None
+
     def _event(self, data):
+        self.logger.figures.event(data["classification"])
         self.detected[data["key"]] = data["classification"]
         self.events[data["event_id"]] = data["key"]
         text = f"cell {data['key']}: detected type {data['classification']} (fluorescence {data['fluorescence']:.2f}"
@@ -115,13 +166,15 @@ class _Replayer:
         key = self.events.get(data["event_id"])
         if key is not None:
             self.actions[key] = data["action"]
+        self.logger.figures.decision(data["action"])
+        pulsed = data["event_id"] if self.batches else None          # format 3: the drive from the pulses
         self.logger.text(decision_text(data["event_id"], data["action"], data.get("reason")),
                          level="WARN" if data["action"] == "abort" else "INFO")
         if data["action"] == "sort" and data.get("pulse_on") is not None:
             self.pulses[data["event_id"]] = (data["pulse_on"], data["pulse_off"])
-            self.logger.pulse(data["pulse_on"], data["pulse_off"])
+            self.logger.pulse(data["pulse_on"], data["pulse_off"], event_id=pulsed)
         elif data["action"] == "abort" and data["event_id"] in self.pulses:
-            self.logger.pulse(*self.pulses.pop(data["event_id"]), aborted=True)
+            self.logger.pulse(*self.pulses.pop(data["event_id"]), aborted=True, event_id=pulsed)
 
     def _provisional(self, key: int) -> str:
         return provisional_class(self.detected.get(key), self.actions.get(key))
@@ -135,21 +188,48 @@ class _Replayer:
                               "detected_class": self.detected.pop(key, None), "decision": self.actions.pop(key, None)})
 
 
+def _by_key(points) -> dict:
+    """A point cloud's points by cell key."""
+    return {key: points[points["key"] == key] for key in set(points["key"].tolist())}
+
+
+def _row(rows: dict, index: int) -> dict:
+    """Row ``index`` of a ``/cells/rows`` message as a ``/cells`` cell."""
+    cell = {name: column[index] for name, column in rows.items() if name not in ("time", "count")}
+    cell["fate"] = "in_channel"
+    return cell
+
+
+def _time_of(item) -> float:
+    """The simulated time of a waiting message (events: detection; decisions and outcomes: when shown)."""
+    topic, data = item
+    return data.get("time", 0.0) if data.get("time") is not None else 0.0
+
+
 def replay(path: Path, target, progress=None) -> dict:
     metadata, messages, problem = read_recording(path)
     scenario = scenario_from_toml(metadata["scenario_toml"]) if "scenario_toml" in metadata else Scenario()
-    logger = RerunLogger(scenario, detection_window(metadata), target)
-    replayer = _Replayer(logger, scenario)
+    columns = metadata.get("recording_format", "1") >= "3"
+    logger = RerunLogger(scenario, detection_window(metadata), target,
+                         membranes=metadata.get("model") not in POINT_LIKE)
+    replayer = _Replayer(logger, scenario, int(metadata.get("time_origin_unix_ns", 0)), metres=columns)
     steps = 0
     last_time = 0.0
     for topic, data in messages:
-        if topic == "/loop/step":
+        if columns:
+            if topic == "/loop/steps" and data["time"]:
+                steps += len(data["time"])
+                last_time = data["time"][-1]
+            replayer.batched(topic, data)
+        elif topic == "/loop/step":
             steps += 1
             last_time = data["time"]
             logger.time(data["time"], data["step"])
             logger.idt(data["idt"])
         else:
             replayer.on(topic, data)
+    if columns and replayer.waiting:         # a torn tail: what came after the last whole batch
+        replayer.on_all_waiting()
     logger.close()
     ending = metadata.get("_run_end", {})
     return {"steps": steps, "messages": len(messages), "last_time_ms": last_time * 1e3, "damaged": bool(problem),

@@ -5,16 +5,26 @@ them, and a static transform on ``device`` (y -> height - y) shows them y up in 
 points down. Entities:
 
 - static: ``device/outline``, ``device/inlets``, ``device/outlets``, ``device/saw_window``,
-  ``device/detection_window``, ``device/legend`` (the speed scale), the annotation context of the classes;
-- every step shown: ``idt`` (the IDT drive), ``device/cells`` (every cell in the channel: its centroid, labelled
-  with its key), ``device/membranes`` (the membranes of models that have them) and ``area/<key>`` (each membrane's
-  area / initial area);
-- ``device/paths/<slot>``: a cell's centroid path when it leaves, in slot ``key % PATH_SLOTS``, labelled
-  "key: outcome class": the view shows the paths of the last ``PATH_SLOTS`` cells (the MCAP keeps them all);
+  ``device/detection_window``, the annotation context of the classes, and the series' styles (drive and pulses
+  drawn as steps: ``SeriesLines`` with step-after interpolation, one value per edge);
+- every step shown: ``device/cells`` (every cell in the channel: its centroid, labelled with its key),
+  ``device/membranes`` (the membranes of models that have them) and ``area/<key>`` (each membrane's area /
+  initial area; the area panel is in the view only for models with membranes);
+- ``idt``: the IDT drive, one value per edge at the edge's time (the pulses the controller kept: a pulse is
+  logged once its start has passed, so an aborted one never shows); ``pulses/scheduled``, ``pulses/aborted``: each
+  pulse the controller scheduled, or aborted, as 1 at its start and 0 at its end;
+- ``sort/purity``, ``sort/yield``, ``sort/abort_rate``: the sort's figures so far, as an operator watches them
+  (``SortFigures``: purity of the sorted outlet, targets sorted over the targets that left, aborts over type-II
+  events), updated as cells leave;
+- ``device/paths/<slot>``: a cell's centroid path when it leaves, in slot ``key % PATH_SLOTS``, coloured by its
+  outcome class, labelled "key: outcome class" (hidden, shown on hover: drawn, they piled up where the cells
+  leave): the view shows the paths of the last ``PATH_SLOTS`` cells (the MCAP keeps them all);
 - ``device/events``: the newest ``RECENT_EVENTS`` detector events as markers where the cells were, at each
-  event's time; ``pulses/scheduled``, ``pulses/aborted``: the controller's pulses as 0/1 steps in time;
-- ``log``: detector events, decisions with their reasons, outcomes; ``device/flow``: the speed as an image
-  (1 pixel = 1 um, fixed colour scale) at the field cadence.
+  event's time, coloured by class, their labels hidden (shown on hover; the log has each event's line);
+- ``log``: detector events, decisions with their reasons, outcomes; ``device/flow/speed_mm_s``: the flow speed in
+  mm/s as a scalar image (``DepthImage``, meter = 1, so hovering a pixel reads the speed in mm/s; viridis from 0 to
+  the fixed ``speed_max_mm_s``), 1 pixel = 1 um, at the field cadence, with a colour bar ``device/legend`` above
+  the channel once a field is shown.
 
 Cells, paths and events are coloured by class through the annotation context: the outcome classes of
 ``vcyto.outcomes`` once a cell has left, provisional classes while it is in the channel (``vcyto.classes``).
@@ -39,8 +49,9 @@ from sim.scenario import UM, Scenario
 
 from .classes import CLASS_COLOURS, CLASS_IDS, CLASS_NAMES, CellClasses
 from .foxglove import speed_grid
-from .viewer import blueprint, import_rerun, speed_scale_mm_s
+from .viewer import import_rerun, speed_scale_mm_s
 
+POINT_LIKE = ("rom", "streamline")     # plants whose cells have no membrane (their view has no area panel)
 RECENT_EVENTS = 16                     # markers shown with each new detector event
 PATH_SLOTS = 16                        # the paths of the last this many cells stay in the view
 BATCH_ROWS = 2000                      # rows kept before they are sent
@@ -76,6 +87,48 @@ def _viridis_table() -> np.ndarray:
     return table
 
 
+def blueprint(membranes: bool = True):
+    """The operator's view: the channel; the drive and pulses; the sort's figures; the areas (models with
+    membranes only: no empty panel); the log."""
+    import_rerun()
+    import rerun.blueprint as rrb
+    series = [rrb.TimeSeriesView(origin="/", contents=["/idt", "/pulses/**"], name="IDT drive and pulses"),
+              rrb.TimeSeriesView(origin="sort", name="purity, yield, abort rate (so far)")]
+    if membranes:
+        series.append(rrb.TimeSeriesView(origin="area", name="area / initial area"))
+    return rrb.Blueprint(
+        rrb.Horizontal(
+            rrb.Spatial2DView(origin="/", contents="/device/**", name="channel (um, y up)"),
+            rrb.Vertical(*series, rrb.TextLogView(origin="log", name="events and decisions")),
+            column_shares=[3, 2]),
+        collapse_panels=True)
+
+
+class SortFigures:
+    """Purity, yield and abort rate so far, from the events, decisions and outcomes a view is shown."""
+
+    def __init__(self):
+        self.sorted_out = self.targets_sorted = self.targets_left = self.type_ii = self.aborts = 0
+
+    def event(self, classification: str):
+        self.type_ii += classification == "II"
+
+    def decision(self, action: str):
+        self.aborts += action == "abort"
+
+    def outcome(self, outlet: str, target: bool):
+        from .outcomes import SORTED_OUTLET
+        self.sorted_out += outlet == SORTED_OUTLET
+        self.targets_sorted += target and outlet == SORTED_OUTLET
+        self.targets_left += target
+
+    def values(self) -> dict:
+        """The figures defined so far (a ratio with no denominator yet is left out)."""
+        ratios = {"purity": (self.targets_sorted, self.sorted_out), "yield": (self.targets_sorted, self.targets_left),
+                  "abort_rate": (self.aborts, self.type_ii)}
+        return {name: top / bottom for name, (top, bottom) in ratios.items() if bottom}
+
+
 class _Rows:
     """The rows of one entity waiting to be sent: times, steps and per-row values (each a list of instances)."""
 
@@ -106,7 +159,7 @@ class RerunLogger:
     """Logs the pieces of a run to one Rerun recording stream (see the module docstring for the entities)."""
 
     def __init__(self, scenario: Scenario, detection_window=None, target=("save", "run.rrd"), application_id="vcyto",
-                 batch_rows: int = BATCH_ROWS, batch_seconds: float = BATCH_SECONDS):
+                 batch_rows: int = BATCH_ROWS, batch_seconds: float = BATCH_SECONDS, membranes: bool = True):
         rr = import_rerun()
         self.rr = rr
         self.height_um = scenario.channel.height / UM
@@ -114,13 +167,14 @@ class RerunLogger:
         self.speed_max_mm_s = speed_scale_mm_s(scenario)
         self.stream = rr.RecordingStream(application_id)
         kind = target[0]
+        view = blueprint(membranes)
         if kind == "save":
-            self.stream.save(str(target[1]), default_blueprint=blueprint())
+            self.stream.save(str(target[1]), default_blueprint=view)
         elif kind == "spawn":
-            self.stream.spawn(default_blueprint=blueprint())
+            self.stream.spawn(default_blueprint=view)
         elif kind == "connect":
-            self.stream.connect_grpc(target[1], default_blueprint=blueprint()) if target[1] else \
-                self.stream.connect_grpc(default_blueprint=blueprint())
+            self.stream.connect_grpc(target[1], default_blueprint=view) if target[1] else \
+                self.stream.connect_grpc(default_blueprint=view)
         else:
             raise ValueError(f"unknown Rerun target {kind!r}")
         self.paths: dict[int, list] = {}               # the cells in the channel: centroid paths (um)
@@ -131,6 +185,10 @@ class RerunLogger:
         self._rows, self._sent_at = 0, time.monotonic()
         self._now = (0.0, None)
         self._membranes = False
+        self._legend_shown = False
+        self._pulses: dict = {}                        # event id -> [on, off, on logged] of the kept pulses
+        self._drive = None                             # the drive's last logged level
+        self.figures = SortFigures()
         self._static(scenario, detection_window)
 
     # --- static entities ---------------------------------------------------------------------------------------
@@ -142,7 +200,16 @@ class RerunLogger:
         self.stream.log("device", rr.Transform3D(translation=[0.0, self.height_um, 0.0], scale=[1.0, -1.0, 1.0]),
                         static=True)
         self._device(scenario, detection_window)
-        self._legend()
+        # paths, event markers and membranes keep their labels hidden (shown on hover: drawn, they piled up on the
+        # cells' keys and where cells leave)
+        for slot in range(PATH_SLOTS):
+            self.stream.log(f"device/paths/{slot}", rr.LineStrips2D.from_fields(show_labels=False), static=True)
+        self.stream.log("device/events", rr.Points2D.from_fields(show_labels=False), static=True)
+        self.stream.log("device/membranes", rr.LineStrips2D.from_fields(show_labels=False), static=True)
+        step_after = rr.components.InterpolationMode.StepAfter
+        for entity, name in (("idt", "IDT drive"), ("pulses/scheduled", "pulse scheduled"),
+                             ("pulses/aborted", "pulse aborted")):
+            self.stream.log(entity, rr.SeriesLines(names=name, interpolation_mode=step_after), static=True)
 
     def _device(self, scenario, detection_window):
         from .recording import device_outlines
@@ -159,7 +226,9 @@ class RerunLogger:
                             static=True)
 
     def _legend(self):
-        """A colour bar above the channel: 0 to ``speed_max_mm_s`` (mm/s), faster flow in the top colour."""
+        """A colour bar above the channel: 0 to ``speed_max_mm_s`` (mm/s), faster flow in the top colour (shown
+        with the first field: a model without one has no legend)."""
+        self._legend_shown = True
         rr, width = self.rr, 256
         bar = viridis(np.linspace(0.0, 1.0, width))
         bar = np.repeat(bar[np.newaxis], 6, axis=0)
@@ -175,10 +244,31 @@ class RerunLogger:
 
     # --- rows ------------------------------------------------------------------------------------------------
     def time(self, time_s: float, step: int | None = None):
-        """A new step begins (its rows are logged at ``time_s`` and ``step``)."""
+        """A new step begins (its rows are logged at ``time_s`` and ``step``); the drive's edges up to it."""
         if self._rows >= self.batch_rows or time.monotonic() - self._sent_at > self.batch_seconds:
             self.send_pending()
         self._now = (time_s, step)
+        self._edges(time_s)
+        if self._drive is None:
+            self._drive_at(time_s, 0.0)
+
+    def _edges(self, now: float):
+        """Log the drive's edges of the kept pulses up to ``now``, each at its time, one value per edge."""
+        edges = sorted((edge, n) for pulse in self._pulses.values() for n, edge in enumerate(pulse[:2])
+                       if edge <= now and not (n == 0 and pulse[2]))
+        for edge, n in edges:
+            if n == 0:
+                for pulse in self._pulses.values():
+                    if pulse[0] == edge:
+                        pulse[2] = True
+            else:
+                self._pulses = {e: p for e, p in self._pulses.items() if p[1] > edge}
+            self._drive_at(edge, 1.0 if any(p[2] and p[0] <= edge < p[1] for p in self._pulses.values()) else 0.0)
+
+    def _drive_at(self, time_s: float, level: float):
+        if level != self._drive:
+            self._drive = level
+            self._add("idt", level, time_s)
 
     def _add(self, entity: str, value, time_s: float | None = None):
         rows = self._pending[entity]
@@ -189,7 +279,8 @@ class RerunLogger:
         self._rows += 1
 
     def idt(self, drive: float):
-        self._add("idt", drive)
+        """The drive at this step (recordings of formats 1 and 2; a value only where it changes)."""
+        self._drive_at(self._now[0], float(drive))
 
     def cells(self, cells: list[dict]):
         """The cells in the channel at this step, as in the MCAP ``/cells`` payload (um; the membrane as nested
@@ -223,6 +314,11 @@ class RerunLogger:
                                                             f"{key}: {class_name}"))
         self.text(text, "INFO" if class_name in ("sorted", "passed") else "WARN")
 
+    def sort_figures(self):
+        """The sort's figures so far (``self.figures``), at this step."""
+        for name, value in self.figures.values().items():
+            self._add(f"sort/{name}", value)
+
     def event(self, time_s: float, key: int, class_name: str, label: str):
         """A detector event: a marker where the cell is, at the event's time, with the recent ones."""
         position = self.positions.get(key)
@@ -231,12 +327,16 @@ class RerunLogger:
             self._add("device/events", list(self.recent_events), time_s)
         self.text(label)
 
-    def pulse(self, on: float, off: float, aborted: bool = False):
-        """An IDT pulse the controller scheduled ([on, off], s), or one it aborted, as a 0/1 step in time."""
-        entity = "pulses/aborted" if aborted else "pulses/scheduled"
-        edge = 1e-9
-        for time_s, level in ((on - edge, 0.0), (on, 1.0), (off, 1.0), (off + edge, 0.0)):
-            self._add(entity, level, time_s)
+    def pulse(self, on: float, off: float, aborted: bool = False, event_id: int | None = None):
+        """An IDT pulse the controller scheduled ([on, off], s), or one it aborted, as 1 at ``on`` and 0 at ``off``
+        (a step-after series: one value per edge). A scheduled pulse drives ``idt`` from its start, unless it is
+        aborted (by ``event_id``) before."""
+        self._add("pulses/aborted" if aborted else "pulses/scheduled", 1.0, on)
+        self._add("pulses/aborted" if aborted else "pulses/scheduled", 0.0, off)
+        if aborted:
+            self._pulses.pop(event_id, None)
+        elif event_id is not None:
+            self._pulses[event_id] = [on, off, False]
 
     def text(self, message: str, level: str = "INFO"):
         self._add("log", (message, level))
@@ -244,12 +344,14 @@ class RerunLogger:
     def field(self, payload: dict):
         """The speed image from an MCAP ``/flow/velocity`` payload: 1 um pixels, row 0 at y = 0 (the transform
         on ``device`` shows it y up), colours on the fixed scale 0 .. ``speed_max_mm_s`` (the legend)."""
-        speed_mm_s = speed_grid(payload, 1.0) * 1e3
-        rgb = viridis(np.clip(speed_mm_s / self.speed_max_mm_s, 0.0, 1.0))
+        if not self._legend_shown:
+            self._legend()
+        speed_mm_s = (speed_grid(payload, 1.0) * 1e3).astype(np.float32)
         self.stream.set_time("sim_time", duration=self._now[0])
         if self._now[1] is not None:
             self.stream.set_time("step", sequence=self._now[1])
-        self.stream.log("device/flow", self.rr.Image(rgb))
+        self.stream.log("device/flow/speed_mm_s", self.rr.DepthImage(speed_mm_s, meter=1.0, colormap="viridis",
+                                                                     depth_range=(0.0, self.speed_max_mm_s)))
 
     # --- sending -------------------------------------------------------------------------------------------
     def send_pending(self):
@@ -321,39 +423,45 @@ def decision_text(event_id: int, action: str, reason: str | None) -> str:
 class RerunSink:
     """A sink of the closed loop that shows every step in Rerun (bounded state: the cells in the channel)."""
 
-    def __init__(self, scenario: Scenario, detection_window, target, field_every: int = 200):
-        self.logger = RerunLogger(scenario, detection_window, target)
+    def __init__(self, scenario: Scenario, detection_window, target, field_every: int = 200, membranes: bool = True):
+        self.logger = RerunLogger(scenario, detection_window, target, membranes=membranes)
         self.field_every = field_every
         self.classes = CellClasses(scenario)
         self._reported: set[int] = set()
 
     def on_step(self, record):
         """Show one step (``vcyto.steps.StepRecord``)."""
-        step, observation, truth, actuation = record.step, record.observation, record.truth, record.actuation
+        step, observation, truth = record.step, record.observation, record.truth
         events, decisions, fields = record.events, record.decisions, record.fields
-        logger, classes = self.logger, self.classes
+        logger, classes, figures = self.logger, self.classes, self.logger.figures
         revised = {d.event_id: classes.pulses.get(d.event_id) for d in decisions if d.action == "abort"}
         classes.observe(events, decisions)
         logger.time(observation.time, step)
-        logger.idt(actuation)
         logger.cells([_cell_view(cell, classes.provisional(cell.key)) for cell in truth.cells
                       if cell.fate == "in_channel"])
         for event in events:
+            figures.event(event.classification)
             logger.event(event.time, event.key, classes.provisional(event.key), event_text(event))
         for decision in decisions:
+            figures.decision(decision.action)
             logger.text(decision_text(decision.event_id, decision.action, decision.reason),
                         level="WARN" if decision.action == "abort" else "INFO")
             pulse = (decision.pulse_on, decision.pulse_off) if decision.action == "sort" \
                 else revised.get(decision.event_id)
             if pulse and math.isfinite(pulse[0]):
-                logger.pulse(*pulse, aborted=decision.action == "abort")
+                logger.pulse(*pulse, aborted=decision.action == "abort", event_id=decision.event_id)
         classes.forget_pulses(observation.time)
         self._reported &= {cell.key for cell in truth.cells}
+        left = False
         for cell in truth.cells:
             if cell.fate != "in_channel" and cell.key not in self._reported:
                 self._reported.add(cell.key)
                 name = classes.settle(cell)
+                figures.outcome(cell.fate, classes.true_class(cell.type) == "II")
                 logger.outcome(cell.key, name, f"cell {cell.key} ({cell.type}) left by: {cell.fate} ({name})")
+                left = True
+        if left or decisions:
+            logger.sort_figures()
         if fields is not None and self.field_every and step % self.field_every == 0:
             logger.field(fields())
 

@@ -264,7 +264,7 @@ class SortEnv(gymnasium.Env):
         info = {"purity": purity, "yield": yield_, "f1": f1, "sorted_targets": self._sorted_targets,
                 "contaminants": self._contaminants, "misrouted": self._misrouted,
                 "targets_offered": self._targets_offered,
-                "events": len(self.loop.events), "seed": self.episode_settings.seed}
+                "events": self.loop.detected, "seed": self.episode_settings.seed}
         self._ended = True
         return np.zeros(self.observation_space.shape, dtype=np.float32), reward, self.plant.done, \
             not self.plant.done, info

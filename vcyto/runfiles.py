@@ -124,10 +124,12 @@ def _new_file(text: str, option: str, error) -> Path:
 
 class StreamFiles:
     """The files of one stream run in ``directory``: ``ID.mcap`` (when recording), ``ID.rrd`` (when the view is
-    saved there), ``ID.fcs`` and ``ID.json``, all created exclusively up front."""
+    saved there), ``ID.fcs``, ``ID.gating.xml``, ``ID.cells.parquet`` (the per-cell table) and ``ID.json``, all
+    created exclusively up front."""
 
     def __init__(self, directory: Path, name: str | None, record: bool, rrd: bool):
-        suffixes = (["mcap"] if record else []) + (["rrd"] if rrd else []) + ["fcs", "gating.xml", "json"]
+        suffixes = (["mcap"] if record else []) + (["rrd"] if rrd else []) + ["fcs", "gating.xml", "cells.parquet",
+                                                                                  "json"]
         self.directory = directory
         self.run_id = outputs.reserve_run(directory, suffixes, name)
         self.suffixes = suffixes
@@ -151,7 +153,7 @@ class StreamFiles:
 
     def discard_unwritten(self) -> None:
         """Remove the reserved summary and events that were never written (a run that failed before it ran)."""
-        for suffix in ("fcs", "gating.xml", "json"):
+        for suffix in ("fcs", "gating.xml", "cells.parquet", "json"):
             path = self.path(suffix)
             if path is not None and path.exists() and (path.stat().st_size == 0 or _is_placeholder(path)):
                 path.unlink()

@@ -25,6 +25,10 @@ def _string(description: str, values=None) -> dict:
     return schema
 
 
+def _array(items: dict) -> dict:
+    return {"type": "array", "items": items, "description": f"per row: {items.get('description', '')}"}
+
+
 def _object(title: str, description: str, properties: dict, optional=()) -> dict:
     return {"$schema": DRAFT, "title": title, "description": description, "type": "object",
             "properties": properties, "required": [key for key in properties if key not in optional]}
@@ -46,15 +50,19 @@ CELL = {"type": "object", "required": ["key", "type", "class", "x_um", "y_um", "
 B64 = {"type": "string", "contentEncoding": "base64", "contentMediaType": "application/octet-stream"}
 
 SCHEMAS = {
-    "/loop/step": _object("vcyto.LoopStep", "one control period of the closed loop", {
-        "time": TIME, "step": _integer("control periods since the start"),
-        "idt": _number("IDT drive (0 off, 1 on)", "1"),
-        "cells_in_channel": _integer("cells the optics see"),
-        "wall_time": _number("wall-clock time when the step was recorded (Unix epoch)", "s"),
-        "diagnostics": {"type": "object", "description": "plant figures: dt (s), physics steps, cumulative solver "
-                                                          "wall times (s, wall-clock), health"}}),
-    "/cells": _object("vcyto.Cells", "the cells in the channel (membranes: /foxglove/membranes)", {
-        "time": TIME, "cells": {"type": "array", "items": CELL}}),
+    "/loop/steps": _object("vcyto.LoopSteps", "the steps of a batch as columns (one entry per step)", {
+        "time": _array(TIME), "step": _array(_integer("steps (control periods) since the start")),
+        "idt": _array(_number("IDT drive (0 off, 1 on)", "1")),
+        "cells_in_channel": _array(_integer("cells the optics see")),
+        "wall_time": _array(_number("wall-clock time when the step was recorded (Unix epoch)", "s")),
+        "diagnostics": _array({"type": "object", "description": "plant figures: dt (s), physics steps, cumulative "
+                                                                "solver wall times (s, wall-clock), health"})}),
+    "/cells/rows": _object("vcyto.CellRows", "the cells in the channel at each step of a batch, as columns: the "
+                           "first count[0] rows belong to time[0], the next count[1] to time[1] ... (membranes: "
+                           "/foxglove/membranes)", {
+        "time": _array(TIME), "count": _array(_integer("rows of this step")),
+        **{name: _array(schema) for name, schema in CELL["properties"].items()
+           if name not in ("fate", "membrane_um")}}),
     "/detector/event": _object("vcyto.DetectorEvent", "a cell's passage through the detection window", {
         "event_id": _integer("event number"), "time": _number("when the cell left the window", "s"),
         "fluorescence": _number("measured fluorescence", "a.u."),
@@ -68,13 +76,15 @@ SCHEMAS = {
         "arrival": _number("predicted arrival at the SAW window", "s"),
         "pulse_on": _number("IDT pulse start; null without a pulse", "s", nullable=True),
         "pulse_off": _number("IDT pulse end; null without a pulse", "s", nullable=True),
-        "reason": _string("why (empty for a plain sort or pass)")}),
+        "reason": _string("why (empty for a plain sort or pass)"),
+        "time": _number("when the decision was shown (made or revised by then)", "s")}, optional=("time",)),
     "/outcome": _object("vcyto.Outcome", "a cell that has left the channel", {
         "key": _integer("the cell's key"), "type": _string("cell type"),
         "outlet": _string("outlet name, wall or lost"),
         "class": _string("outcome class (vcyto.outcomes.OUTCOME_CLASSES)"),
         "exit_time": _number("when it left", "s", nullable=True),
-        "exit_y_um": _number("ordinate where it left", "um", nullable=True)}, optional=("class",)),
+        "exit_y_um": _number("ordinate where it left", "um", nullable=True),
+        "time": _number("when its leaving was shown", "s")}, optional=("class", "time")),
     "/flow/velocity": _object("vcyto.FlowField", "velocity and pressure at the mesh vertices, rows of constant y", {
         "time": TIME, "shape": {"type": "array", "items": {"type": "integer"}, "minItems": 2, "maxItems": 2,
                                 "description": "(rows, columns) of the vertex grid"},

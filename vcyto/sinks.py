@@ -8,8 +8,12 @@ message, as with the sinks called inline; what changes is that their cost overla
 - Order: one worker, FIFO: the sinks see the steps in order, as inline.
 - Fields: the flow field payload is computed on the loop's thread at the step it belongs to (the plant
   moves on), and only at steps where a sink's ``field_every`` asks for it.
-- Bounded: at most ``depth`` steps wait in the queue (the loop blocks when the sinks fall behind), so a
-  killed process loses at most ``depth`` steps beyond the MCAP writer's own flush interval.
+- Batches: the loop's thread hands the steps over in batches (``batch_steps`` steps, or what came in
+  ``batch_seconds`` of wall time), so the hand-over (a lock, the signals held) costs once per batch, not per
+  step; a sink with ``on_steps(records)`` gets the batch whole (the MCAP recorder writes it as columns and
+  flushes), others get ``on_step`` per step.
+- Bounded: at most ``depth`` batches wait in the queue (the loop blocks when the sinks fall behind), so a
+  killed process loses at most the batch being filled and ``depth`` queued ones beyond the last flush.
 - Failures: an exception in a sink (a full disk) stops the loop at its next step with that exception.
 - ``close`` waits until every queued step has been written, then closes the sinks (the caller calls it
   on normal exit, Ctrl-C and SIGTERM, as for a single sink).
@@ -22,6 +26,7 @@ from __future__ import annotations
 import dataclasses
 import queue
 import threading
+import time
 
 from .runfiles import signals_held
 
@@ -38,10 +43,17 @@ class Deferred:
         self.build, self.field_every = build, field_every
 
 
+BATCH_STEPS = 256             # steps handed over together
+BATCH_SECONDS = 0.25          # wall time after which a partial batch is handed over (the live view's lag)
+
+
 class BackgroundSinks:
-    def __init__(self, sinks, depth: int = 16):
+    def __init__(self, sinks, depth: int = 2, batch_steps: int = BATCH_STEPS, batch_seconds: float = BATCH_SECONDS):
         self.sinks = list(sinks)
         self._queue: queue.Queue = queue.Queue(maxsize=depth)
+        self.batch_steps, self.batch_seconds = max(1, batch_steps), batch_seconds
+        self._batch: list = []
+        self._handed = time.monotonic()
         self._failure: BaseException | None = None
         self._thread = threading.Thread(target=self._work, name="vcyto-sinks", daemon=True)
         self._thread.start()
@@ -71,7 +83,7 @@ class BackgroundSinks:
                             sink.on_end(item[1])
                 elif self._failure is None:
                     for sink in self.sinks:
-                        sink.on_step(item)
+                        steps_of(sink)(item)
             except BaseException as error:     # reported to the loop's thread at its next step
                 self._failure = error
             finally:
@@ -87,18 +99,29 @@ class BackgroundSinks:
             fields = lambda: payload                       # noqa: E731 - a snapshot of this step's field
         else:
             fields = None
-        with signals_held():
-            self._queue.put(dataclasses.replace(record, fields=fields))
+        self._batch.append(dataclasses.replace(record, fields=fields) if record.fields is not None else record)
+        if len(self._batch) >= self.batch_steps or time.monotonic() - self._handed > self.batch_seconds:
+            self._hand_over()
+
+    def _hand_over(self):
+        """Queue the steps gathered so far as one batch."""
+        if self._batch:
+            batch, self._batch = self._batch, []
+            with signals_held():
+                self._queue.put(batch)
+        self._handed = time.monotonic()
 
     def on_end(self, ending: dict):
         """The run's end (status, reason, the sort report's figures), after its last step."""
         self._raise_failure()
+        self._hand_over()
         with signals_held():
             self._queue.put((_END, ending))
 
     def drain(self):
         """Wait until every queued step is written; re-raise a sink's failure."""
         if self._thread.is_alive():
+            self._hand_over()
             with signals_held():
                 self._queue.put(_STOP)
             self._thread.join()
@@ -116,3 +139,15 @@ class BackgroundSinks:
         if self._failure is not None:
             failure, self._failure = self._failure, None
             raise failure
+
+
+def steps_of(sink):
+    """A function that gives ``sink`` a list of steps: its ``on_steps``, or ``on_step`` for each."""
+    whole = getattr(sink, "on_steps", None)
+    if whole is not None:
+        return whole
+
+    def each(records):
+        for record in records:
+            sink.on_step(record)
+    return each

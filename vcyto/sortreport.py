@@ -8,7 +8,18 @@ Statistics (``statistics_of``), over the sample offered to the inlet:
 - abort_rate: aborts over type-II detections; co_deflected: correctly detected type-I cells that left by the
   sorted outlet, and of those ``co_deflected_unexpected``: the ones whose predicted offset from every sort's
   target lay outside the controller's widened envelope (purity and single modes should have none);
-- throughput: injected cells per second of simulated time.
+- throughput: injected cells per second of simulated time;
+- rare_cell (what a rare-cell sort is judged by): the targets' fraction of the sample offered; enrichment (targets
+  per other cell in the sorted outlet over the same ratio in the sample offered); recovery (targets in the sorted
+  outlet over the targets that left by the sorted or the waste outlet) and the recovery a core facility estimates
+  without knowing the truth, by re-analysing both tubes: each tube's count times the fraction of its cells the
+  detector gates as targets, sorted / (sorted + waste); purity's 95 % Clopper-Pearson interval; events per
+  target found.
+
+The report is built as the run goes (``SortLedger``, a sink of the loop): a cell's record is made once, when it
+leaves, counted (``Tally``: the figures above are sums over records, so memory does not grow with the run) and
+written to the per-cell table (``vcyto.celltable``); ``statistics_of`` applies the same ``Tally`` to a list of
+records (such as the table read back), so the two agree.
 
 ``yield_estimate``: the yield the controller should reach by the arrival statistics alone. With the inlet's
 dead time d, a Poisson sample of intensity r is admitted with probability A = 1 / (1 + r d), and the admitted
@@ -25,6 +36,7 @@ the lead) if that comes first. Regular arrivals: the neighbours sit at k / r.
 
 from __future__ import annotations
 
+import array
 import bisect
 import math
 import re
@@ -44,8 +56,14 @@ def true_class(cell_type) -> str:
     return TYPE_II if cell_type.target else TYPE_I
 
 
-def summarise(sample, truth, events, controller, scenario, settings, partial: bool = False) -> dict:
-    """A JSON-ready record of a run: cells (admitted, in arrival order), statistics, the yield estimate.
+KEEP_CELLS = 10_000            # per-cell records a summary lists; a longer run's are in its table only
+SORT_HORIZON = 0.1             # s: sorts kept for the co-deflection check after their predicted arrival
+EVENT_NAMES = 1 << 16          # recent detector events whose cells a decision's reason can name
+
+
+def summarise(sample, truth, events, controller, scenario, settings, partial: bool = False, table=None) -> dict:
+    """A JSON-ready record of a run from its end state: cells (admitted, in arrival order), statistics, the yield
+    estimate (``SortLedger.summary``, fed every cell of ``truth`` with its event and decision).
 
     ``partial`` (a run interrupted, failed or cut short): the statistics count only the cells due by the time the
     run reached (admitted or turned away at the inlet by then); the sample's later cells never had their chance,
@@ -53,21 +71,143 @@ def summarise(sample, truth, events, controller, scenario, settings, partial: bo
     number is ``not_yet_due`` (a cell injected counts, even when the plant injected it a step before its
     arrival time); the per-cell records still list every admitted cell, those not yet due with outcome
     ``not_injected``."""
-    by_key = {cell.key: cell for cell in truth.cells}
-    cells = [_cell_record(key, arrival, name, by_key.get(key), events.get(key), controller, scenario)
-             for key, (arrival, name) in enumerate(sample.admitted)]
-    _name_cells_in_reasons(cells, {event.event_id: key for key, event in events.items()})
-    rejected = [name for time, name in sample.rejected if not partial or time <= truth.time]
-    due = [c for c in cells if not partial or c["arrival_ms"] <= truth.time * 1e3 or c["outlet"] != "not_injected"]
-    stats = statistics_of(due, truth.time, rejected=rejected, scenario=scenario,
-                          controller_settings=settings.controller)
-    stats["not_yet_due"] = len(cells) - len(due) + len(sample.rejected) - len(rejected)
-    estimate = yield_estimate(due, scenario, settings)
-    stats["coincidence_possible"] = _coincidence_possible(settings)
-    return {"cells": cells, "statistics": stats, "yield_estimate": estimate,
-            "simulated_time_ms": truth.time * 1e3, "model": settings.model, "seed": settings.seed,
-            "controller_mode": settings.controller.mode, "controller": _controller_record(settings.controller),
-            "controller_latency_us": _latency(controller.latencies)}
+    ledger = SortLedger(sample, scenario, settings, controller.predicted_arrival, table=table, keep=None)
+    for event in sorted(events.values(), key=lambda e: e.event_id):
+        ledger.event(event)
+        decision = controller.decision_for(event.event_id)
+        if decision is not None:
+            ledger.decision(decision)
+    for cell in truth.cells:
+        ledger.cell(cell)
+    return ledger.summary(truth.time, controller.latencies, partial)
+
+
+class SortLedger:
+    """The sort report built as the run goes, with memory bounded by the cells in the channel.
+
+    A sink of the loop (not paced: it sees the steps the loop shows anyway): each detector event and decision is
+    kept until its cell leaves; then the cell's record is built once, counted (``Tally``), written to the table
+    (``vcyto.celltable``, if a path is given) and kept for the summary while the run has at most ``keep`` cells
+    (None: all; by default ``KEEP_CELLS``). ``summary`` adds the cells still in the channel and those never injected."""
+
+    paced = False
+
+    def __init__(self, sample, scenario, settings, predicted_arrival, table=None, keep: int | None | str = "default"):
+        from .celltable import CellTable
+        self.sample, self.scenario, self.settings = sample, scenario, settings
+        self.predicted_arrival = predicted_arrival
+        self.table = CellTable(table) if table is not None else None
+        self.keep = KEEP_CELLS if keep == "default" else keep
+        self.kept: list[dict] = []
+        self.tally = Tally()
+        self.samples = _TransitSamples()
+        self.window_ms = tuple(edge * 1e3 for edge in settings.controller.window())
+        self.unexpected = 0
+        self.time = 0.0
+        self._events: dict = {}            # key -> event, of the cells not yet recorded
+        self._decisions: dict = {}         # event_id -> decision, of the cells not yet recorded
+        self._keys: dict = {}              # event_id -> key, the recent events (reasons name them)
+        self._sorts: dict = {}             # event_id -> predicted arrival (s) of the recent sorts in effect
+        self._inside: dict = {}            # key -> the latest truth of a cell in the channel
+        self._recorded = np.zeros(len(sample.admitted), dtype=bool)
+        self._due = self._not_due = 0
+
+    # --- what the loop shows ----------------------------------------------------------------------------
+    def on_step(self, record):
+        self.time = record.time
+        for event in record.events:
+            self.event(event)
+        for decision in record.decisions:
+            self.decision(decision)
+        for cell in record.truth.cells:
+            self.cell(cell)
+
+    def event(self, event):
+        self._events[event.key] = event
+        self._keys[event.event_id] = event.key
+        if len(self._keys) > 2 * EVENT_NAMES:
+            newest = event.event_id
+            self._keys = {e: k for e, k in self._keys.items() if e > newest - EVENT_NAMES}
+
+    def decision(self, decision):
+        self._decisions[decision.event_id] = decision
+        if decision.action == "sort":
+            self._sorts[decision.event_id] = decision.arrival
+        else:
+            self._sorts.pop(decision.event_id, None)
+        if len(self._sorts) > 4096:
+            self._sorts = {e: t for e, t in self._sorts.items() if t >= self.time - SORT_HORIZON}
+
+    def cell(self, cell):
+        """A cell's truth: kept while it is in the channel, recorded once it has left."""
+        if cell.fate == "in_channel":
+            self._inside[cell.key] = cell
+        else:
+            self._inside.pop(cell.key, None)
+            self._record(cell.key, cell)
+
+    # --- records ----------------------------------------------------------------------------------------
+    def _record(self, key: int, cell, partial: bool = False):
+        if self._recorded[key]:
+            return
+        self._recorded[key] = True
+        event = self._events.pop(key, None)
+        decision = self._decisions.pop(event.event_id, None) if event is not None else None
+        arrival, name = self.sample.admitted[key]
+        predicted = self.predicted_arrival(event) if event is not None else None
+        record = cell_record(key, arrival, name, cell, event, decision, predicted, self.scenario)
+        if record["reason"]:
+            record["reason"] = name_cells(record["reason"], self._keys)
+        due = not partial or record["arrival_ms"] <= self.time * 1e3 or record["outlet"] != "not_injected"
+        if due:
+            self.tally.add(record)
+            self.samples.add(record)
+            self._due += 1
+            if record["outcome"] == "co-deflected" and not self._covered(record["predicted_arrival_ms"]):
+                self.unexpected += 1
+        else:
+            self._not_due += 1
+        if self.table is not None:
+            self.table.append(record)
+        if self.keep is None or len(self.sample.admitted) <= self.keep:
+            self.kept.append(record)
+
+    def _covered(self, mine_ms) -> bool:
+        """Whether a sort in effect had its predicted arrival within the widened window of ``mine_ms``."""
+        if mine_ms is None:
+            return False
+        low, high = self.window_ms
+        return any(mine_ms - high <= other * 1e3 <= mine_ms - low for other in self._sorts.values())
+
+    def close(self):
+        if self.table is not None:
+            self.table.close()
+
+    def summary(self, time: float, latencies, partial: bool = False) -> dict:
+        """The run's summary at ``time`` (s): the cells still in the channel and those never injected recorded,
+        statistics over the cells due (all of them unless ``partial``), the table closed."""
+        self.time = time
+        for key in sorted(self._inside):
+            self._record(key, self._inside[key], partial)
+        self._inside = {}
+        for key in np.flatnonzero(~self._recorded).tolist():
+            self._record(key, None, partial)
+        self.close()
+        settings, scenario = self.settings, self.scenario
+        rejected = [name for at, name in self.sample.rejected if not partial or at <= time]
+        stats = self.tally.statistics(time, rejected, scenario, self.unexpected if settings.controller else None)
+        stats["not_yet_due"] = self._not_due + len(self.sample.rejected) - len(rejected)
+        stats["coincidence_possible"] = _coincidence_possible(settings)
+        summary = {"statistics": stats, "yield_estimate": self.samples.estimate(scenario, settings),
+                   "simulated_time_ms": time * 1e3, "model": settings.model, "seed": settings.seed,
+                   "controller_mode": settings.controller.mode, "controller": _controller_record(settings.controller),
+                   "controller_latency_us": _latency(latencies)}
+        if self.keep is None or len(self.sample.admitted) <= self.keep:
+            summary["cells"] = sorted(self.kept, key=lambda record: record["key"])
+        if self.table is not None:
+            summary["cell_table"] = {"path": str(self.table.path), "rows": self.table.written, "format": "parquet",
+                                     "order": "as the cells left (sort by key for arrival order)"}
+        return summary
 
 
 _EVENT = re.compile(r"\bevent (\d+)")
@@ -91,15 +231,9 @@ def name_cells(text: str, keys_by_event: dict) -> str:
     return _EVENT.sub(lambda found: f"{found.group(0)} (cell {keys_by_event.get(int(found.group(1)), '?')})", text)
 
 
-def _name_cells_in_reasons(cells, keys_by_event: dict) -> None:
-    """Each decision's reason names its cells (``name_cells``); each record carries its own ``event_id``."""
-    for cell in cells:
-        if cell["reason"]:
-            cell["reason"] = name_cells(cell["reason"], keys_by_event)
-
-
-def _cell_record(key, arrival, name, cell, event, controller, scenario) -> dict:
-    decision = controller.decision_for(event.event_id) if event else None
+def cell_record(key, arrival, name, cell, event, decision, predicted_arrival, scenario) -> dict:
+    """A cell's record: its arrival (s) and type, its truth (None: never injected), its detector event and the
+    controller's decision on it (or None), the predicted arrival at the SAW window (s)."""
     if cell is None:
         outlet = "not_injected"
     else:
@@ -112,7 +246,7 @@ def _cell_record(key, arrival, name, cell, event, controller, scenario) -> dict:
         "fluorescence": event.fluorescence if event else None,
         "scatter": event.scatter if event else None,
         "velocity_mm_s": event.velocity * 1e3 if event else None,
-        "predicted_arrival_ms": controller.predicted_arrival(event) * 1e3 if event else None,
+        "predicted_arrival_ms": predicted_arrival * 1e3 if event else None,
         "decision": decision.action if decision else None,
         "reason": decision.reason if decision and decision.reason else None,
         "pulse_ms": [decision.pulse_on * 1e3, decision.pulse_off * 1e3] if decision and decision.action == "sort"
@@ -152,49 +286,130 @@ def _latency(samples):
 
 def statistics_of(cells, simulated_time, rejected=(), scenario=None, controller_settings=None) -> dict:
     """Purity, yield, aborts, co-deflections, throughput and misclassifications from per-cell outcomes."""
-    sorted_cells = [c for c in cells if c["outlet"] == SORTED_OUTLET]
-    targets = [c for c in cells if c["true_class"] == TYPE_II]
-    targets_rejected = sum(1 for name in rejected if scenario is not None and scenario.cell_type(name).target)
-    detected_ii = [c for c in cells if c["detected_class"] == TYPE_II]
-    aborts = [c for c in cells if c["decision"] == "abort"]
-    exits = [c["exit_time_ms"] for c in cells if c["exit_time_ms"] is not None]
-    injected = [c for c in cells if c["outlet"] != "not_injected"]
-    co_deflected = [c for c in cells if c["outcome"] == "co-deflected"] if cells and "outcome" in cells[0] else []
-    offered_targets = len(targets) + targets_rejected
-    return {
-        "offered": len(cells) + len(rejected),
-        "rejected_at_inlet": len(rejected),
-        "cells": len(cells),
-        "events": sum(c["detected_class"] is not None for c in cells),
-        "sorted": sum(c["decision"] == "sort" for c in cells),
-        "missed_decisions": sum(c["decision"] == "missed" for c in cells),
-        "purity": (sum(c["true_class"] == TYPE_II for c in sorted_cells) / len(sorted_cells)) if sorted_cells else None,
-        "purity_of_sorting": _purity_of_sorting(sorted_cells),
-        "yield": (sum(c["outlet"] == SORTED_OUTLET for c in targets) / offered_targets) if offered_targets else None,
-        "abort_rate": (len(aborts) / len(detected_ii)) if detected_ii else None,
-        "aborts": len(aborts),
-        "co_deflected": len(co_deflected),
-        "co_deflected_unexpected": _unexpected(co_deflected, cells, controller_settings),
-        "misclassified": sum(c["detected_class"] is not None and c["detected_class"] != c["true_class"] for c in cells),
+    tally = Tally()
+    for cell in cells:
+        tally.add(cell)
+    has_outcomes = bool(cells) and "outcome" in cells[0]
+    co_deflected = [c for c in cells if c["outcome"] == "co-deflected"] if has_outcomes else []
+    return tally.statistics(simulated_time, rejected, scenario, _unexpected(co_deflected, cells, controller_settings))
+
+
+class Tally:
+    """The counts a sort report is made of, added one per-cell record at a time (memory: a few counters)."""
+
+    COUNTS = ("cells", "events", "sorted", "sorted_out", "sorted_out_targets", "sorted_out_correct",
+              "sorted_out_correct_targets", "sorted_out_detected_targets", "waste", "waste_detected",
+              "waste_detected_targets", "waste_targets", "targets", "targets_sorted", "detected_targets", "aborts",
+              "co_deflected", "misclassified", "undetected", "injected", "missed_decisions")
+
+    def __init__(self):
+        self.counts = dict.fromkeys(self.COUNTS, 0)
+        self.outlets: dict[str, int] = {}
+        self.outcomes: dict[str, int] = {}
+        self.last_exit_ms: float | None = None
+
+    def add(self, cell: dict):
+        count = self.counts
+        target, detected, outlet = cell["true_class"] == TYPE_II, cell["detected_class"], cell["outlet"]
+        count["cells"] += 1
+        count["events"] += detected is not None
+        count["sorted"] += cell["decision"] == "sort"
+        count["aborts"] += cell["decision"] == "abort"
+        count["missed_decisions"] += cell["decision"] == "missed"
+        count["targets"] += target
+        count["detected_targets"] += detected == TYPE_II
+        count["misclassified"] += detected is not None and detected != cell["true_class"]
         # a cell still in the channel (an unfinished run) may not have reached the detector yet: not undetected
-        "undetected": sum(c["detected_class"] is None and c["outlet"] not in ("not_injected", "in_channel")
-                          for c in cells),
-        "not_injected": len(cells) - len(injected),
-        "throughput_cells_per_s": (len(injected) / (max(exits) * 1e-3)) if exits and max(exits) > 0 else None,
-        "event_rate_per_s": (sum(c["detected_class"] is not None for c in cells) / simulated_time)
-        if simulated_time > 0 else None,
-        "outlets": {outlet: sum(c["outlet"] == outlet for c in cells)
-                    for outlet in sorted({c["outlet"] for c in cells})},
-        "outcomes": {name: sum(c.get("outcome") == name for c in cells)
-                     for name in sorted({c.get("outcome") for c in cells} - {None})},
-    }
+        count["undetected"] += detected is None and outlet not in ("not_injected", "in_channel")
+        count["injected"] += outlet != "not_injected"
+        if outlet == SORTED_OUTLET:
+            count["sorted_out"] += 1
+            count["sorted_out_targets"] += target
+            count["targets_sorted"] += target
+            count["sorted_out_detected_targets"] += detected == TYPE_II
+            if detected == cell["true_class"]:
+                count["sorted_out_correct"] += 1
+                count["sorted_out_correct_targets"] += target
+        elif outlet == DEFAULT_OUTLET:
+            count["waste"] += 1
+            count["waste_targets"] += target
+            count["waste_detected"] += detected is not None
+            count["waste_detected_targets"] += detected == TYPE_II
+        self.outlets[outlet] = self.outlets.get(outlet, 0) + 1
+        outcome = cell.get("outcome")
+        if outcome is not None:
+            self.outcomes[outcome] = self.outcomes.get(outcome, 0) + 1
+            count["co_deflected"] += outcome == "co-deflected"
+        if cell["exit_time_ms"] is not None:
+            self.last_exit_ms = max(self.last_exit_ms or cell["exit_time_ms"], cell["exit_time_ms"])
+
+    def statistics(self, simulated_time: float, rejected=(), scenario=None, unexpected=None) -> dict:
+        count = self.counts
+        targets_rejected = sum(1 for name in rejected if scenario is not None and scenario.cell_type(name).target)
+        offered_targets = count["targets"] + targets_rejected
+        last_exit = self.last_exit_ms
+        stats = {
+            "offered": count["cells"] + len(rejected),
+            "rejected_at_inlet": len(rejected),
+            "cells": count["cells"],
+            "events": count["events"],
+            "sorted": count["sorted"],
+            "missed_decisions": count["missed_decisions"],
+            "purity": _ratio(count["sorted_out_targets"], count["sorted_out"]),
+            "purity_of_sorting": _ratio(count["sorted_out_correct_targets"], count["sorted_out_correct"]),
+            "yield": _ratio(count["targets_sorted"], offered_targets),
+            "abort_rate": _ratio(count["aborts"], count["detected_targets"]),
+            "aborts": count["aborts"],
+            "co_deflected": count["co_deflected"],
+            "co_deflected_unexpected": unexpected,
+            "misclassified": count["misclassified"],
+            "undetected": count["undetected"],
+            "not_injected": count["cells"] - count["injected"],
+            "throughput_cells_per_s": count["injected"] / (last_exit * 1e-3) if last_exit else None,
+            "event_rate_per_s": count["events"] / simulated_time if simulated_time > 0 else None,
+            "outlets": dict(sorted(self.outlets.items())),
+            "outcomes": dict(sorted(self.outcomes.items())),
+        }
+        stats["rare_cell"] = self.rare_cell(offered_targets, stats["offered"])
+        return stats
+
+    def rare_cell(self, offered_targets: int, offered: int) -> dict:
+        """What a rare-cell sort's user reads (module docstring): enrichment, recovery (exact and estimated from
+        the waste as a core facility does), purity with its 95 % Clopper-Pearson interval, events per target
+        found."""
+        count = self.counts
+        found, sorted_out = count["sorted_out_targets"], count["sorted_out"]
+        others_sorted = sorted_out - found
+        input_ratio = _ratio(offered_targets, offered - offered_targets)
+        enrichment = (found / others_sorted / input_ratio) if others_sorted and input_ratio else None
+        # a facility re-analyses both tubes: the fraction gated as target in each, times the tube's count
+        sorted_estimate = count["sorted_out_detected_targets"]
+        waste_fraction = _ratio(count["waste_detected_targets"], count["waste_detected"])
+        waste_estimate = waste_fraction * count["waste"] if waste_fraction is not None else None
+        estimated = (_ratio(sorted_estimate, sorted_estimate + waste_estimate)
+                     if waste_estimate is not None and sorted_estimate + waste_estimate > 0 else None)
+        return {"target_fraction_offered": _ratio(offered_targets, offered), "enrichment": enrichment,
+                "recovery": _ratio(found, found + count["waste_targets"]), "recovery_estimated": estimated,
+                "purity_interval_95": purity_interval(found, sorted_out), "targets_found": found,
+                "events_per_target_found": _ratio(count["events"], found)}
 
 
-def _purity_of_sorting(sorted_cells):
-    """Purity of the sorted outlet among the cells the detector classified correctly (what the sort itself
-    achieves; misclassified cells are counted apart)."""
-    correct = [c for c in sorted_cells if c["detected_class"] == c["true_class"]]
-    return sum(c["true_class"] == TYPE_II for c in correct) / len(correct) if correct else None
+def _ratio(numerator, denominator):
+    return numerator / denominator if denominator else None
+
+
+def purity_interval(successes: int, trials: int, confidence: float = 0.95):
+    """The Clopper-Pearson ("exact") interval of a binomial proportion, [low, high] (never narrower than its
+    confidence promises, also for the few targets of a rare-cell sort); None without trials. The beta quantiles
+    are scipy.special's (scipy.stats gives the same interval, ``binomtest(...).proportion_ci()``, but its import
+    costs a run 1-2 s)."""
+    if not trials:
+        return None
+    from scipy.special import betaincinv
+    tail = (1.0 - confidence) / 2
+    low = float(betaincinv(successes, trials - successes + 1, tail)) if successes else 0.0
+    high = float(betaincinv(successes + 1, trials - successes, 1.0 - tail)) if successes < trials else 1.0
+    return [low, high]
 
 
 def _unexpected(co_deflected, cells, settings) -> int | None:
@@ -214,36 +429,62 @@ def _unexpected(co_deflected, cells, settings) -> int | None:
 
 def yield_estimate(cells, scenario, settings) -> dict | None:
     """The analytic yield (module docstring) for the run's mix, rate, dead time and controller window."""
-    arrivals, controller = settings.arrivals, settings.controller
-    transit = _transit_times(cells)
-    types = [c for c in scenario.cell_types if c.name in transit]
-    mix = _mix_fractions(arrivals, cells)
-    targets = [c for c in types if c.target and mix.get(c.name)]
-    if not targets or not controller.enabled:
-        return None
-    low, high = controller.window(margin=SORTED_MODES.get(controller.mode, True))
-    poisson = arrivals.process == "poisson"
-    acceptance = 1.0 / (1.0 + arrivals.rate * arrivals.min_spacing) if poisson else 1.0
-    lookahead = _lookahead(cells)
-    total, weight = 0.0, 0.0
-    for target in targets:
-        # a neighbour detected after the target's pulse started cannot abort it: offsets beyond its look-ahead
-        # (its detection-to-arrival time minus the lead) do not count
-        counted = [(mix[other.name], transit[other.name] - transit[target.name],
-                    min(high, lookahead[other.name] - controller.lead)) for other in types
-                   if _counts(controller.mode, other)]
-        keep = 1.0
-        for side in (1, -1):       # neighbours injected after (+) and before (-) the target
-            windows = [(share, *sorted((side * (low - shift), side * (top - shift)))) for share, shift, top in counted
-                       if top > low]
-            keep *= _clear_probability(windows, arrivals)
-        total += mix[target.name] * keep
-        weight += mix[target.name]
-    value = acceptance * total / weight
-    n = sum(c["true_class"] == TYPE_II for c in cells) / max(acceptance, 1e-12)
-    return {"yield": value, "acceptance": acceptance, "window_ms": [low * 1e3, high * 1e3],
-            "standard_error": math.sqrt(value * (1 - value) / n) if n else None,
-            "transit_ms": {name: t * 1e3 for name, t in transit.items()}}
+    samples = _TransitSamples()
+    for cell in cells:
+        samples.add(cell)
+    return samples.estimate(scenario, settings)
+
+
+class _TransitSamples:
+    """Per cell type, the times from injection and from detection to the predicted arrival at the SAW window
+    (s, of the detected cells), the cells of each type and the targets: what ``yield_estimate`` needs, gathered a
+    record at a time (8 bytes a detected cell per series)."""
+
+    def __init__(self):
+        self.transit: dict[str, array.array] = {}
+        self.lookahead: dict[str, array.array] = {}
+        self.types: dict[str, int] = {}
+        self.targets = 0
+
+    def add(self, cell: dict):
+        name = cell["type"]
+        self.types[name] = self.types.get(name, 0) + 1
+        self.targets += cell["true_class"] == TYPE_II
+        if cell["predicted_arrival_ms"] is not None:
+            for series, since in ((self.transit, "arrival_ms"), (self.lookahead, "detection_time_ms")):
+                series.setdefault(name, array.array("d")).append((cell["predicted_arrival_ms"] - cell[since]) * 1e-3)
+
+    def estimate(self, scenario, settings) -> dict | None:
+        arrivals, controller = settings.arrivals, settings.controller
+        transit = {name: statistics.median(values) for name, values in self.transit.items()}
+        lookahead = {name: statistics.median(values) for name, values in self.lookahead.items()}
+        types = [c for c in scenario.cell_types if c.name in transit]
+        mix = _mix_fractions(arrivals, self.types)
+        targets = [c for c in types if c.target and mix.get(c.name)]
+        if not targets or not controller.enabled:
+            return None
+        low, high = controller.window(margin=SORTED_MODES.get(controller.mode, True))
+        poisson = arrivals.process == "poisson"
+        acceptance = 1.0 / (1.0 + arrivals.rate * arrivals.min_spacing) if poisson else 1.0
+        total, weight = 0.0, 0.0
+        for target in targets:
+            # a neighbour detected after the target's pulse started cannot abort it: offsets beyond its look-ahead
+            # (its detection-to-arrival time minus the lead) do not count
+            counted = [(mix[other.name], transit[other.name] - transit[target.name],
+                        min(high, lookahead[other.name] - controller.lead)) for other in types
+                       if _counts(controller.mode, other)]
+            keep = 1.0
+            for side in (1, -1):       # neighbours injected after (+) and before (-) the target
+                windows = [(share, *sorted((side * (low - shift), side * (top - shift))))
+                           for share, shift, top in counted if top > low]
+                keep *= _clear_probability(windows, arrivals)
+            total += mix[target.name] * keep
+            weight += mix[target.name]
+        value = acceptance * total / weight
+        n = self.targets / max(acceptance, 1e-12)
+        return {"yield": value, "acceptance": acceptance, "window_ms": [low * 1e3, high * 1e3],
+                "standard_error": math.sqrt(value * (1 - value) / n) if n else None,
+                "transit_ms": {name: t * 1e3 for name, t in transit.items()}}
 
 
 def _counts(mode: str, other) -> bool:
@@ -275,46 +516,32 @@ def _clear_probability(windows, arrivals, step: float = 1e-6) -> float:
     return float(clear[0])
 
 
-def _transit_times(cells) -> dict:
-    """Median time (s) from injection to the predicted arrival at the SAW window, per type, in this run."""
-    return _median_to_arrival(cells, "arrival_ms")
-
-
-def _lookahead(cells) -> dict:
-    """Median time (s) from detection to the predicted arrival at the SAW window, per type, in this run."""
-    return _median_to_arrival(cells, "detection_time_ms")
-
-
-def _median_to_arrival(cells, since: str) -> dict:
-    """Per type, the median of (predicted arrival - ``since``) over the detected cells (s)."""
-    times = {}
-    for cell in cells:
-        if cell["predicted_arrival_ms"] is not None:
-            times.setdefault(cell["type"], []).append((cell["predicted_arrival_ms"] - cell[since]) * 1e-3)
-    return {name: statistics.median(values) for name, values in times.items()}
-
-
-def _mix_fractions(arrivals, cells) -> dict:
+def _mix_fractions(arrivals, type_counts: dict) -> dict:
+    """Each type's share: the sample's mix, else the shares counted in the run."""
     if arrivals.mix:
         total = sum(weight for _, weight in arrivals.mix)
         return {name: weight / total for name, weight in arrivals.mix}
-    names = [c["type"] for c in cells]
-    return {name: names.count(name) / len(names) for name in set(names)}
+    total = sum(type_counts.values())
+    return {name: count / total for name, count in type_counts.items()}
 
 
 def report_lines(result: dict, table_limit: int = 200) -> list[str]:
     """The summary as text: a table of cells (up to ``table_limit``), then the sort report."""
     lines = []
-    cells = result["cells"]
-    if len(cells) <= table_limit:
+    cells = result.get("cells")
+    if cells is None:
+        table = (result.get("cell_table") or {}).get("path", "the per-cell table")
+        lines.append(f"({result['statistics']['cells']} cells counted: one row per cell in {table} (Parquet), the "
+                     "detector events in the FCS file)")
+    elif len(cells) <= table_limit:
         lines.append(f"{'cell':>4}  {'type':<9} {'detected':>8}  {'decision':<8} {'outlet':<12} {'outcome':<13} "
                      f"{'exit (ms)':>9}  {'area kept (min-max)':<20} spacing / h")
         lines += [_cell_line(cell) for cell in cells]
     else:
         due = result["statistics"].get("cells", len(cells))
         counted = f", {due} of them due by the end and counted" if due != len(cells) else ""
-        lines.append(f"({len(cells)} cells admitted{counted}: the table is in the JSON summary, --json, and the FCS "
-                     "file)")
+        lines.append(f"({len(cells)} cells admitted{counted}: the table is in the JSON summary, --json, the per-cell "
+                     "table and the FCS file)")
     lines += sort_report_lines(result)
     return lines
 
@@ -354,6 +581,7 @@ def sort_report_lines(result: dict) -> list[str]:
         + (f"; {stats['not_yet_due']} cells of the sample were not yet due when the run stopped (not counted)"
            if stats.get("not_yet_due") else ""),
         f"throughput {throughput:.0f} cells/s of simulated time" if throughput else "throughput n/a",
+        *_rare_cell_lines(stats.get("rare_cell")),
         f"simulated {result['simulated_time_ms']:.3f} ms (IDT on {result['idt_on_time_ms']:.3f} ms) in "
         f"{result['wall_time_s']:.1f} s wall ({result['model']} model: set-up {result['setup_time_s']:.1f} s, loop "
         f"{result['wall_time_s'] - result['setup_time_s']:.3g} s); "
@@ -385,6 +613,21 @@ def _controller_words(result: dict) -> str:
     name = result.get("controller_name", "built-in")
     mode = f"{result.get('controller_mode', '?')} mode"
     return mode if name == "built-in" else f"controller {name}"
+
+
+def _rare_cell_lines(figures: dict | None) -> list[str]:
+    """The figures a rare-cell sort is judged by (``Tally.rare_cell``), for a sample whose targets are rare."""
+    if not figures or figures["target_fraction_offered"] is None or figures["target_fraction_offered"] > 0.05:
+        return []
+    interval = figures["purity_interval_95"]
+    enrichment, per_target = figures["enrichment"], figures["events_per_target_found"]
+    return [f"rare cells: targets {figures['target_fraction_offered']:.2g} of the sample, "
+            f"{figures['targets_found']} found in the sorted outlet; enrichment "
+            + (f"{enrichment:.3g}x" if enrichment is not None else "n/a (no other cell sorted)")
+            + f"; recovery {_percent(figures['recovery'])} (estimated from the waste as a core facility does: "
+            f"{_percent(figures['recovery_estimated'])}); purity 95 % interval "
+            + (f"{100 * interval[0]:.1f}-{100 * interval[1]:.1f} %" if interval else "n/a")
+            + (f"; {per_target:,.0f} events per target found" if per_target is not None else "")]
 
 
 def _no_coincidence(stats: dict, result: dict) -> str:

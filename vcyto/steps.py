@@ -54,11 +54,19 @@ class ProgressSink:
         self.progress = progress
         self.notes = count <= NOTE_LIMIT
         self.left = self.detected = 0
+        self.bar = not self.notes and hasattr(progress, "run")      # a long run: a bar with a rate and an ETA
+        if self.bar:
+            progress.run(count)
 
     def on_step(self, record: StepRecord):
         """The record's detections and exits, in time order (one record of an event-driven plant spans many
         periods: a cell may leave before another is detected), then the status line."""
         progress = self.progress
+        if self.bar:
+            self.detected += len(record.events)
+            self.left += sum(cell.fate != "in_channel" for cell in record.truth.cells)
+            progress.advance(self.left, self.detected, record.time)
+            return
         actions = {decision.event_id: decision.action for decision in record.decisions}
         lines = []
         for event in record.events:

@@ -101,7 +101,7 @@ def settings_controller(settings: StreamSettings):
 
 
 def run_stream(scenario: Scenario, settings: StreamSettings, progress=None, plant=None, sinks=(), controller=None,
-               timing: Timing = Timing()) -> dict:
+               timing: Timing = Timing(), table=None) -> dict:
     """Run the loop until every admitted cell has left (or a cap); a JSON-ready summary (``sortreport``).
 
     ``controller``: any object implementing ``controller.protocol.Controller`` (default: ``settings``'s,
@@ -119,8 +119,11 @@ def run_stream(scenario: Scenario, settings: StreamSettings, progress=None, plan
     and with sinks every ``record_interval``; the detector is fed the cells that crossed an edge of its window,
     one period before and at the crossing. It reacts to nothing else and the controller to nothing but its
     events, so the outcome is the same as stepping period by period (tested), at a fraction of the cost.
+
+    The sort report is built as cells leave (``sortreport.SortLedger``, memory bounded by the cells in the
+    channel); ``table``: the path of the per-cell table it writes (Parquet, ``vcyto.celltable``), or None.
     """
-    loop = Loop(scenario, settings, progress, plant, sinks, controller, timing)
+    loop = Loop(scenario, settings, progress, plant, sinks, controller, timing, table)
     status, reason, failure = "complete", "", None
     try:
         while loop.proceed:
@@ -191,7 +194,7 @@ class Loop:
     """
 
     def __init__(self, scenario: Scenario, settings: StreamSettings, progress=None, plant=None, sinks=(),
-                 controller=None, timing: Timing = Timing()):
+                 controller=None, timing: Timing = Timing(), table=None):
         started = self.started = time.perf_counter()
         self.scenario, self.settings, self.sinks_given = scenario, settings, tuple(sinks)
         rng = np.random.default_rng(settings.seed)
@@ -205,12 +208,16 @@ class Loop:
         elif isinstance(controller, type):      # a class: built from the controller settings, as --controller-from
             controller = controller(settings.controller)
         self.port = _port(controller)
-        observers = list(sinks) + ([ProgressSink(progress, len(sample.admitted))] if progress is not None else [])
         facts = DeviceFacts.from_settings(settings.controller, plant.control_period, settings.detector.window)
         self.detector, self.control = Detector(settings.detector, detector_rng), Control(self.port, facts, timing)
+        # the sort report, built as cells leave (not paced: it sees the steps the loop shows anyway)
+        self.report = sortreport.SortLedger(sample, scenario, settings, self.control.ledger.predicted_arrival,
+                                            table=table)
+        observers = list(sinks) + [self.report] + ([ProgressSink(progress, len(sample.admitted))]
+                                                   if progress is not None else [])
         self.sinks = tuple(observers)
         self.paced = any(is_paced(sink) for sink in self.sinks)      # recordings: the state every record_interval
-        self.events, self.settled = {}, set()
+        self.detected, self.settled = 0, set()
         self.actuation = self.idt_time = 0.0
         self.steps = 0
         self.fields = _field_payload(plant) if self.paced and isinstance(plant, contract.HasFields) else None
@@ -270,8 +277,7 @@ class Loop:
         self.steps += periods
         control.pace(now)
         new_events = [event for view in seen for event in self.detector.observe(view.time, _sightings(view))]
-        for event in new_events:
-            self.events[event.key] = event
+        self.detected += len(new_events)
         return new_events
 
     def conclude(self, new_events):
@@ -316,9 +322,7 @@ class Loop:
         plant, settings, sinks = self.plant, self.settings, self.sinks_given
         if status == "complete" and not plant.done:
             status, reason = "truncated", _truncation(plant, settings, self.cap, self.drain_cap)
-        ledger = self.control.ledger
-        result = sortreport.summarise(self.sample, plant.truth(), self.events, ledger, self.scenario, settings,
-                                      partial=status != "complete")
+        result = self.report.summary(self.now, self.control.ledger.latencies, partial=status != "complete")
         result.update(status=status, reason=reason, wall_time_s=time.perf_counter() - self.started,
                       setup_time_s=self.setup, idt_on_time_ms=self.idt_time * 1e3, steps=self.steps,
                       # peak resident memory after the set-up, at the loop's end (its state), and with the report

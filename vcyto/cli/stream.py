@@ -44,9 +44,10 @@ def add_command(commands):
                         help="name the run's files NAME.mcap, NAME.json, NAME.fcs, NAME.gating.xml, NAME.rrd (default "
                              "stream-DATE-TIME-MILLISECONDS-PID); a name whose files exist is refused")
     stream.add_argument("--no-record", action="store_true", help="no MCAP recording")
-    stream.add_argument("--flush-every", type=Integer(low=1), default="50", metavar="N",
-                        help="flush the recording every N recorded steps (control periods; with --tolerance, "
-                             "FE-IB steps): a crash loses at most N (default 50)")
+    stream.add_argument("--flush-every", type=Integer(low=1), default="400", metavar="N",
+                        help="write the recording's per-step columns and flush it every N recorded steps (control "
+                             "periods; with --tolerance, FE-IB steps): a crash loses at most the last N and the "
+                             "steps still queued for the recording's thread (default 400)")
     stream.add_argument("--field-every", type=Integer(low=0), default="200", metavar="N",
                         help="record the velocity field every N recorded steps (control periods; with "
                              "--tolerance, FE-IB steps), 0 = never (default 200)")
@@ -221,6 +222,7 @@ def _run_with_sinks(args, scenario, settings, view, files, background, interrupt
                 if interrupted:
                     raise KeyboardInterrupt
                 result = stream.run_stream(scenario, settings, progress, sinks=[background] if background else [],
+                                           table=files.path("cells.parquet") if files is not None else None,
                                            **loop)
             except stream.StreamStopped as error:
                 stopped, result = error, error.result
@@ -262,10 +264,10 @@ def _rerun_sink(args, scenario, settings, view, files) -> list:
     """The Rerun sink of ``view``; if Rerun refuses it (a viewer gone between the check and the connection, a
     file it cannot create), one line says so and the view goes to a new .rrd, else there is none."""
     from .. import runfiles
-    from ..rerunlog import RerunSink
+    from ..rerunlog import POINT_LIKE, RerunSink
     try:
         return [RerunSink(scenario, settings.detector.window, view.target(files and files.path("rrd")),
-                          field_every=args.field_every)]
+                          field_every=args.field_every, membranes=settings.model not in POINT_LIKE)]
     except (RuntimeError, OSError) as problem:
         reason = " ".join(str(problem).split())[:160]
         if view.kind == "connect" and files is not None:
@@ -283,7 +285,7 @@ def _report_stream(args, result, stopped, view, files, settings, scenario):
     from .. import runfiles, stream
     if stopped is not None and stopped.status == "interrupted":
         result["reason"] = f"interrupted by {signals_seen.get('last', 'SIGINT')}"
-    lines = stream.report_lines(result) if result.get("cells") else []
+    lines = stream.report_lines(result) if "statistics" in result and "events" in result["statistics"] else []
     result["files"] = {}
     if files is not None and files.path("mcap") is not None:
         mcap = files.path("mcap")
@@ -296,10 +298,11 @@ def _report_stream(args, result, stopped, view, files, settings, scenario):
     if files is not None:
         result["run_id"] = files.run_id
         result["files"].update({"fcs": str(files.path("fcs")), "gatingml": str(files.path("gating.xml")),
-                                "summary": str(files.path("json"))})
+                                "cells": str(files.path("cells.parquet")), "summary": str(files.path("json"))})
         files.finish(result, settings, scenario)
         lines.append(f"detector events: {files.path('fcs')} (FCS 3.1; classification gate: "
-                     f"{files.path('gating.xml')}, Gating-ML 2.0); summary: {files.path('json')}")
+                     f"{files.path('gating.xml')}, Gating-ML 2.0); per-cell table: {files.path('cells.parquet')} "
+                     f"(Parquet); summary: {files.path('json')}")
     for note in view.notes:
         runfiles.say(note)
     emit(args, result, lines)

@@ -1,0 +1,122 @@
+"""The sort report built as cells leave: the per-cell table, aggregates equal to those recomputed from it, the
+rare-cell figures, and a summary that names the table instead of listing a long run's cells."""
+
+import math
+
+import numpy as np
+import pytest
+
+from sim.arrivals import Arrivals
+from sim.scenario import Scenario
+from vcyto import celltable, sortreport
+from vcyto.stream import StreamSettings, run_stream, statistics_of
+
+
+@pytest.fixture(scope="module")
+def rom_plant():
+    from sim.plants import build
+    return build("rom", Scenario())
+
+
+@pytest.fixture(scope="module")
+def long_run(rom_plant, tmp_path_factory):
+    """A dense rom sort (aborts, co-deflections) whose cells outnumber what a summary lists."""
+    table = tmp_path_factory.mktemp("table") / "run.cells.parquet"
+    arrivals = Arrivals(count=1500, mix=(("RBC", 0.7), ("melanoma", 0.3)), rate=4000.0, process="poisson",
+                        min_spacing=20e-6)
+    settings = StreamSettings(arrivals, model="rom", seed=11)
+    keep = sortreport.KEEP_CELLS
+    sortreport.KEEP_CELLS = 1000               # the summary lists no cells beyond this (here: 1,500 offered)
+    try:
+        result = run_stream(Scenario(), settings, plant=rom_plant, table=table)
+    finally:
+        sortreport.KEEP_CELLS = keep
+    return result, table, settings
+
+
+def test_every_admitted_cell_has_one_row_and_the_aggregates_are_the_tables(long_run):
+    result, table, settings = long_run
+    frame = celltable.read_table(table).to_pandas()
+    assert result["cell_table"]["rows"] == len(frame) == result["statistics"]["cells"] > 1000
+    assert sorted(frame["key"]) == list(range(len(frame)))
+    records = [celltable.record_of(row) for row in frame.to_dict("records")]
+    for record in records:                                  # pandas gives NaN for null numbers
+        record.update({k: None for k, v in record.items() if isinstance(v, float) and math.isnan(v)})
+    records.sort(key=lambda r: r["key"])
+    from sim.arrivals import offer
+    rejected = [name for _, name in offer(settings.arrivals, np.random.default_rng(settings.seed).spawn(2)[0]).rejected]
+    recomputed = statistics_of(records, result["simulated_time_ms"] * 1e-3, rejected=rejected, scenario=Scenario(),
+                               controller_settings=settings.controller)
+    stats = dict(result["statistics"])
+    assert stats["rejected_at_inlet"] == len(rejected) > 0
+    assert stats.pop("event_rate_per_s") == pytest.approx(recomputed.pop("event_rate_per_s"), rel=1e-12)
+    for key in ("not_yet_due", "coincidence_possible"):
+        stats.pop(key)
+    assert stats == recomputed
+    assert stats["aborts"] > 0 and stats["co_deflected"] > 0          # the dense sort exercises them
+    estimate = sortreport.yield_estimate(records, Scenario(), settings)
+    assert estimate == result["yield_estimate"]
+
+
+def test_a_long_runs_summary_names_its_table_and_lists_no_cells(long_run):
+    result, table, _ = long_run
+    assert "cells" not in result and result["cell_table"]["path"] == str(table)
+    lines = sortreport.report_lines(result)
+    assert str(table) in lines[0] and any(line.startswith("purity") for line in lines)
+
+
+def test_a_pandas_and_pyarrow_reader_see_the_same_table(long_run):
+    _, table, _ = long_run
+    frame = celltable.read_table(table).to_pandas()
+    assert set(frame["outcome"]) <= {"sorted", "passed", "aborted", "missed", "misclassified", "co-deflected",
+                                     "lost", "not_injected", "unfinished"}
+    streamed = list(celltable.records(table, batch_rows=100))
+    assert [r["key"] for r in streamed] == frame["key"].tolist()
+
+
+def test_rare_cell_figures_by_hand():
+    """Enrichment, both recoveries, the purity interval and events per target from counts made by hand."""
+    def cell(target, detected, outlet, decision="pass"):
+        return {"true_class": "II" if target else "I", "detected_class": detected, "outlet": outlet,
+                "decision": decision, "exit_time_ms": 1.0, "outcome": None}
+    cells = ([cell(True, "II", "upper", "sort")] * 8 + [cell(False, "II", "upper", "sort")] * 2        # sorted tube
+             + [cell(True, "II", "lower")] * 2 + [cell(False, "I", "lower")] * 9988)                    # waste tube
+    tally = sortreport.Tally()
+    for c in cells:
+        tally.add(c)
+    figures = tally.statistics(1.0)["rare_cell"]
+    assert figures["target_fraction_offered"] == pytest.approx(10 / 10000)
+    assert figures["enrichment"] == pytest.approx((8 / 2) / (10 / 9990))
+    assert figures["recovery"] == pytest.approx(8 / 10)
+    # re-analysis: 10 gated as targets in the sorted tube, 2 of 9990 in the waste
+    assert figures["recovery_estimated"] == pytest.approx(10 / (10 + 2 / 9990 * 9990))
+    from scipy.stats import binomtest
+    exact = binomtest(8, 10).proportion_ci(confidence_level=0.95, method="exact")
+    assert figures["purity_interval_95"] == pytest.approx([exact.low, exact.high], rel=1e-9)
+    assert figures["events_per_target_found"] == pytest.approx(10000 / 8)
+
+
+def test_a_rare_cell_sort_reports_its_figures(rom_plant):
+    """A sample with targets at 2e-3 (forced to hold some): the report's rare-cell line with the interval."""
+    settings = StreamSettings(Arrivals(count=3000, mix=(("RBC", 0.998), ("melanoma", 0.002)), rate=1000.0,
+                                       process="poisson"), model="rom", seed=5)
+    result = run_stream(Scenario(), settings, plant=rom_plant)
+    stats = result["statistics"]
+    figures = stats["rare_cell"]
+    assert figures["targets_found"] >= 1 and figures["target_fraction_offered"] < 0.01
+    assert figures["enrichment"] is None or figures["enrichment"] > 50
+    assert figures["recovery"] >= stats["yield"]                # the yield also counts targets turned away
+    low, high = figures["purity_interval_95"]
+    assert low <= stats["purity"] <= high
+    assert figures["events_per_target_found"] == stats["events"] / figures["targets_found"]
+    line = next(line for line in sortreport.report_lines(result) if line.startswith("rare cells"))
+    assert "events per target found" in line and "interval" in line
+
+
+def test_the_fcs_of_a_long_run_is_read_from_its_table(long_run):
+    """A summary without cells: the FCS events come from the table, the same as from the records."""
+    from vcyto.fcs import event_table
+    result, table, _ = long_run
+    records = sorted(celltable.records(table), key=lambda r: r["key"])
+    assert np.array_equal(event_table(result), event_table({"cells": records}))
+    assert len(event_table(result)) == result["statistics"]["events"]

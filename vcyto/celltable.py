@@ -1,0 +1,89 @@
+"""The per-cell table of a run: one row per admitted cell, written to Parquet as cells leave (pyarrow).
+
+A row is a sort report's per-cell record (``vcyto.sortreport``) with its pairs split into two columns
+(``pulse_ms`` -> ``pulse_on_ms``, ``pulse_off_ms``; ``area_ratio_range`` -> ``area_ratio_min``, ``area_ratio_max``;
+``spacing_over_h`` -> ``spacing_min_h``, ``spacing_max_h``); missing values are nulls. Rows are in the order the
+cells left the channel (then those still in it, then those never injected when a run stops): sort by ``key`` for
+arrival order. The writer keeps one row group (``ROWS_PER_GROUP`` rows) in memory, so a run's memory does not grow
+with its length; pandas (``read_parquet``), polars and pyarrow read the file.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pyarrow as pa
+import pyarrow.parquet as pq
+
+ROWS_PER_GROUP = 8192
+SCHEMA = pa.schema([
+    ("key", pa.int64()), ("type", pa.string()), ("true_class", pa.string()), ("arrival_ms", pa.float64()),
+    ("event_id", pa.int64()), ("detected_class", pa.string()), ("detection_time_ms", pa.float64()),
+    ("fluorescence", pa.float64()), ("scatter", pa.float64()), ("velocity_mm_s", pa.float64()),
+    ("predicted_arrival_ms", pa.float64()), ("decision", pa.string()), ("reason", pa.string()),
+    ("pulse_on_ms", pa.float64()), ("pulse_off_ms", pa.float64()), ("outlet", pa.string()),
+    ("exit_time_ms", pa.float64()), ("exit_y_um", pa.float64()), ("area_ratio", pa.float64()),
+    ("area_ratio_min", pa.float64()), ("area_ratio_max", pa.float64()), ("spacing_min_h", pa.float64()),
+    ("spacing_max_h", pa.float64()), ("area_corrected", pa.float64()), ("outcome", pa.string()),
+])
+PAIRS = {"pulse_ms": ("pulse_on_ms", "pulse_off_ms"), "area_ratio_range": ("area_ratio_min", "area_ratio_max"),
+         "spacing_over_h": ("spacing_min_h", "spacing_max_h")}
+
+
+def flat(record: dict) -> dict:
+    """A per-cell record as a table row (its pairs split)."""
+    row = {name: value for name, value in record.items() if name not in PAIRS}
+    for pair, (low, high) in PAIRS.items():
+        values = record.get(pair)
+        row[low], row[high] = (values[0], values[1]) if values else (None, None)
+    return row
+
+
+def record_of(row: dict) -> dict:
+    """A table row as a per-cell record (the inverse of ``flat``)."""
+    record = {name: value for name, value in row.items() if not any(name in pair for pair in PAIRS.values())}
+    for pair, (low, high) in PAIRS.items():
+        record[pair] = [row[low], row[high]] if row.get(low) is not None else None
+    return record
+
+
+class CellTable:
+    """Rows appended as cells leave, written a row group at a time to ``path`` (created or truncated)."""
+
+    def __init__(self, path: Path, rows_per_group: int = ROWS_PER_GROUP):
+        self.path = Path(path)
+        self._writer = pq.ParquetWriter(str(self.path), SCHEMA, compression="zstd")
+        self._rows: list[dict] = []
+        self.rows_per_group = rows_per_group
+        self.written = 0
+
+    def append(self, record: dict):
+        self._rows.append(flat(record))
+        if len(self._rows) >= self.rows_per_group:
+            self._write()
+
+    def _write(self):
+        if self._rows:
+            self._writer.write_table(pa.Table.from_pylist(self._rows, schema=SCHEMA))
+            self.written += len(self._rows)
+            self._rows = []
+
+    def close(self):
+        if self._writer is not None:
+            try:
+                self._write()
+            finally:
+                self._writer.close()
+                self._writer = None
+
+
+def read_table(path: Path, columns=None) -> pa.Table:
+    """The table of ``path`` (only ``columns`` if given)."""
+    return pq.read_table(str(path), columns=columns)
+
+
+def records(path: Path, batch_rows: int = 65536):
+    """The per-cell records of the table at ``path``, a row group at a time (memory: one batch)."""
+    for batch in pq.ParquetFile(str(path)).iter_batches(batch_size=batch_rows):
+        for row in batch.to_pylist():
+            yield record_of(row)

@@ -115,6 +115,23 @@ def sorting_figures(sorted_targets: int, contaminants: int, targets_offered: int
     return purity, yield_, f1
 
 
+class _Departures:
+    """A sink of the loop (not paced) that keeps the cells that left, shown as the loop shows its steps to every
+    sink (the sort report among them), until the environment takes them for its rewards."""
+
+    paced = False
+
+    def __init__(self):
+        self.cells: list = []
+
+    def on_step(self, record):
+        self.cells.extend(cell for cell in record.truth.cells if cell.fate != "in_channel")
+
+    def take(self) -> list:
+        cells, self.cells = self.cells, []
+        return cells
+
+
 class SortEnv(gymnasium.Env):
     """The sorting loop as a Gymnasium environment (module docstring).
 
@@ -159,7 +176,9 @@ class SortEnv(gymnasium.Env):
         super().reset(seed=seed)
         self.episode_settings = replace(self.settings, seed=int(self.np_random.integers(2**63 - 1)))
         self._port = ActionPort()
-        self.loop = loop = Loop(self.scenario, self.episode_settings, plant=self.plant, controller=self._port)
+        self._left = _Departures()
+        self.loop = loop = Loop(self.scenario, self.episode_settings, plant=self.plant, sinks=(self._left,),
+                                controller=self._port)
         self._facts = loop.control.facts
         self._recent: deque = deque(maxlen=RECENT)      # (event id, class, predicted arrival) of earlier events
         self._sorts: dict = {}                          # event id -> (arrival, pulse on, pulse off) of standing sorts
@@ -240,7 +259,7 @@ class SortEnv(gymnasium.Env):
         if self.reward_kind != "shaped" and self._alive:
             return 0.0
         reward = 0.0
-        for cell in self.loop.truth_update().cells:
+        for cell in self._left.take():
             if cell.fate == "in_channel" or cell.fate == DEFAULT_OUTLET:
                 continue
             if self._target[cell.type]:

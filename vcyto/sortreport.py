@@ -66,8 +66,17 @@ def summarise(sample, truth, events, controller, scenario, settings, partial: bo
     stats["coincidence_possible"] = _coincidence_possible(settings)
     return {"cells": cells, "statistics": stats, "yield_estimate": estimate,
             "simulated_time_ms": truth.time * 1e3, "model": settings.model, "seed": settings.seed,
+            "mesh": mesh_record(scenario),
             "controller_mode": settings.controller.mode, "controller": _controller_record(settings.controller),
             "controller_latency_us": _latency(controller.latencies)}
+
+
+def mesh_record(scenario) -> dict:
+    """The mesh a run's flows are computed on: its size, squares and Taylor-Hood DOFs (``sim.mesh.MeshSize``)."""
+    from sim.mesh import MeshSize
+    size = MeshSize.of(scenario.channel, scenario.numerics.mesh_h)
+    return {"h_um": size.largest * 1e6, "squares": list(size.squares), "dofs": size.dofs, "uniform": size.uniform,
+            "description": size.describe()}
 
 
 _EVENT = re.compile(r"\bevent (\d+)")
@@ -358,6 +367,8 @@ def sort_report_lines(result: dict) -> list[str]:
         f"{result['wall_time_s'] - result['setup_time_s']:.3g} s); "
         + _latency_line(result['controller_latency_us']),
     ]
+    if result.get("mesh"):
+        lines.append(f"mesh: {result['mesh']['description']}")
     if (result.get("time_steps") or {}).get("levels_us"):
         from .paper import time_step_line
         lines += [line.strip() for line in time_step_line(result["time_steps"])]

@@ -28,8 +28,8 @@ reference puts it.
 Never above the stability limit of the cells in the channel: the law fitted to measured limits
 (``sim.steplimit``: it lies at or below every measured limit, in the run's time scheme, on the run's mesh). A cell
 type whose limit lies between two levels has its own level at the largest multiple of dt0 within it (the melanoma at
-the paper's mesh with bdf2), so that it is held there, not at the power of two below. The coarse level (16 dt0) only
-for cells whose limit is at least ``COARSE_MARGIN`` times it (``level_multiples``). Each level's fluid matrix is
+the paper's mesh with bdf2), so that it is held there, not at the power of two below. The coarse level (16 dt0) is
+an accuracy rule, not a stability one: only for cells whose membrane relaxes slowly against it (``level_multiples``). Each level's fluid matrix is
 factored once, when first needed, on the same mesh. A finest step dt0 above a cell type's limit is taken anyway
 (it is the step asked for) with a warning in the log.
 """
@@ -42,14 +42,15 @@ import math
 import numpy as np
 
 from .fluid import NavierStokes, lagrange
+from .health import membrane_time_step
 from .membrane import polygon_centroid
 from .steplimit import limit_of
 
 logger = logging.getLogger(__name__)
 
 LEVELS = 4                    # the powers of two: dt0, 2 dt0, 4 dt0, 8 dt0
-COARSE = 16                   # and 16 dt0, for cells far below their limit (``level_multiples``)
-COARSE_MARGIN = 3.4           # the coarse level only for cells whose stability limit is this many times its dt
+COARSE = 16                   # and 16 dt0, for soft cells only (``level_multiples``)
+COARSE_SHARE = 1 / 3          # the coarse level only within this share of every cell's membrane time scale
 SAFETY = {1: 0.3, 2: 0.6}     # the share of the tolerance a transit's local errors may add up to, by the order
 LOOK_AHEAD = 1.0              # steps of a level over which a predicted redistribution keeps that level out
 
@@ -91,15 +92,18 @@ class AdaptiveSteps:
 
     def stable_level(self, cells) -> int:
         """The coarsest level within every present cell type's stability limit (``sim.steplimit``); the coarse
-        level (``COARSE`` dt0) only within ``1 / COARSE_MARGIN`` of it (``level_multiples``)."""
-        cap = math.inf
+        level (``COARSE`` dt0) only within ``COARSE_SHARE`` of every present membrane's time scale
+        (``sim.health.membrane_time_step``, eta dq / kappa_e; ``level_multiples``)."""
+        cap = soft = math.inf
+        viscosity = self.plant.scenario.fluid.viscosity
         for cell in cells:
             cell_type = cell.membrane.cell_type
             if cell_type.name not in self._limits:
                 self._limits[cell_type.name] = limit_of(cell_type, self.plant.scenario)
             cap = min(cap, self._limits[cell_type.name])
+            soft = min(soft, COARSE_SHARE * membrane_time_step(cell.membrane, viscosity))
         return max([0] + [k for k, (multiple, dt) in enumerate(zip(self.multiples, self.levels))
-                          if dt <= cap * (1 + 1e-9) and (multiple < COARSE or dt * COARSE_MARGIN <= cap)])
+                          if dt <= cap * (1 + 1e-9) and (multiple < COARSE or dt <= soft)])
 
     def choose(self, state, active, until, actuation: float | None = None) -> int:
         """The level of the next step: the estimate's; the finest for a new cell or when the IDT drive changes
@@ -305,10 +309,12 @@ def level_multiples(scenario) -> list[int]:
     multiple of dt0 within its stability limit (``sim.steplimit``) when that falls between two of them, and
     ``COARSE`` (16 dt0, 40 us by default).
 
-    The coarse level is taken only when every cell in the channel has its limit at least ``COARSE_MARGIN`` times
-    above it (``AdaptiveSteps.stable_level``): an RBC alone, or an empty channel. Near its limit a membrane's
-    stiff modes are weakly damped and the centroid's error estimate does not see them: Scenario II on the 6.67 um
-    mesh with a level of 35 us came 1.22 um off at 1 um, against 0.51 um held at 20 us (docs/numerics.md). The flow
+    The coarse level is taken only when it lies within ``COARSE_SHARE`` of the membrane time scale eta dq / kappa_e
+    of every cell in the channel (``AdaptiveSteps.stable_level``): an RBC alone (0.4-3.3 ms on the 1.67-6.67 um
+    meshes), or an empty channel. This is an accuracy rule: the centroid's error estimate does not see a membrane's
+    shape relaxing within a step. Scenario II on the 6.67 um mesh (the melanoma's time scale 71 us, its stability
+    limit above 100 us) came 1.17 um off at 1 um with 40 us steps, 1.22 um with a 35 us level, 0.51 um held at 20 us
+    (docs/numerics.md). The flow
     alone is stable far above 16 dt0 (measured to 320 us, the IDT switched every 1 ms). A cell type whose limit
     lies below dt0 is logged as a warning: its steps are dt0, above its limit."""
     multiples = {2 ** k for k in range(LEVELS)} | {COARSE}

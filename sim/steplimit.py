@@ -63,6 +63,9 @@ MEASURED = (
     Measured("RBC", 10e-6 / 3, RBC, "euler", "conserving", 100 * US, math.inf),
     Measured("RBC", 5e-6 / 3, RBC, "euler", "conserving", 100 * US, math.inf),
     Measured("melanoma", 20e-6 / 3, MELANOMA, "euler", "conserving", 100 * US, math.inf),
+    Measured("melanoma", 5e-6, MELANOMA, "euler", "conserving", 100 * US, math.inf),
+    Measured("melanoma", 10e-6 / 3, MELANOMA, "bdf2", "conserving", 23.06 * US, 26.06 * US),
+    Measured("melanoma", 5e-6, MELANOMA, "bdf2", "conserving", 88.49 * US, 100 * US),
 )
 
 

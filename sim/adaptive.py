@@ -28,10 +28,10 @@ reference puts it.
 Never above the stability limit of the cells in the channel: the law fitted to measured limits
 (``sim.steplimit``: it lies at or below every measured limit, in the run's time scheme, on the run's mesh). A cell
 type whose limit lies between two levels has its own level at the largest multiple of dt0 within it (the melanoma at
-the paper's mesh with bdf2), so that it is held there, not at the power of two below. The coarse level (16 dt0) is
-an accuracy rule, not a stability one: only for cells whose membrane relaxes slowly against it (``level_multiples``). Each level's fluid matrix is
-factored once, when first needed, on the same mesh. A finest step dt0 above a cell type's limit is taken anyway
-(it is the step asked for) with a warning in the log.
+the paper's mesh with bdf2), so that it is held there, not at the power of two below. The coarse level (16 dt0)
+follows an accuracy rule, not a stability one: only for cells whose membrane relaxes slowly against it
+(``level_multiples``). Each level's fluid matrix is factored once, when first needed, on the same mesh. A finest
+step dt0 above a cell type's limit is taken anyway (it is the step asked for) with a warning in the log.
 """
 
 from __future__ import annotations

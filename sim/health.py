@@ -82,7 +82,7 @@ class HealthLimits:
     def dt_hint(self, cell_type: CellType | None = None) -> str:
         suggested = self.suggested_dt(cell_type)
         advice = f"try dt = {_duration(suggested)}"
-        if cell_type is not None and suggested < self.dt / 4:
+        if cell_type is not None and suggested == self.stable_dt(cell_type):
             advice += f" (the limit of a {cell_type.name} on this mesh by the stability law fitted to measured " \
                       "limits; `vcyto stability` measures it)"
         return (f"the time step dt = {_duration(self.dt)} is probably beyond this cell's stability limit: {advice}")

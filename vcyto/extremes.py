@@ -153,7 +153,7 @@ def _with_inflow(scenario: Scenario, factor: float) -> Scenario:
 
 
 def _round_dt(dt: float) -> float:
-    """dt rounded down to 10 ns, so that the paper's SAW model (100 MHz) samples the same phase every step."""
+    """dt rounded down to 10 ns (a step that reads as it is written)."""
     return max(1e-8, math.floor(dt / 1e-8 + 1e-9) * 1e-8)
 
 
@@ -294,7 +294,7 @@ CASES = (
     Case("a1", "dt at the limit", "melanoma, IDT on, h 3.33 um, dt 37.5 us (the measured limit)", "runs: upper outlet",
          _dt_at_limit, True, check=_upper),
     Case("a2", "dt 4x the limit", "melanoma, IDT on, h 3.33 um, dt 150 us", "stops: smaller dt suggested",
-         _dt_beyond_limit, False, contains=("stability limit", "try dt =", "below the measured stability limits")),
+         _dt_beyond_limit, False, contains=("stability limit", "try dt =", "stability law fitted to measured limits")),
     Case("b1", "very stiff, large dt", "melanoma kappa_e x100 (2.8e-2 N/m), h 6.67 um, dt 25 us",
          "stops: smaller dt suggested", _stiff_too_large_dt, False, contains=("try dt =",)),
     Case("b2", "very stiff, estimated dt", "melanoma kappa_e x100, h 6.67 um, dt = eta dq / kappa_e",

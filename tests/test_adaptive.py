@@ -26,29 +26,33 @@ def cell(kind, key, scenario):
 
 def test_levels_new_cells_empty_channel_and_the_stability_cap():
     from sim.steplimit import limit_of
-    scenario = Scenario().with_numerics(dt=10e-6, tolerance=1e-6, time_scheme="euler")   # paper mesh
+    scenario = Scenario().with_numerics(tolerance=1e-6, time_scheme="euler")   # paper mesh, dt0 2.5 us
     steps = steps_of(scenario)
     state = SimpleNamespace(time=0.0)
-    # the powers of two, and the melanoma's limit by the stability law (37.6 us in euler) as a level of its own
-    cap = limit_of(scenario.cell_type("melanoma"), scenario)
-    assert 30e-6 <= cap < 40e-6
-    assert steps.levels == pytest.approx([10e-6, 20e-6, 30e-6, 40e-6, 80e-6, 160e-6], rel=1e-12)
+    assert steps.levels == pytest.approx([2.5e-6, 5e-6, 10e-6, 20e-6, 40e-6], rel=1e-12)
     top = len(steps.levels) - 1
     assert steps.choose(state, [], None) == top                             # nobody to be accurate for
     rbc = cell("RBC", 1, scenario)
     assert steps.choose(state, [rbc], None) == 0                            # a new cell starts finest
     steps.level = top
-    assert steps.choose(state, [rbc], None) == top                          # RBC: limit far above 160 us
+    assert steps.choose(state, [rbc], None) == top                          # RBC: soft, its limit above 40 us
     melanoma = cell("melanoma", 2, scenario)
-    steps.level = top
-    # melanoma: never above its limit (30 us here), whatever the estimate says
+    assert limit_of(melanoma.membrane.cell_type, scenario) > 40e-6          # its limit (about 46 us) allows 40 us,
+    steps.level = top                                                       # its membrane time scale (36 us) not
     assert steps.choose(state, [rbc, melanoma], None) == 0                 # the melanoma is new
     steps.level = top
-    assert steps.choose(state, [rbc, melanoma], None) == 2
-    assert steps.choose(state, [rbc], until=25e-6) == 1                     # never past `until`
+    assert steps.choose(state, [rbc, melanoma], None) == 3
+    assert steps.choose(state, [rbc], until=15e-6) == 2                     # never past `until`
     steps.level = top
     assert steps.choose(state, [rbc], None, actuation=0.0) == top
     assert steps.choose(state, [rbc], None, actuation=1.0) == 0             # the IDT switched: the flow jumps
+    # a finer mesh: the melanoma's limit (4.4 us at 1.67 um) holds it at 2.5 us, whatever the estimate says
+    fine = steps_of(scenario.with_numerics(mesh_h=5 * UM / 3))
+    known = [cell("melanoma", 3, scenario)]
+    fine.choose(state, known, None)
+    fine.level = len(fine.levels) - 1
+    assert fine.choose(state, known, None) == 0 and fine.levels[1] > limit_of(known[0].membrane.cell_type,
+                                                                              fine.plant.scenario)
 
 
 def test_a_cell_types_stability_cap_is_a_level_when_it_falls_between_two():
@@ -98,9 +102,10 @@ def test_the_second_order_scheme_has_its_own_stability_cap():
         soft = COARSE_SHARE * membrane_time_step(cell("melanoma", 1, case).membrane, case.fluid.viscosity)
         assert not higher or higher[0] > cap or steps.multiples[level + 1] == 16 and higher[0] > soft
         rbc = steps.stable_level([cell("RBC", 1, case)])
-        if case.numerics.mesh_h > 3 * UM:
-            assert rbc == len(steps.levels) - 1                          # the RBC alone: the coarse level
-        assert rbc >= level
+        rbc_cap = limit_of(case.cell_type("RBC"), case)
+        assert steps.levels[rbc] <= rbc_cap or rbc == 0
+        assert rbc == len(steps.levels) - 1 or steps.levels[rbc + 1] > rbc_cap
+        assert rbc >= level                                              # the soft RBC: at least the melanoma's
         assert steps.stable_level([cell("RBC", 1, case), cell("melanoma", 2, case)]) == level
         assert steps.stable_level([]) == len(steps.levels) - 1
     # the failure hint of a bdf2 run suggests bdf2's limit

@@ -1,24 +1,28 @@
 """The largest stable time step of a cell, from a law fitted to measured limits (docs/results.md, "Stability").
 
 The membrane update is explicit, so each cell has a largest stable dt. It is measured by bisection
-(``sim.stability.stable_dt``, ``vcyto stability``); the measurements are ``MEASURED``. Two limits act, the lower one
-binds: one of the mesh, which the cell's stiffness does not move (the melanoma's at the paper's mesh hardly changes
-when its kappa_e is 4x larger; it falls like h^3.4 with the mesh), and the explicit membrane's, proportional to its
-time scale eta h / kappa_e (a 16x stiffer melanoma on the 6.67 um mesh: 24 us, where the melanoma runs at 100 us):
+(``sim.stability.stable_dt``, ``vcyto stability``); the measurements are ``MEASURED``. Two limits act, the lower
+one binds: one of the mesh, which the cell's stiffness does not move (the melanoma's at the paper's mesh changes
+little when its kappa_e is 4x larger; it falls like h^3.3 with the mesh), and the explicit membrane's, about
+proportional to its time scale eta h / kappa_e (a 16x stiffer melanoma on the 6.67 um mesh: 24 us, 100x: 2.9 us,
+where the melanoma itself runs at 100 us):
 
     dt_limit = c_scheme c_method min(A (h / H0)^p, B (eta h / kappa_e) (K0 / kappa_e)^r),
 
-H0 = 10/3 um (the paper's mesh), K0 = 2.8e-4 N/m (the melanoma's kappa_e), c_euler = c_conserving = 1. A, p, B, r,
-c_bdf2 and c_paper (the paper's literal membrane method, where measured) are fitted by least squares in logarithms to the limits that were reached (a stable and an unstable
-dt bracket them), then the law is lowered by one factor until it lies at or below every measured stable dt
-(``Law.fit``), and it never exceeds 100 us, the largest step measured (``LARGEST_TRIED``: above it nothing was
-measured). It is the one statement of a cell's limit that the tolerance's step cap (``sim.adaptive``), the failure
-hints (``sim.health``) and ``vcyto stability`` use. The bending modulus is not a variable (the cells measured have
-the paper's), nor is the viscosity of the first term (measured at the paper's). For the soft RBC, whose limit was
-not reached up to 100 us on any mesh measured, the law is conservative: it gives it the mesh's limit.
+H0 = 10/3 um (the paper's mesh), K0 = 2.8e-4 N/m (the melanoma's kappa_e), c_euler = c_conserving = 1. A, p, B,
+r and the factors of the other time schemes and membrane methods measured are fitted by least squares in
+logarithms to the limits that were reached (a stable and an unstable dt bracket them), then the law is lowered by
+one factor until it lies at or below every measured stable dt (``Law.fit``); it never exceeds 100 us, the largest
+step measured (``LARGEST_TRIED``: above it nothing was measured). Where a cell of the same stiffness was measured
+on the same mesh, time scheme and membrane method, its measured stable dt is its limit when the law lies below it
+(``limit_of``): the law is conservative for the soft RBC, whose limit was not reached at 100 us on any mesh.
+
+This is the one statement of a cell's limit that the tolerance's step cap (``sim.adaptive``), the failure hints
+(``sim.health``) and ``vcyto stability`` use. The bending modulus is not a variable (the cells measured have the
+paper's), nor is the viscosity of the mesh's term (measured at the paper's).
 
 The paper's bound (33), dt / h <= eta / (8 C_cell (kappa_e Lambda_1 + kappa_b Lambda_2)), falls like h and like
-1 / kappa_e; the measured limits fall like h^3.4 and, for the paper's cells, not with the stiffness, so no multiple
+1 / kappa_e; the measured limits fall like h^3.3 and, for the paper's cells, not with the stiffness, so no multiple
 of (33) is a limit on every mesh.
 """
 
@@ -137,8 +141,7 @@ def measured_stable(kappa_e: float, h: float, scheme: str, membrane: str) -> flo
 
 def limit_of(cell_type, scenario) -> float:
     """The largest stable dt of ``cell_type`` in ``scenario`` (its mesh, time scheme, membrane method and
-    viscosity): the law's, or the dt measured stable for such a cell on this mesh where the law lies below that
-    (the law is conservative for soft cells: the RBC's limit is not reached at 100 us)."""
+    viscosity): the law's, or the dt measured stable for such a cell on this mesh where the law lies below that."""
     numerics = scenario.numerics
     method = scenario.membrane_method()
     law = LAW.limit(numerics.mesh_h, cell_type.kappa_e, numerics.scheme, method, scenario.fluid.viscosity)

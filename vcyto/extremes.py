@@ -158,7 +158,7 @@ def _round_dt(dt: float) -> float:
 
 
 PAPER_H = 10 * UM / 3
-LIMIT_DT = 37.5e-6          # below the melanoma's measured limit at the paper's mesh (docs/results.md "Stability": 61.3 us)
+LIMIT_DT = 37.5e-6          # below the melanoma's measured limit at the paper's mesh (61.3 us, docs/results.md)
 
 
 def _dt_at_limit(base, fast):
@@ -291,7 +291,7 @@ def _fine_mesh_outlet(run, base, fast):
 
 
 CASES = (
-    Case("a1", "dt at the limit", "melanoma, IDT on, h 3.33 um, dt 37.5 us (below its limit, 61.3 us)", "runs: upper outlet",
+    Case("a1", "dt at the limit", "melanoma, IDT on, h 3.33 um, dt 37.5 us (its limit: 61.3 us)", "runs: upper outlet",
          _dt_at_limit, True, check=_upper),
     Case("a2", "dt 4x the limit", "melanoma, IDT on, h 3.33 um, dt 150 us", "stops: smaller dt suggested",
          _dt_beyond_limit, False, contains=("stability limit", "try dt =", "stability law fitted to measured limits")),

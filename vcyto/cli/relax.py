@@ -5,7 +5,7 @@ from __future__ import annotations
 from ..arguments import Quantity
 from ..options import scenario_from, scenario_options
 from .common import UsageError, emit, output_options
-from .stability import _lengths
+from .stability import mesh_sizes
 
 DEFAULT_SCENARIO = "examples/scenarios/relaxation.toml"
 
@@ -26,7 +26,6 @@ def add_command(commands):
 
 
 def command_relax(args):
-    from .. import arguments as limits
     from .. import relaxation
     from ..progress import Progress
     if args.scenario is None:
@@ -34,10 +33,7 @@ def command_relax(args):
     scenario = scenario_from(args)
     relaxation.check_at_rest(scenario)
     scenario.cell_type(args.cell)
-    sizes = _lengths(args.mesh_sizes)
-    for h in sizes:
-        scenario.with_numerics(mesh_h=h)          # validates that each mesh resolves the inlets
-        limits.check_mesh(scenario.channel.length, scenario.channel.height, h, "--mesh-sizes")
+    sizes = mesh_sizes(args.mesh_sizes, scenario)
     progress = Progress(quiet=args.quiet or args.json)
     try:
         result = relaxation.relaxation(scenario, args.cell, args.time, sizes, progress)

@@ -63,9 +63,11 @@ class MeshSize:
 
     @classmethod
     def of(cls, channel: Channel, h: float) -> "MeshSize":
-        x, y = _graded([0.0, channel.length], h), _graded(channel.breakpoints_y(), h)
-        spacings = np.concatenate([np.diff(x), np.diff(y)])
-        return cls(h, (len(x) - 1, len(y) - 1), float(spacings.max()), float(spacings.min()), uniform_unit(channel))
+        ys = channel.breakpoints_y()
+        gaps = [(0.0, channel.length)] + list(zip(ys, ys[1:]))
+        counts = [_divisions(low, high, h) for low, high in gaps]
+        spacings = [(high - low) / count for (low, high), count in zip(gaps, counts)]
+        return cls(h, (counts[0], sum(counts[1:])), max(spacings), min(spacings), uniform_unit(channel))
 
     @property
     def uniform(self) -> bool:

@@ -240,13 +240,12 @@ def test_an_adaptive_run_computes_ahead_at_the_level_it_will_take(monkeypatch):
 
     ahead, used, history = run(True)
     here, used_here, history_here = run(False)
-    # six level changes, one up a step (17.5 us, the melanoma's cap, lies on the way to 20 us; 40 us: the RBC's bound
-    # is far above it)
-    assert [dt for _, dt in history] == pytest.approx([40e-6, 2.5e-6, 5e-6, 10e-6, 17.5e-6, 20e-6, 40e-6], rel=1e-12)
+    # five level changes, one up a step (40 us: the RBC's limit, 100 us measured, is far above it)
+    assert [dt for _, dt in history] == pytest.approx([40e-6, 2.5e-6, 5e-6, 10e-6, 20e-6, 40e-6], rel=1e-12)
     # computed in the step: the first, the new cell's (its level no step could know), and the first at a level not
-    # set up before (levels are built when first taken: here 5, 10, 17.5 and 20 us); every other step found its own
-    # ahead (the last, at 40 us, set up by the first)
-    assert used == [False, False, True, True, True, False, False, False, False, True] and not any(used_here)
+    # set up before (levels are built when first taken: here 5, 10 and 20 us); every other step found its own
+    # ahead (those at 40 us set up by the first)
+    assert used == [False, False, True, True, True, False, False, False, True, True] and not any(used_here)
     assert history == history_here
     assert np.array_equal(ahead.cells[0].membrane.points, here.cells[0].membrane.points)
     assert np.array_equal(ahead.flow.velocity, here.flow.velocity)

@@ -34,7 +34,7 @@ from dataclasses import dataclass
 H0 = 10e-6 / 3          # m: the paper's mesh
 K0 = 2.8e-4             # N/m: the melanoma's kappa_e
 ETA0 = 6.0e-3           # Pa s: the paper's viscosity
-UM, US = 1e-6, 1e-6
+US = 1e-6
 LARGEST_TRIED = 100e-6  # s: the largest step the bisections try; the law claims no limit above it
 
 
@@ -57,11 +57,12 @@ class Measured:
 
 
 RBC, MELANOMA = 6.0e-6, 2.8e-4
-# bisections to 25 % in the cell's paper-scenario flow, 2 ms trials against a 2 us reference (1 us for the
-# stiffest), membrane energy within 2x of the reference and the health checks passing (``sim.stability``);
-# docs/results.md "Stability" gives the commands
+# bisections to 25 % in the cell's paper-scenario flow, 2 ms trials against a 2 us reference (1, 0.5 and 0.25 us
+# for the 16x, 25x and 100x stiffer melanoma), membrane energy within 2x of the reference and the health checks
+# passing (``sim.stability.stable_dt``), all with the SAW jet taken as the carrier's amplitude; docs/results.md
+# "Stability" gives the commands
 MEASURED = (
-    # the RBC in its scenario's flow, IDT off
+    # the RBC in its scenario's flow, IDT off (no jet: the euler rows are from an earlier `vcyto stability` run)
     Measured("RBC", 20e-6 / 3, RBC, "euler", "conserving", 100 * US, math.inf),
     Measured("RBC", 10e-6 / 3, RBC, "euler", "conserving", 100 * US, math.inf),
     Measured("RBC", 5e-6 / 3, RBC, "euler", "conserving", 100 * US, math.inf),

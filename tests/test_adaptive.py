@@ -335,7 +335,8 @@ def test_default_stream_within_tolerance():
         gap = np.hypot(path[keep, 1] - np.interp(path[keep, 0], ref[:, 0], ref[:, 1]),
                        path[keep, 2] - np.interp(path[keep, 0], ref[:, 0], ref[:, 2]))
         assert gap.max() <= 1e-6, (key, gap.max())
-    assert adaptive["time_steps"]["levels_us"] == pytest.approx([2.5, 5.0, 10.0, 17.5, 20.0, 40.0])
+    # the melanoma's limit at this mesh with bdf2 (23 us measured) lies above 20 us: no level of its own
+    assert adaptive["time_steps"]["levels_us"] == pytest.approx([2.5, 5.0, 10.0, 20.0, 40.0])
 
 
 @pytest.mark.parametrize("arguments, message", [

@@ -25,26 +25,32 @@ spacing predicts (``_before_redistribution``), and a coarser step that redistrib
 finest level: that event changes the membrane's forces at once, and only the finest level puts it where the
 reference puts it.
 
-Never above the stability limit of the cells in the channel: STABLE_FRACTION times the paper's bound (33)
-(STABLE_FRACTION_BDF2 = 2 with bdf2, whose limit for the melanoma at the paper's mesh lies between 2.25x and
-2.6x) with C_cell = 1 (``sim.stability.paper_bound``). The measured limits are 4.2x (melanoma, 3.33 um mesh) and
->= 5.6x (6.67 um) that bound, >= 100 us for the RBC (docs/results.md, "Stability"); 3.4x stays below all of them.
-A capped cell's steps are held at its cap's own level (the melanoma at the paper's mesh with bdf2: 17.5 us), not at
-the power of two below it (10 us). Each level's fluid matrix is factored once, when first needed, on the same mesh.
+Never above the stability limit of the cells in the channel: the law fitted to measured limits
+(``sim.steplimit``: it lies at or below every measured limit, in the run's time scheme, on the run's mesh). A cell
+type whose limit lies between two levels has its own level at the largest multiple of dt0 within it (the melanoma at
+the paper's mesh with bdf2), so that it is held there, not at the power of two below. The coarse level (16 dt0)
+follows an accuracy rule, not a stability one: only for cells whose membrane relaxes slowly against it
+(``level_multiples``). Each level's fluid matrix is factored once, when first needed, on the same mesh. A finest
+step dt0 above a cell type's limit is taken anyway (it is the step asked for) with a warning in the log.
 """
 
 from __future__ import annotations
 
+import logging
 import math
 
 import numpy as np
 
 from .fluid import NavierStokes, lagrange
-from .health import paper_bound, stable_fraction
+from .health import membrane_time_step
 from .membrane import polygon_centroid
+from .steplimit import limit_of
+
+logger = logging.getLogger(__name__)
 
 LEVELS = 4                    # the powers of two: dt0, 2 dt0, 4 dt0, 8 dt0
-COARSE = 16                   # and 16 dt0, for cells whose paper bound lies above it (``level_multiples``)
+COARSE = 16                   # and 16 dt0, for soft cells only (``level_multiples``)
+COARSE_SHARE = 1 / 3          # the coarse level only within this share of every cell's membrane time scale
 SAFETY = {1: 0.3, 2: 0.6}     # the share of the tolerance a transit's local errors may add up to, by the order
 LOOK_AHEAD = 1.0              # steps of a level over which a predicted redistribution keeps that level out
 
@@ -59,7 +65,7 @@ class AdaptiveSteps:
         self.multiples = level_multiples(plant.scenario)
         self.levels = [numerics.dt * m for m in self.multiples]
         self._fluids = {0: plant.fluid}
-        self._limits: dict[str, tuple[float, float]] = {}    # cell type: (its cap, its paper bound)
+        self._limits: dict[str, float] = {}                   # cell type: its stability limit (``sim.steplimit``)
         self._known: set[int] = set()
         self._actuation: float | None = None
         self.level = len(self.levels) - 1
@@ -85,18 +91,19 @@ class AdaptiveSteps:
         return self._fluids[level]
 
     def stable_level(self, cells) -> int:
-        """The coarsest level within ``stable_fraction`` of every present cell type's stability bound; the coarse
-        level (``COARSE`` dt0) only within every present cell type's bound itself (``level_multiples``)."""
-        cap = bound = math.inf
+        """The coarsest level within every present cell type's stability limit (``sim.steplimit``); the coarse
+        level (``COARSE`` dt0) only within ``COARSE_SHARE`` of every present membrane's time scale
+        (``sim.health.membrane_time_step``, eta dq / kappa_e; ``level_multiples``)."""
+        cap = soft = math.inf
+        viscosity = self.plant.scenario.fluid.viscosity
         for cell in cells:
             cell_type = cell.membrane.cell_type
             if cell_type.name not in self._limits:
-                own = paper_bound(cell_type, self.plant.scenario)
-                self._limits[cell_type.name] = (stable_fraction(self.plant.scenario) * own, own)
-            own_cap, own_bound = self._limits[cell_type.name]
-            cap, bound = min(cap, own_cap), min(bound, own_bound)
+                self._limits[cell_type.name] = limit_of(cell_type, self.plant.scenario)
+            cap = min(cap, self._limits[cell_type.name])
+            soft = min(soft, COARSE_SHARE * membrane_time_step(cell.membrane, viscosity))
         return max([0] + [k for k, (multiple, dt) in enumerate(zip(self.multiples, self.levels))
-                          if dt <= cap and (multiple < COARSE or dt <= bound)])
+                          if dt <= cap * (1 + 1e-9) and (multiple < COARSE or dt <= soft)])
 
     def choose(self, state, active, until, actuation: float | None = None) -> int:
         """The level of the next step: the estimate's; the finest for a new cell or when the IDT drive changes
@@ -299,20 +306,25 @@ class AdaptiveSteps:
 
 def level_multiples(scenario) -> list[int]:
     """The levels as multiples of dt0: the powers of two 1, 2, 4, 8, for each cell type of ``scenario`` the largest
-    multiple of dt0 within its stability cap (``stable_fraction`` x the paper's bound (33)) when that falls between
-    two of them (the melanoma at the paper's mesh with bdf2: 7, 17.5 us, where the powers of two would hold it at
-    10 us), and ``COARSE`` (16 dt0, 40 us by default).
+    multiple of dt0 within its stability limit (``sim.steplimit``) when that falls between two of them, and
+    ``COARSE`` (16 dt0, 40 us by default).
 
-    The coarse level is taken only when every cell in the channel has its paper bound itself above it
-    (``AdaptiveSteps.stable_level``): an RBC alone (bound 409 us) or an empty channel. Near its cap a membrane's
-    stiff modes are weakly damped and the centroid's error estimate does not see them: Scenario II on the 6.67 um
-    mesh with the melanoma's cap as a level (35 us) came 1.22 um off at 1 um, against 0.51 um held at 20 us
-    (``vcyto bench tolerance``). The flow alone is stable far above 16 dt0 (measured to 320 us, the IDT switched
-    every 1 ms)."""
+    The coarse level is taken only when it lies within ``COARSE_SHARE`` of the membrane time scale eta dq / kappa_e
+    of every cell in the channel (``AdaptiveSteps.stable_level``): an RBC alone (0.4-3.3 ms on the 1.67-6.67 um
+    meshes), or an empty channel. This is an accuracy rule: the centroid's error estimate does not see a membrane's
+    shape relaxing within a step. Scenario II on the 6.67 um mesh (the melanoma's time scale 71 us, its stability
+    limit above 100 us) came 1.17 um off at 1 um with 40 us steps, 1.22 um with a 35 us level, 0.51 um held at 20 us
+    (docs/numerics.md). The flow
+    alone is stable far above 16 dt0 (measured to 320 us, the IDT switched every 1 ms). A cell type whose limit
+    lies below dt0 is logged as a warning: its steps are dt0, above its limit."""
     multiples = {2 ** k for k in range(LEVELS)} | {COARSE}
     dt = scenario.numerics.dt
     for cell_type in scenario.cell_types:
-        cap = math.floor(stable_fraction(scenario) * paper_bound(cell_type, scenario) / dt * (1 + 1e-9))
+        limit = limit_of(cell_type, scenario)
+        if limit < dt * (1 - 1e-9):
+            logger.warning("the finest step %.4g us is above the stability limit of a %s on this mesh (%.4g us, "
+                           "docs/results.md \"Stability\"): use a smaller dt", dt * 1e6, cell_type.name, limit * 1e6)
+        cap = math.floor(limit / dt * (1 + 1e-9))
         if 1 < cap < 2 ** (LEVELS - 1):
             multiples.add(cap)
     return sorted(multiples)

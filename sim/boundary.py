@@ -2,8 +2,9 @@
 
 Inflow on inlet i: v = v_hat m(y) (y - b1)(b2 - y) (cos alpha, sin alpha). The ``paper`` reading
 measures the lengths of this formula in units of 10 um (peak 0.0225 m/s on inlet 2); the ``peak``
-reading takes v_hat as the parabola's peak speed. The Dirichlet SAW models impose a normal jet
-v_2 = 2 pi a f m_ac(x) c(t) on the window (c = cos(2 pi f t) for ``paper``, 1 for ``envelope``).
+reading takes v_hat as the parabola's peak speed. The Dirichlet SAW models (``paper``, ``envelope``) impose
+a normal jet v_2 = 2 pi a f m_ac(x) on the window while the IDT is on: the 100 MHz carrier's amplitude,
+switched by the drive, never its phase at a step time (docs/physics.md, "SAW models").
 """
 
 from __future__ import annotations
@@ -61,13 +62,10 @@ def saw_window_profile(channel: Channel, x):
     return cutoff(x, window.span[0], window.span[1], window.cutoff)
 
 
-def saw_jet_factor(saw: Saw, time: float) -> float:
-    """c(t) of the Dirichlet SAW models: the jet is 2 pi a f m_ac(x) c(t) while the IDT is on."""
-    if saw.model == "paper":
-        return float(np.cos(2 * np.pi * saw.frequency * time))
-    if saw.model == "envelope":
-        return 1.0
-    return 0.0
+def saw_jet_factor(saw: Saw) -> float:
+    """The jet's factor while the IDT is on: 1 for the Dirichlet models (the carrier's amplitude 2 pi a f, the
+    same at every time: no step samples the 10 ns carrier), 0 for ``streaming`` (a body force, no jet)."""
+    return 0.0 if saw.model == "streaming" else 1.0
 
 
 def inlet_flux(inlet: Inlet, reading: str) -> float:

@@ -476,7 +476,7 @@ class NavierStokes:
         saw = self.scenario.saw
         if saw.model == "streaming" or actuation == 0.0:
             return 0.0
-        return actuation * saw_jet_factor(saw, time)
+        return actuation * saw_jet_factor(saw)
 
     def streaming_level(self, previous_level: float, actuation: float, dt: float) -> float:
         """The streaming drive after ``dt``: a first-order lag towards ``actuation``."""

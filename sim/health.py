@@ -12,9 +12,8 @@ Which hint a failure carries depends on the membrane's explicit time step ``memb
 eta dq / kappa_e (tension) or eta dq^3 / kappa_b (bending), dq the reference spacing of its points (docs/results.md,
 "Stability"): a step beyond a quarter of it may be the cause, and the hint is a smaller dt; a step far
 below it is not, and the hint names what is (the flow folding or tearing the membrane). The smaller dt it
-suggests is STABLE_FRACTION times the paper's bound (33) for that cell (``paper_bound``; STABLE_FRACTION_BDF2
-with the bdf2 step), which is below every measured stability limit (docs/results.md, "Stability"), or a
-quarter of dt if dt is already below that.
+suggests is the cell's limit by the stability law fitted to measured limits (``sim.steplimit``), or a quarter of
+dt if dt is already below that.
 """
 
 from __future__ import annotations
@@ -27,22 +26,12 @@ from . import kernels
 from .fluid import NumericalBlowUp
 from .membrane import Membrane
 from .scenario import UM, CellType, Scenario
-
-# a time step this many times the paper's bound (33), with C_cell = 1, is below every measured stability limit:
-# the melanoma's 37.6 us at 3.33 um is 4.2x its bound, >= 5.6x at 6.67 um; the RBC's >= 100 us (docs/results.md)
-STABLE_FRACTION = 3.4
-# bdf2's explicit force at extrapolated points is less stable: the melanoma at the paper's mesh ran at 2.25x its
-# bound and failed at 2.6x (docs/numerics.md, "A second-order step"), where euler runs at 4.2x
-STABLE_FRACTION_BDF2 = 2.0
-
-
-def stable_fraction(scenario: Scenario) -> float:
-    """The share of the paper's bound (33) taken as stable in ``scenario``'s time scheme."""
-    return STABLE_FRACTION_BDF2 if scenario.numerics.scheme == "bdf2" else STABLE_FRACTION
+from .steplimit import limit_of
 
 
 def paper_bound(cell_type: CellType, scenario: Scenario) -> float:
-    """The right-hand side of the paper's (33) times h, with C_cell = 1, on the initial shape (``sim.stability``)."""
+    """The right-hand side of the paper's (33) times h, with C_cell = 1, on the initial shape (``sim.stability``): it
+    shows the paper's scaling (like h), not a limit (``sim.steplimit`` has the measured one)."""
     spacing = scenario.numerics.membrane_spacing * scenario.numerics.mesh_h
     membrane = Membrane.of(cell_type, (0.0, 0.0), spacing)
     first = np.linalg.norm(membrane.evaluate(4, derivative=1), axis=1).max()
@@ -79,11 +68,11 @@ class HealthLimits:
                    scenario.numerics.max_stretch, scenario.fluid.viscosity, scenario)
 
     def stable_dt(self, cell_type: CellType | None) -> float | None:
-        """``stable_fraction`` x the cell's bound (33) on this scenario's mesh (None without a cell type or
-        scenario)."""
+        """The cell's largest stable dt by the stability law (``sim.steplimit``) in this scenario (None without a
+        cell type or scenario)."""
         if cell_type is None or self.scenario is None:
             return None
-        return stable_fraction(self.scenario) * paper_bound(cell_type, self.scenario)
+        return limit_of(cell_type, self.scenario)
 
     def suggested_dt(self, cell_type: CellType | None = None) -> float:
         """A smaller dt to try: the cell's stable dt (``stable_dt``) when dt is above it, else dt / 4."""
@@ -93,9 +82,9 @@ class HealthLimits:
     def dt_hint(self, cell_type: CellType | None = None) -> str:
         suggested = self.suggested_dt(cell_type)
         advice = f"try dt = {_duration(suggested)}"
-        if cell_type is not None and suggested < self.dt / 4:
-            advice += f" (below the measured stability limits of a {cell_type.name} on this mesh; `vcyto stability` " \
-                      "measures the limit)"
+        if cell_type is not None and suggested == self.stable_dt(cell_type):
+            advice += f" (the limit of a {cell_type.name} on this mesh by the stability law fitted to measured " \
+                      "limits; `vcyto stability` measures it)"
         return (f"the time step dt = {_duration(self.dt)} is probably beyond this cell's stability limit: {advice}")
 
     def dt_is_suspect(self, membrane) -> bool:

@@ -204,8 +204,9 @@ class Fluid:
 class Saw:
     """The surface acoustic wave actuation (docs/physics.md, "SAW models").
 
-    ``paper``: v_2 = 2 pi a f m(x) cos(2 pi f t) on the window, sampled at the step times;
-    ``envelope``: the same jet with cos replaced by 1 while the IDT is on;
+    ``paper``: the jet v_2 = 2 pi a f m(x) on the window while the IDT is on: the amplitude of the paper's
+    100 MHz wall velocity, never its phase at a step time (the paper's computation at its steps);
+    ``envelope``: another name of the same jet;
     ``streaming``: a time-averaged body force ``streaming_force`` * m(x) * exp(-y / attenuation_length)
     (N/m^3, directed into the channel) that follows the IDT through a first-order lag ``spin_up_time``.
     """

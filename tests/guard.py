@@ -17,6 +17,7 @@ HEAVY = {
     "vcyto.flowtool": ["solve_paths", "calibrate"],
     "vcyto.paper": ["run_paper"],
     "vcyto.stabilitymap": ["stability_map"],
+    "vcyto.relaxation": ["relaxation"],
     "vcyto.extremes": ["run_cases"],
     "vcyto.tradeoff": ["tradeoff"],
     "vcyto.sweep": ["run_sweep", "executor"],

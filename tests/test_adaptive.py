@@ -25,43 +25,52 @@ def cell(kind, key, scenario):
 
 
 def test_levels_new_cells_empty_channel_and_the_stability_cap():
-    scenario = Scenario().with_numerics(dt=10e-6, tolerance=1e-6, time_scheme="euler")   # paper mesh
+    from sim.steplimit import limit_of
+    scenario = Scenario().with_numerics(tolerance=1e-6, time_scheme="euler")   # paper mesh, dt0 2.5 us
     steps = steps_of(scenario)
     state = SimpleNamespace(time=0.0)
-    # the powers of two, and the melanoma's cap (3.4 x 8.9 us = 30.2 us) as a level of its own
-    assert steps.levels == pytest.approx([10e-6, 20e-6, 30e-6, 40e-6, 80e-6, 160e-6], rel=1e-12)
+    assert steps.levels == pytest.approx([2.5e-6, 5e-6, 10e-6, 20e-6, 40e-6], rel=1e-12)
     top = len(steps.levels) - 1
     assert steps.choose(state, [], None) == top                             # nobody to be accurate for
     rbc = cell("RBC", 1, scenario)
     assert steps.choose(state, [rbc], None) == 0                            # a new cell starts finest
     steps.level = top
-    assert steps.choose(state, [rbc], None) == top                          # RBC: bound 409 us, no cap
+    assert steps.choose(state, [rbc], None) == top                          # RBC: soft, its limit above 40 us
     melanoma = cell("melanoma", 2, scenario)
-    steps.level = top
-    # melanoma: 3.4 x 8.9 us = 30 us < 37.6 us measured: never above 30 us, whatever the estimate says
+    assert limit_of(melanoma.membrane.cell_type, scenario) > 40e-6          # its limit (about 46 us) allows 40 us,
+    steps.level = top                                                       # its membrane time scale (36 us) not
     assert steps.choose(state, [rbc, melanoma], None) == 0                 # the melanoma is new
     steps.level = top
-    assert steps.choose(state, [rbc, melanoma], None) == 2
-    assert steps.choose(state, [rbc], until=25e-6) == 1                     # never past `until`
+    assert steps.choose(state, [rbc, melanoma], None) == 3
+    assert steps.choose(state, [rbc], until=15e-6) == 2                     # never past `until`
     steps.level = top
     assert steps.choose(state, [rbc], None, actuation=0.0) == top
     assert steps.choose(state, [rbc], None, actuation=1.0) == 0             # the IDT switched: the flow jumps
+    # a finer mesh: the melanoma's limit (4.4 us at 1.67 um) holds it at 2.5 us, whatever the estimate says
+    fine = steps_of(scenario.with_numerics(mesh_h=5 * UM / 3))
+    known = [cell("melanoma", 3, scenario)]
+    fine.choose(state, known, None)
+    fine.level = len(fine.levels) - 1
+    assert fine.choose(state, known, None) == 0 and fine.levels[1] > limit_of(known[0].membrane.cell_type,
+                                                                              fine.plant.scenario)
 
 
 def test_a_cell_types_stability_cap_is_a_level_when_it_falls_between_two():
-    """The levels are dt0 x 1, 2, 4, 8, 16 and, per cell type, the largest multiple of dt0 within its cap when that lies
-    between two of them: the stability cap, not the powers of two, limits a capped cell's steps."""
+    """The levels are dt0 x 1, 2, 4, 8, 16 and, per cell type, the largest multiple of dt0 within its limit when that
+    lies between two of them: the stability limit, not the powers of two, holds a capped cell's steps."""
     from sim.adaptive import level_multiples
-    from sim.health import paper_bound, stable_fraction
-    bdf2 = Scenario().with_numerics(tolerance=1e-6)                              # dt0 2.5 us; cap 17.7 us
-    assert level_multiples(bdf2) == [1, 2, 4, 7, 8, 16]
+    from sim.steplimit import limit_of
+    bdf2 = Scenario().with_numerics(tolerance=1e-6)                              # dt0 2.5 us
     melanoma = bdf2.cell_type("melanoma")
-    cap = stable_fraction(bdf2) * paper_bound(melanoma, bdf2)
-    assert 7 * 2.5e-6 <= cap < 8 * 2.5e-6
-    assert level_multiples(bdf2.with_numerics(time_scheme="euler")) == [1, 2, 4, 8, 16]   # cap 30 us: above 8 dt0
-    assert level_multiples(bdf2.with_numerics(dt=1e-6)) == [1, 2, 4, 8, 16]                # 17 dt0: above 16 dt0
-    assert level_multiples(bdf2.with_numerics(dt=10e-6)) == [1, 2, 4, 8, 16]               # cap under 2 dt0: no level
-    assert level_multiples(replace(bdf2, cell_types=(bdf2.cell_type("RBC"),))) == [1, 2, 4, 8, 16]   # cap 817 us
+    for scenario in (bdf2, bdf2.with_numerics(time_scheme="euler"), bdf2.with_numerics(dt=1e-6),
+                     bdf2.with_numerics(dt=10e-6)):
+        dt = scenario.numerics.dt
+        own = math.floor(limit_of(melanoma, scenario) / dt * (1 + 1e-9))
+        expected = {1, 2, 4, 8, 16} | ({own} if 1 < own < 8 else set())
+        assert level_multiples(scenario) == sorted(expected)
+        assert own * dt <= limit_of(melanoma, scenario) < (own + 1) * dt
+    assert level_multiples(bdf2.with_numerics(time_scheme="euler")) == [1, 2, 4, 8, 16]   # 37.6 us: above 8 dt0
+    assert level_multiples(replace(bdf2, cell_types=(bdf2.cell_type("RBC"),))) == [1, 2, 4, 8, 16]
 
 
 def test_next_level_against_the_finest_level():
@@ -74,35 +83,34 @@ def test_next_level_against_the_finest_level():
 
 
 def test_the_second_order_scheme_has_its_own_stability_cap():
-    """bdf2 is less stable than euler (the melanoma at the paper's mesh: 2.25x its bound ran, 2.6x did not):
-    its cap is 2x the bound, so a melanoma takes at most 17.5 us there; an RBC (bound 409 us) is not capped."""
-    from sim.health import STABLE_FRACTION, STABLE_FRACTION_BDF2, HealthLimits, paper_bound
-    scenario = Scenario().with_numerics(tolerance=1e-6)                  # bdf2; levels 2.5, 5, 10, 17.5, 20, 40 us
-    steps = steps_of(scenario)
+    """bdf2 has its own measured limits (its force at extrapolated points is less stable than euler's); the cap,
+    the coarse level and the failure hint follow the law of the run's scheme."""
+    from sim.adaptive import COARSE_SHARE
+    from sim.health import HealthLimits, membrane_time_step
+    from sim.steplimit import limit_of
+    scenario = Scenario().with_numerics(tolerance=1e-6)                  # bdf2
+    euler_scenario = scenario.with_numerics(time_scheme="euler")
     melanoma = scenario.cell_type("melanoma")
-    assert 17.5e-6 <= STABLE_FRACTION_BDF2 * paper_bound(melanoma, scenario) < 20e-6
-    assert steps.levels[3] == pytest.approx(17.5e-6, rel=1e-12)
-    assert steps.stable_level([cell("melanoma", 1, scenario)]) == 3
-    assert steps.stable_level([cell("RBC", 1, scenario)]) == 5               # 40 us: within the RBC's bound
-    assert steps.stable_level([cell("RBC", 1, scenario), cell("melanoma", 2, scenario)]) == 3
-    assert steps.stable_level([]) == 5
-    euler = steps_of(scenario.with_numerics(time_scheme="euler"))          # 2.5-20, 40 us: no level of a cap
-    assert euler.stable_level([cell("melanoma", 1, scenario)]) == 3
-    # a cap above 8 dt0 is no level of its own: on the 6.67 um mesh the melanoma's cap (2 x 17.7 us) lies between
-    # 20 and 40 us, and it is held at 20 us
-    coarse = scenario.with_numerics(mesh_h=20 * UM / 3)
-    assert 20e-6 < STABLE_FRACTION_BDF2 * paper_bound(melanoma, coarse) < 40e-6
-    held = steps_of(coarse)
-    assert held.levels == pytest.approx([2.5e-6, 5e-6, 10e-6, 20e-6, 40e-6], rel=1e-12)
-    assert held.stable_level([cell("melanoma", 1, coarse)]) == 3 and held.stable_level([cell("RBC", 1, coarse)]) == 4
-    # the coarse level only within a cell's bound itself: with euler's cap (3.4 x the bound, 60 us there) the
-    # melanoma could take 40 us; its bound (17.7 us) holds it at 20 us
-    first = steps_of(coarse.with_numerics(time_scheme="euler"))
-    assert first.levels[-1] == pytest.approx(40e-6) and STABLE_FRACTION * paper_bound(melanoma, coarse) > 40e-6
-    assert first.stable_level([cell("melanoma", 1, coarse)]) == 3 and first.stable_level([cell("RBC", 1, coarse)]) == 4
-    # the failure hint of a bdf2 run suggests bdf2's stable dt
-    limits = HealthLimits.of(scenario.with_numerics(tolerance=0.0, time_scheme="bdf2", dt=40e-6))
-    assert limits.suggested_dt(melanoma) == pytest.approx(STABLE_FRACTION_BDF2 * paper_bound(melanoma, scenario))
+    assert limit_of(melanoma, scenario) < limit_of(melanoma, euler_scenario)
+    for case in (scenario, euler_scenario, scenario.with_numerics(mesh_h=20 * UM / 3), scenario.with_numerics(
+            mesh_h=5 * UM / 3)):
+        steps = steps_of(case)
+        cap = limit_of(melanoma, case)
+        level = steps.stable_level([cell("melanoma", 1, case)])
+        assert steps.levels[level] <= cap or level == 0                  # never above the limit
+        higher = steps.levels[level + 1:]
+        soft = COARSE_SHARE * membrane_time_step(cell("melanoma", 1, case).membrane, case.fluid.viscosity)
+        assert not higher or higher[0] > cap or steps.multiples[level + 1] == 16 and higher[0] > soft
+        rbc = steps.stable_level([cell("RBC", 1, case)])
+        rbc_cap = limit_of(case.cell_type("RBC"), case)
+        assert steps.levels[rbc] <= rbc_cap or rbc == 0
+        assert rbc == len(steps.levels) - 1 or steps.levels[rbc + 1] > rbc_cap
+        assert rbc >= level                                              # the soft RBC: at least the melanoma's
+        assert steps.stable_level([cell("RBC", 1, case), cell("melanoma", 2, case)]) == level
+        assert steps.stable_level([]) == len(steps.levels) - 1
+    # the failure hint of a bdf2 run suggests bdf2's limit
+    limits = HealthLimits.of(scenario.with_numerics(tolerance=0.0, time_scheme="bdf2", dt=200e-6))
+    assert limits.suggested_dt(melanoma) == pytest.approx(limit_of(melanoma, scenario))
 
 
 def test_milne_factor_follows_the_steps():
@@ -232,13 +240,12 @@ def test_an_adaptive_run_computes_ahead_at_the_level_it_will_take(monkeypatch):
 
     ahead, used, history = run(True)
     here, used_here, history_here = run(False)
-    # six level changes, one up a step (17.5 us, the melanoma's cap, lies on the way to 20 us; 40 us: the RBC's bound
-    # is far above it)
-    assert [dt for _, dt in history] == pytest.approx([40e-6, 2.5e-6, 5e-6, 10e-6, 17.5e-6, 20e-6, 40e-6], rel=1e-12)
+    # five level changes, one up a step (40 us: the RBC's limit, 100 us measured, is far above it)
+    assert [dt for _, dt in history] == pytest.approx([40e-6, 2.5e-6, 5e-6, 10e-6, 20e-6, 40e-6], rel=1e-12)
     # computed in the step: the first, the new cell's (its level no step could know), and the first at a level not
-    # set up before (levels are built when first taken: here 5, 10, 17.5 and 20 us); every other step found its own
-    # ahead (the last, at 40 us, set up by the first)
-    assert used == [False, False, True, True, True, False, False, False, False, True] and not any(used_here)
+    # set up before (levels are built when first taken: here 5, 10 and 20 us); every other step found its own
+    # ahead (those at 40 us set up by the first)
+    assert used == [False, False, True, True, True, False, False, False, True, True] and not any(used_here)
     assert history == history_here
     assert np.array_equal(ahead.cells[0].membrane.points, here.cells[0].membrane.points)
     assert np.array_equal(ahead.flow.velocity, here.flow.velocity)
@@ -277,6 +284,25 @@ def test_paper_scenarios_within_tolerance_at_the_paper_mesh(number):
     assert gap <= 1e-6 and adaptive["steps"] < reference["steps"]
 
 
+@pytest.mark.slow
+def test_no_adaptive_step_above_the_measured_limit_on_the_fine_mesh():
+    """The melanoma in the jet on the 1.67 um mesh with a 1 um tolerance (bdf2, conserving): every step it takes
+    lies at or below its measured stability limit there (the step record), where the old cap (3.4 x the paper's
+    bound) allowed 7.5 us steps above it."""
+    from sim.steplimit import MEASURED
+    scenario = paper_scenario(2, Scenario().with_membrane("conserving").with_numerics(
+        mesh_h=5 * UM / 3, tolerance=1e-6), dt_given=True)
+    measured = [m for m in MEASURED if m.cell == "melanoma" and m.scheme == "bdf2" and m.membrane == "conserving"
+                and m.reached and m.h == pytest.approx(5 * UM / 3)]
+    assert measured, "the limit of the melanoma at 1.67 um with bdf2 is measured"
+    result = run_paper(2, scenario, max_time=0.6e-3)
+    summary = result["time_steps"]
+    taken = [dt for dt, steps in zip(summary["levels_us"], summary["steps"]) if steps]
+    assert taken and sum(summary["steps"]) == result["steps"] >= 0.6e-3 / max(summary["levels_us"]) * 1e6 - 1
+    assert max(taken) * 1e-6 <= measured[0].stable * (1 + 1e-9), (taken, measured[0].stable)
+    assert all(dt * 1e-6 <= measured[0].stable * (1 + 1e-9) for _, dt in summary["changes"])
+
+
 class PathSink:
     """Collects every cell's centroid at every control period of a stream."""
 
@@ -309,7 +335,8 @@ def test_default_stream_within_tolerance():
         gap = np.hypot(path[keep, 1] - np.interp(path[keep, 0], ref[:, 0], ref[:, 1]),
                        path[keep, 2] - np.interp(path[keep, 0], ref[:, 0], ref[:, 2]))
         assert gap.max() <= 1e-6, (key, gap.max())
-    assert adaptive["time_steps"]["levels_us"] == pytest.approx([2.5, 5.0, 10.0, 17.5, 20.0, 40.0])
+    # the melanoma's limit at this mesh with bdf2 (23 us measured) lies above 20 us: no level of its own
+    assert adaptive["time_steps"]["levels_us"] == pytest.approx([2.5, 5.0, 10.0, 20.0, 40.0])
 
 
 @pytest.mark.parametrize("arguments, message", [

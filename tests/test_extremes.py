@@ -30,13 +30,16 @@ def test_dt_at_the_measured_limit_runs_and_sorts_the_melanoma_upper():
 def test_dt_four_times_the_limit_is_stopped_with_a_smaller_dt_to_try():
     row = run("a2")
     assert row["passed"] and not row["ran"]
-    # the dt suggested is 3.4x the paper's bound (33) for the melanoma on this mesh, below its measured limit
-    from sim.health import STABLE_FRACTION, paper_bound
+    # the dt suggested is the melanoma's limit on this mesh by the stability law, at or below its measured limits
     from sim.scenario import Scenario
-    from vcyto.extremes import LIMIT_DT, PAPER_H
+    from sim.steplimit import MEASURED, limit_of
+    from vcyto.extremes import PAPER_H
     scenario = Scenario().with_numerics(mesh_h=PAPER_H)
-    suggested = STABLE_FRACTION * paper_bound(scenario.cell_type("melanoma"), scenario)
-    assert suggested < LIMIT_DT
+    suggested = limit_of(scenario.cell_type("melanoma"), scenario)
+    melanoma = scenario.cell_type("melanoma")
+    measured = [m.stable for m in MEASURED if m.kappa_e == melanoma.kappa_e and m.scheme == "euler" and m.reached
+                and m.membrane == scenario.membrane_method() and m.h == pytest.approx(PAPER_H)]
+    assert measured and all(suggested <= stable * (1 + 1e-9) for stable in measured) and suggested < 150e-6 / 2
     assert "stability limit" in row["diagnosis"] and f"try dt = {suggested * 1e6:.4g} us" in row["diagnosis"]
 
 

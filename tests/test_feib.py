@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from sim.feib import Cell, ImmersedBoundary, State, new_cell
-from sim.health import STABLE_FRACTION, HealthError, paper_bound
+from sim.health import HealthError
 from sim.membrane import Membrane
 from sim.scenario import UM, CellType, Scenario
 
@@ -111,9 +111,10 @@ def test_a_step_far_beyond_the_stable_dt_is_stopped_with_a_diagnosis():
     error = caught.value
     assert error.cell_id == 7 and error.step >= 1
     assert "cell 7 at step" in str(error) and "try dt =" in str(error)
-    # the dt to try is one that runs: 3.4x the paper's bound (33) for the melanoma on this mesh, below its
-    # measured limit (>= 5.6x the bound at 6.67 um, 4.2x at 3.33 um), not a quarter of 1 ms
-    suggested = STABLE_FRACTION * paper_bound(scenario.cell_type("melanoma"), scenario)
+    # the dt to try is one that runs: the melanoma's limit on this mesh by the stability law fitted to measured
+    # limits (sim.steplimit), not a quarter of 1 ms
+    from sim.steplimit import limit_of
+    suggested = limit_of(scenario.cell_type("melanoma"), scenario)
     assert f"try dt = {suggested * 1e6:.4g} us" in error.hint and suggested < 1e-3 / 4
     runs = scenario.with_numerics(dt=suggested)
     plant = ImmersedBoundary(runs)

@@ -8,6 +8,7 @@ examples are the same every run unless ``VCYTO_FUZZ_RANDOM=1`` (new ones each ru
 
 import json
 import os
+from pathlib import Path
 
 import pytest
 from guard import names_what_is_wrong, patch_heavy, vcyto_inline
@@ -40,9 +41,11 @@ SET_FIELDS = ["fluid.viscosity", "fluid.density", "numerics.dt", "numerics.mesh_
               "channel.height", "saw.frequency", "saw.amplitude", "channel.inlets.1.v_hat", "channel.inlets.0.tilt",
               "channel.inlets.0.span", "cell_types.0.semi_axes", "numerics.spacing_band", "numerics.max_stretch",
               "cell_types", "numerics.max_nonlinear_iterations", "numerics.reproducible", "saw.model"]
+RELAXATION = Path(__file__).parent.parent / "examples" / "scenarios" / "relaxation.toml"
 OTHER_COMMANDS = {
     ("paper", "2"): ["--max-time", "--dt", "--mesh-h"],
     ("stability",): ["--cells", "--mesh-sizes"],
+    ("relax", "--scenario", str(RELAXATION)): ["--cell", "--time", "--mesh-sizes", "--mesh-h"],
     ("tradeoff", "--output", ""): ["--coupling", "--stiff-capillary", "--pair-gap", "--lone-rbc"],
     ("extremes",): ["--case"],
     ("flow",): ["--mesh-h", "--dt"],

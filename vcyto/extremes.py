@@ -153,12 +153,12 @@ def _with_inflow(scenario: Scenario, factor: float) -> Scenario:
 
 
 def _round_dt(dt: float) -> float:
-    """dt rounded down to 10 ns, so that the paper's SAW model (100 MHz) samples the same phase every step."""
+    """dt rounded down to 10 ns (a step that reads as it is written)."""
     return max(1e-8, math.floor(dt / 1e-8 + 1e-9) * 1e-8)
 
 
 PAPER_H = 10 * UM / 3
-LIMIT_DT = 37.5e-6          # the melanoma's stable dt at the paper's mesh (docs/results.md "Stability": 37.6 us)
+LIMIT_DT = 37.5e-6          # below the melanoma's measured limit at the paper's mesh (61.3 us, docs/results.md)
 
 
 def _dt_at_limit(base, fast):
@@ -291,10 +291,10 @@ def _fine_mesh_outlet(run, base, fast):
 
 
 CASES = (
-    Case("a1", "dt at the limit", "melanoma, IDT on, h 3.33 um, dt 37.5 us (the measured limit)", "runs: upper outlet",
+    Case("a1", "dt at the limit", "melanoma, IDT on, h 3.33 um, dt 37.5 us (its limit: 61.3 us)", "runs: upper outlet",
          _dt_at_limit, True, check=_upper),
     Case("a2", "dt 4x the limit", "melanoma, IDT on, h 3.33 um, dt 150 us", "stops: smaller dt suggested",
-         _dt_beyond_limit, False, contains=("stability limit", "try dt =", "below the measured stability limits")),
+         _dt_beyond_limit, False, contains=("stability limit", "try dt =", "stability law fitted to measured limits")),
     Case("b1", "very stiff, large dt", "melanoma kappa_e x100 (2.8e-2 N/m), h 6.67 um, dt 25 us",
          "stops: smaller dt suggested", _stiff_too_large_dt, False, contains=("try dt =",)),
     Case("b2", "very stiff, estimated dt", "melanoma kappa_e x100, h 6.67 um, dt = eta dq / kappa_e",

@@ -200,7 +200,8 @@ class SortLedger:
         stats["coincidence_possible"] = _coincidence_possible(settings)
         summary = {"statistics": stats, "yield_estimate": self.samples.estimate(scenario, settings),
                    "simulated_time_ms": time * 1e3, "model": settings.model, "seed": settings.seed,
-                   "controller_mode": settings.controller.mode, "controller": _controller_record(settings.controller),
+                   "mesh": mesh_record(scenario), "controller_mode": settings.controller.mode,
+                   "controller": _controller_record(settings.controller),
                    "controller_latency_us": _latency(latencies)}
         if self.keep is None or len(self.sample.admitted) <= self.keep:
             summary["cells"] = sorted(self.kept, key=lambda record: record["key"])
@@ -208,6 +209,14 @@ class SortLedger:
             summary["cell_table"] = {"path": str(self.table.path), "rows": self.table.written, "format": "parquet",
                                      "order": "as the cells left (sort by key for arrival order)"}
         return summary
+
+
+def mesh_record(scenario) -> dict:
+    """The mesh a run's flows are computed on: its size, squares and Taylor-Hood DOFs (``sim.mesh.MeshSize``)."""
+    from sim.mesh import MeshSize
+    size = MeshSize.of(scenario.channel, scenario.numerics.mesh_h)
+    return {"h_um": size.largest * 1e6, "squares": list(size.squares), "dofs": size.dofs, "uniform": size.uniform,
+            "description": size.describe()}
 
 
 _EVENT = re.compile(r"\bevent (\d+)")
@@ -590,6 +599,8 @@ def sort_report_lines(result: dict) -> list[str]:
     if "control" in result:
         from .control import timing_line
         lines.append(timing_line(result["control"]))
+    if result.get("mesh"):
+        lines.append(f"mesh: {result['mesh']['description']}")
     if (result.get("time_steps") or {}).get("levels_us"):
         from .paper import time_step_line
         lines += [line.strip() for line in time_step_line(result["time_steps"])]

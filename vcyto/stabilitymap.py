@@ -1,12 +1,15 @@
-"""`vcyto stability`: the largest stable dt per cell type and mesh size, beside the paper's dt and bound (33)."""
+"""`vcyto stability`: the largest stable dt per cell type and mesh size, beside the stability law's limit (the one the
+tolerance's cap and the failure hints use, ``sim.steplimit``), the paper's dt and its bound (33)."""
 
 from __future__ import annotations
 
 import time
 
 from sim.fluid import NavierStokes
+from sim.mesh import MeshSize
 from sim.scenario import UM, Scenario
 from sim.stability import actuation_for, paper_bound, stable_dt
+from sim.steplimit import limit_of
 
 from .progress import rows_until_interrupted
 
@@ -21,7 +24,9 @@ def stability_map(scenario: Scenario, cells, mesh_sizes, progress) -> dict:
 
 
 def _measure(scenario, cells, mesh_sizes, progress, rows):
-    for h in mesh_sizes:
+    for asked in mesh_sizes:
+        size = MeshSize.of(scenario.channel, asked)
+        h = size.largest
         meshed = scenario.with_numerics(mesh_h=h)
         starts = {}
         for name in cells:
@@ -33,10 +38,13 @@ def _measure(scenario, cells, mesh_sizes, progress, rows):
                 starts[actuation] = NavierStokes(meshed).steady(actuation)
             result = stable_dt(meshed, cell_type, start=starts[actuation])
             rows.append({
-                "cell": name, "mesh_h_um": h / UM, "stable_dt_us": result.stable_dt * 1e6,
+                "cell": name, "mesh_h_um": h / UM, "mesh": size.describe(), "dofs": size.dofs,
+                "time_scheme": meshed.numerics.scheme, "membrane_method": meshed.membrane_method(),
+                "stable_dt_us": result.stable_dt * 1e6,
                 "unstable_dt_us": result.unstable_dt * 1e6 if result.unstable_dt != float("inf") else None,
                 "failure": result.failure, "trials": result.trials,
                 "paper_dt_us": PAPER_DT.get(name, float("nan")) * 1e6,
+                "law_us": limit_of(cell_type, meshed) * 1e6,
                 "bound_33_us": paper_bound(cell_type, meshed) * 1e6,
                 "wall_time_s": time.perf_counter() - started,
             })
@@ -44,13 +52,15 @@ def _measure(scenario, cells, mesh_sizes, progress, rows):
 
 def report_lines(result: dict) -> list[str]:
     lines = ["largest stable dt (semi-implicit FE-IB, " + result["criterion"] + ")",
-             f"  {'cell':<9} {'h (um)':>7} {'stable dt':>11} {'unstable dt':>12} {'paper dt':>9} {'(33), C=1':>10}  "
-             "what failed"]
+             f"  {'cell':<9} {'h (um)':>7} {'DOFs':>9} {'scheme':<6} {'stable dt':>11} {'unstable dt':>12} "
+             f"{'law':>9} {'paper dt':>9} {'(33), C=1':>10}  what failed"]
     for row in result["rows"]:
         unstable = f"{row['unstable_dt_us']:.3g} us" if row["unstable_dt_us"] else "> tried"
         stable = f"{row['stable_dt_us']:.3g} us" + ("" if row["unstable_dt_us"] else "+")
-        lines.append(f"  {row['cell']:<9} {row['mesh_h_um']:7.3g} {stable:>11} {unstable:>12} "
-                     f"{row['paper_dt_us']:6.3g} us {row['bound_33_us']:7.3g} us  {row['failure'] or '-'}")
+        lines.append(f"  {row['cell']:<9} {row['mesh_h_um']:7.4g} {row['dofs']:>9,} {row['time_scheme']:<6} "
+                     f"{stable:>11} {unstable:>12} {row['law_us']:6.3g} us {row['paper_dt_us']:6.3g} us "
+                     f"{row['bound_33_us']:7.3g} us  {row['failure'] or '-'}")
+    lines.append("  law: the limit the tolerance's step cap and the failure hints use (docs/results.md, \"Stability\")")
     if result.get("interrupted"):
         lines.append("  PARTIAL: interrupted; the rows not listed were not measured")
     return lines

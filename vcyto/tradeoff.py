@@ -18,6 +18,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from sim.health import HealthError
+from sim.mesh import MeshSize
 from sim.openloop import stepping
 from sim.scenario import UM, Scenario, ScenarioError
 
@@ -256,7 +257,8 @@ def _measure(scenario, ladder, scenes, progress, rows):
             references.setdefault(scene.name, run)
             outlets = ",".join(cell["fate"] for _, cell in sorted(run["cells"].items()))
             rows.append({"scene": scene.name, "level": level.label, "model": level.model,
-                         "mesh_h_um": level.mesh_h / UM, "dt_us": level.dt * 1e6, "setup_s": setup,
+                         "mesh_h_um": level.mesh_h / UM, "dofs": MeshSize.of(scenario.channel, level.mesh_h).dofs,
+                         "dt_us": level.dt * 1e6, "setup_s": setup,
                          "run_s": run["wall_s"], "outlets": outlets, "failure": run["failure"],
                          **compare(run, references[scene.name])})
 
@@ -278,7 +280,8 @@ def table_lines(result: dict) -> list[str]:
     for row in result["rows"]:
         agree = f"{row['outlets_agree']}/{row['cells']}"
         outlets = row["outlets"] + (f" (stopped: {row['failure']})" if row["failure"] else "")
-        values = [row["scene"], row["level"], outlets, agree] + [_cell(row[c]) for c in COLUMNS[4:]]
+        level = row["level"] + (f" ({row['dofs']:,} DOFs)" if row.get("dofs") else "")
+        values = [row["scene"], level, outlets, agree] + [_cell(row[c]) for c in COLUMNS[4:]]
         lines.append("| " + " | ".join(values) + " |")
     if result.get("interrupted"):
         lines += ["", f"PARTIAL: interrupted after {len(result['rows'])} of {result['planned_rows']} rows; the rows "

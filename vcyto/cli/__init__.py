@@ -2,7 +2,7 @@
 failure with one line and status 1; never a traceback (VCYTO_DEBUG=1 adds one; the exit status stays the same).
 
 One module per command, each with its parser (``add_command``) and its handler (``command_NAME``): flow, paper,
-stream, calibrate, replay, stability, extremes, sweep, tradeoff, scenario, cache, bench; ``common`` holds what
+stream, calibrate, replay, stability, relax, extremes, sweep, tradeoff, scenario, cache, bench; ``common`` holds what
 they share (exit statuses, output paths, --json). The options of a run and their conversion to a scenario and
 stream settings are ``vcyto.options``. Nothing in the package imports the command line."""
 
@@ -25,7 +25,21 @@ from ..cache import CacheSettingError
 from ..cache import install_default as install_cache
 from ..speedsettings import install as install_speed_settings
 from ..stream import StreamStopped
-from . import bench, cache, calibrate, extremes, flow, paper, replay, scenario, stability, stream, sweep, tradeoff
+from . import (
+    bench,
+    cache,
+    calibrate,
+    extremes,
+    flow,
+    paper,
+    relax,
+    replay,
+    scenario,
+    stability,
+    stream,
+    sweep,
+    tradeoff,
+)
 from .common import (
     EXIT_INPUT,
     EXIT_INTERNAL,
@@ -38,7 +52,7 @@ from .common import (
     signals_seen,
 )
 
-COMMANDS = (flow, paper, stream, calibrate, replay, stability, extremes, sweep, tradeoff, scenario, cache, bench)
+COMMANDS = (flow, paper, stream, calibrate, replay, stability, relax, extremes, sweep, tradeoff, scenario, cache, bench)
 
 
 def build_parser() -> argparse.ArgumentParser:

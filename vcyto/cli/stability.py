@@ -25,6 +25,15 @@ def _lengths(text: str) -> list[float]:
     return values
 
 
+def mesh_sizes(text: str, scenario) -> list[float]:
+    """The lengths of ``--mesh-sizes``, each checked to resolve the scenario's inlets and to fit in memory."""
+    sizes = _lengths(text)
+    for h in sizes:
+        scenario.with_numerics(mesh_h=h)          # validates that each mesh resolves the inlets
+        limits.check_mesh(scenario.channel.length, scenario.channel.height, h, "--mesh-sizes")
+    return sizes
+
+
 def command_stability(args):
     from .. import stabilitymap
     from ..progress import Progress
@@ -34,10 +43,7 @@ def command_stability(args):
         raise UsageError("--cells: needs at least one cell type, e.g. --cells RBC,melanoma")
     for name in cells:
         scenario.cell_type(name)
-    sizes = _lengths(args.mesh_sizes)
-    for h in sizes:
-        scenario.with_numerics(mesh_h=h)          # validates that each mesh resolves the inlets
-        limits.check_mesh(scenario.channel.length, scenario.channel.height, h, "--mesh-sizes")
+    sizes = mesh_sizes(args.mesh_sizes, scenario)
     progress = Progress(quiet=args.quiet or args.json)
     try:
         result = stabilitymap.stability_map(scenario, cells, sizes, progress)

@@ -269,6 +269,16 @@ def late_pulse_note(settings) -> str | None:
             "whose pulse would already be over is aborted ('too late'); use a lead below the delay to sort on time")
 
 
+def short_pulse_note(settings, scenario) -> str | None:
+    """A note when the pulse is shorter than a tenth of the SAW drive's spin-up time: the drive barely rises
+    before it is switched off again, so the pulse deflects (almost) nothing. Accepted, never silently."""
+    if not settings.enabled or settings.pulse >= scenario.saw.spin_up_time / 10:
+        return None
+    return (f"the pulse {settings.pulse * 1e3:g} ms is less than a tenth of the SAW drive's spin-up time "
+            f"{scenario.saw.spin_up_time * 1e3:g} ms (saw.spin_up_time): the drive barely rises, so a sorted cell is "
+            "most likely not deflected; use a pulse of the order of the spin-up time or longer")
+
+
 def stream_run_options() -> argparse.ArgumentParser:
     """A parser of the scenario and stream options alone: their names, types and defaults are vcyto sweep's."""
     parser = argparse.ArgumentParser(prog="vcyto stream", add_help=False)

@@ -12,6 +12,7 @@ from ..options import (
     late_pulse_note,
     scenario_from,
     scenario_options,
+    short_pulse_note,
     stream_options,
     stream_settings,
     tolerance_options,
@@ -81,8 +82,9 @@ def command_stream(args):
             outputs.check_name(args.name)
         except ValueError as error:
             raise UsageError(str(error)) from None
-    if note := late_pulse_note(settings.controller):
-        print(f"vcyto: note: {note}", file=sys.stderr)
+    for note in (late_pulse_note(settings.controller), short_pulse_note(settings.controller, scenario)):
+        if note:
+            print(f"vcyto: note: {note}", file=sys.stderr)
     signals_seen.clear()
     view = runfiles.choose_view(args, output is not None, spawn_by_default=True, error=UsageError)
     files = None

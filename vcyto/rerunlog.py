@@ -39,7 +39,7 @@ from sim.scenario import UM, Scenario
 
 from .classes import CLASS_COLOURS, CLASS_IDS, CLASS_NAMES, CellClasses
 from .foxglove import speed_grid
-from .viewer import blueprint, import_rerun, speed_scale_mm_s
+from .viewer import blueprint, finish_stream, import_rerun, speed_scale_mm_s
 
 RECENT_EVENTS = 16                     # markers shown with each new detector event
 PATH_SLOTS = 16                        # the paths of the last this many cells stay in the view
@@ -114,6 +114,7 @@ class RerunLogger:
         self.speed_max_mm_s = speed_scale_mm_s(scenario)
         self.stream = rr.RecordingStream(application_id)
         kind = target[0]
+        self.connected = kind in ("spawn", "connect")
         if kind == "save":
             self.stream.save(str(target[1]), default_blueprint=blueprint())
         elif kind == "spawn":
@@ -297,8 +298,7 @@ class RerunLogger:
 
     def close(self):
         self.send_pending()
-        self.stream.flush()
-        self.stream.disconnect()
+        finish_stream(self.stream, self.connected)
 
 
 def _cell_view(cell, class_name: str) -> dict:

@@ -77,9 +77,10 @@ def choose_view(args, have_default_file: bool, spawn_by_default: bool, error) ->
             host, port = viewer.parse_viewer_url(url)
         except ValueError as problem:
             raise error(f"--connect: {problem}") from None
-        if viewer.listening(host, port):
+        problem = viewer.viewer_problem(host, port, secure=url.startswith("rerun+https"))
+        if problem is None:
             return View("connect", url=url)
-        return _fall_back(fallback, f"no Rerun viewer answers at {url}")
+        return _fall_back(fallback, f"no Rerun viewer answers at {url}: {problem}")
     if not (args.spawn or spawn_by_default):
         return fallback
     if not viewer.has_display():

@@ -391,7 +391,9 @@ def test_a_disk_filling_up_mid_run_is_one_line_exit_1(tmp_path, monkeypatch):
                                       "--output", str(tmp_path), "--no-viewer", "--quiet", "--name", "full"])
     assert_one_line_refusal(status, stderr, allowed=(1,))
     assert "No space left on device" in stderr and "full.mcap" in stderr
-    assert not (tmp_path / "full.json").exists()       # no summary claims a run that did not finish
+    summary = strict_load((tmp_path / "full.json").read_text())     # written (room is left), marked failed
+    assert summary["status"] == "failed" and "full.mcap" in summary["reason"]
+    assert "kept (what ran up to the failure" in stderr and str(tmp_path / "full.json") in stderr
 
 
 # --- the viewer: the installed one, bound to this machine, never breaking a run --------------------------

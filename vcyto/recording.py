@@ -32,8 +32,14 @@ Ctrl-C and SIGTERM. State is bounded: only the cells in the channel are remember
 from __future__ import annotations
 
 import base64
+import collections
 import dataclasses
+import errno
 import json
+import logging
+import os
+import re
+import shutil
 import time
 from pathlib import Path
 
@@ -52,6 +58,44 @@ from .schemas import SCHEMAS
 from .sortreport import name_cells
 
 PER_STEP = ("/loop/step", "/cells")
+FULL_BYTES = 1 << 20          # a filesystem with less free space than this is full (for a failed write's cause)
+
+
+class _SdkWarnings(logging.Handler):
+    """The Foxglove SDK's warnings (a write that failed: "error logging message: McapError(Io(Os { code: 28 ...")
+    kept for the one-line error that names the cause, instead of printed as they come."""
+
+    def __init__(self):
+        super().__init__(logging.WARNING)
+        self.recent: collections.deque = collections.deque(maxlen=4)
+
+    def emit(self, record):
+        self.recent.append(record.getMessage())
+
+
+_SDK_WARNINGS = _SdkWarnings()
+_sdk_logger = logging.getLogger("foxglove")
+_sdk_logger.addHandler(_SDK_WARNINGS)
+_sdk_logger.propagate = False
+
+
+def write_error(error: RuntimeError, path: Path) -> OSError:
+    """The SDK's failure to write the MCAP at ``path`` as an ``OSError`` naming the file and the cause: the
+    operating system's error when the SDK's warnings carry its code (28: no space left on device), ENOSPC when
+    the file's filesystem has (almost) no space left, else EIO with the SDK's words."""
+    said = " ".join([*_SDK_WARNINGS.recent, str(error)])
+    code = re.search(r"code: (\d+)", said)
+    number = int(code.group(1)) if code else errno.ENOSPC if _full(Path(path).parent) else None
+    if number is None:
+        return OSError(errno.EIO, f"the MCAP writer failed ({' '.join(str(error).split())})", str(path))
+    return OSError(number, os.strerror(number), str(path))
+
+
+def _full(directory: Path) -> bool:
+    try:
+        return shutil.disk_usage(directory).free < FULL_BYTES
+    except OSError:
+        return False
 FORMAT = "2"                  # 1: JSON channels only, membranes in /cells; 2: Foxglove channels beside them
 
 
@@ -100,9 +144,10 @@ class McapRecorder:
         # the Foxglove SDK's MCAP writer (compiled): a message costs a few microseconds instead of ~15 in the pure
         # Python writer; its own context, so that recorders in one process do not share channels
         self._context = Context()
-        self._writer = open_mcap(str(self.path), allow_overwrite=True, context=self._context,
-                                 writer_options=MCAPWriteOptions(compression=MCAPCompression.Zstd, profile="",
-                                                                 compression_threads=0))
+        self.failed = False
+        self._writer = self._writing(open_mcap, str(self.path), allow_overwrite=True, context=self._context,
+                                     writer_options=MCAPWriteOptions(compression=MCAPCompression.Zstd, profile="",
+                                                                     compression_threads=0))
         self._channels = {}
         for topic, schema in SCHEMAS.items():
             self._channels[topic] = Channel(topic, message_encoding="json", context=self._context, schema=Schema(
@@ -114,8 +159,8 @@ class McapRecorder:
         self.origin_ns = time.time_ns()
         detection_window = detection_window or getattr(metadata.get("detector"), "window", None)
         scenario = scenario or _scenario_of(metadata)
-        self._writer.write_metadata("run", plain_metadata({**metadata, "time_origin_unix_ns": self.origin_ns,
-                                                           "recording_format": FORMAT}))
+        self._writing(self._writer.write_metadata, "run", plain_metadata({
+            **metadata, "time_origin_unix_ns": self.origin_ns, "recording_format": FORMAT}))
         self.flush_every = max(1, flush_every)
         self.field_every = field_every
         self._steps = 0
@@ -125,8 +170,16 @@ class McapRecorder:
         self._keys_by_event: dict[int, int] = {}  # detector events' cells, for the log's decision lines
         outlines = device_outlines(scenario, detection_window)
         self._write_proto("/foxglove/scene", 0.0, foxglove.device(self.origin_ns, outlines))
-        self._writer.flush()
+        self._writing(self._writer.flush)
         self.closed = False
+
+    def _writing(self, call, *args, **kwargs):
+        """``call`` of the SDK's writer; its failure to write (a full disk) is an ``OSError`` naming the file."""
+        try:
+            return call(*args, **kwargs)
+        except RuntimeError as error:
+            self.failed = True
+            raise write_error(error, self.path) from None
 
     def _stamp(self, time_s: float) -> int:
         return self.origin_ns + int(round(time_s * 1e9))
@@ -177,7 +230,7 @@ class McapRecorder:
             self._write_proto("/foxglove/speed", now, foxglove.speed_image(self._stamp(now), payload))
         self._steps += 1
         if self._steps % self.flush_every == 0:
-            self._writer.flush()
+            self._writing(self._writer.flush)
 
     def _left(self, truth) -> list:
         """The cells that left since the previous step (each once: ``truth`` may list them again)."""
@@ -237,12 +290,19 @@ class McapRecorder:
     def on_end(self, ending: dict):
         """How the run ended (complete, truncated, interrupted, failed; why; its sort figures): the metadata record
         ``run_end``, so that a recording of a partial run says so."""
-        self._writer.write_metadata("run_end", plain_metadata(ending))
+        self._writing(self._writer.write_metadata, "run_end", plain_metadata(ending))
 
     def close(self):
+        """Finish the file (its summary and index). After a write that failed (reported then), closing fails too
+        and is not reported again: what was flushed before stays readable (readers take a torn tail)."""
         if not self.closed:
             self.closed = True
-            self._writer.close()
+            failed_before = self.failed
+            try:
+                self._writing(self._writer.close)
+            except OSError:
+                if not failed_before:
+                    raise
 
 
 def velocity_field(vertices: np.ndarray, velocity: np.ndarray, pressure: np.ndarray, grid_x, grid_y,

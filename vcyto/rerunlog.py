@@ -115,6 +115,7 @@ class RerunLogger:
         self.stream = rr.RecordingStream(application_id)
         kind = target[0]
         self.connected = kind in ("spawn", "connect")
+        self.path = target[1] if kind == "save" else None
         if kind == "save":
             self.stream.save(str(target[1]), default_blueprint=blueprint())
         elif kind == "spawn":
@@ -298,7 +299,7 @@ class RerunLogger:
 
     def close(self):
         self.send_pending()
-        finish_stream(self.stream, self.connected)
+        finish_stream(self.stream, self.connected, self.path)
 
 
 def _cell_view(cell, class_name: str) -> dict:

@@ -150,6 +150,35 @@ class StreamFiles:
         outputs.write_into(summary_path, outputs.strict_json(result) + "\n")
         return fcs_path, summary_path
 
+    def finish_what_can(self, result: dict, settings=None, scenario=None) -> tuple[list[str], list[str]]:
+        """``finish`` after a write failed (a full disk): each of the FCS events, the gate and the summary is
+        written if it can be, the others are left out (their reservations removed: no placeholder claims a run);
+        (the files kept, including the recording and the view as far as they were flushed; the files lost)."""
+        from . import fcs, gatingml
+        command = " ".join(["vcyto", *sys.argv[1:]]).rstrip("/ ") or "vcyto"
+        writers = {"fcs": lambda path: fcs.write_fcs(path, result, {
+                       "VCYTO_COMMAND": command, "VCYTO_STATUS": result.get("status", "failed"),
+                       "VCYTO_RUN_ID": self.run_id}, settings=settings, scenario=scenario),
+                   "json": lambda path: outputs.write_into(path, outputs.strict_json(result) + "\n")}
+        if settings is not None:
+            writers["gating.xml"] = lambda path: gatingml.write_gatingml(path, settings.detector.gate)
+        kept, lost = [], []
+        for suffix in self.suffixes:
+            path = self.path(suffix)
+            if suffix in writers:
+                try:
+                    writers[suffix](path)
+                except OSError:
+                    path.unlink(missing_ok=True)
+                    lost.append(str(path))
+                    continue
+            if path.exists() and path.stat().st_size > 0:
+                kept.append(str(path))
+            else:
+                path.unlink(missing_ok=True)
+                lost.append(str(path))
+        return kept, lost
+
     def discard_unwritten(self) -> None:
         """Remove the reserved summary and events that were never written (a run that failed before it ran)."""
         for suffix in ("fcs", "gating.xml", "json"):

@@ -113,7 +113,7 @@ def run_stream(scenario: Scenario, settings: StreamSettings, progress=None, plan
             run.step(cap)
     except KeyboardInterrupt:
         status, reason = "interrupted", "interrupted by the user (SIGINT or SIGTERM)"
-    except (NumericalBlowUp, SolverError) as error:
+    except (NumericalBlowUp, SolverError, OSError) as error:      # OSError: a sink could not write (a full disk)
         status, reason, failure = "failed", str(error), error
     run.finish()
     rss_loop = _peak_rss_mb()

@@ -193,15 +193,20 @@ def start_viewer(bind: str = "127.0.0.1", port: int | None = None) -> tuple[str,
 _LEFT_BEHIND: list = []        # streams whose viewer stopped reading: kept, since freeing one waits for the viewer
 
 
-def finish_stream(stream, connected: bool) -> None:
+def finish_stream(stream, connected: bool, path=None) -> None:
     """Flush and close a Rerun recording stream; one ``connected`` to a viewer gets ``FLUSH_SECONDS`` to take what
     is queued and to close. A viewer that does not within that time is left: the stream is kept, never closed nor
     freed (closing the connection or dropping the stream would wait for the viewer without end, and so would
     Rerun's own exit handler, which is removed; the process ends without freeing it), and ``ConnectionError``
-    says so."""
+    says so. A stream saved to the file ``path`` that cannot be written (a full disk) is an ``OSError`` naming it."""
     if not connected:
-        stream.flush()
-        stream.disconnect()
+        try:
+            stream.flush()
+            stream.disconnect()
+        except RuntimeError as error:
+            import errno
+            raise OSError(errno.EIO, f"Rerun's file writer failed ({' '.join(str(error).split())})",
+                          str(path) if path else None) from None
         return
     import threading
     deadline = time.monotonic() + FLUSH_SECONDS

@@ -1,6 +1,7 @@
 """vcyto sweep: spec parsing, one-line errors, local pool == Dask LocalCluster, resume after a kill, failed points,
 interrupts (SIGINT/SIGTERM to the main process alone), the record of the runs kept by a re-run."""
 
+import contextlib
 import csv
 import json
 import os
@@ -228,6 +229,51 @@ def test_killing_a_sweep_and_rerunning_it_completes_only_the_missing_points(tmp_
     again = json.loads(vcyto("sweep", spec, "--output", str(output), "--workers", "1", "--json").stdout)
     assert again["ran"] == 2 and again["repaired_rows"] == 1 and again["ok"] == 10
     assert len(read_rows(table)) == 10 and (output / "summary.png").exists()
+
+
+def _descendants(pid: int) -> set[int]:
+    """The processes whose parent chain leads to ``pid`` (read from /proc), and those of its session."""
+    parents, sessions = {}, {}
+    for entry in Path("/proc").iterdir():
+        if entry.name.isdigit():
+            try:
+                fields = (entry / "stat").read_text().rsplit(")", 1)[1].split()
+            except OSError:
+                continue
+            parents[int(entry.name)], sessions[int(entry.name)] = int(fields[1]), int(fields[3])
+    found, grown = {p for p, session in sessions.items() if session == pid}, True
+    while grown:
+        more = {p for p, parent in parents.items() if parent in found | {pid}} - found
+        found |= more
+        grown = bool(more)
+    return found - {pid}
+
+
+@pytest.mark.skipif(not Path("/proc/self/stat").exists(), reason="reads the process table from /proc")
+def test_a_sweep_killed_with_sigkill_leaves_no_process_behind(tmp_path):
+    """SIGKILL to the sweep's own process alone (it can stop nothing): its pool workers and the resource tracker
+    end within a few seconds, not holding their memory for ever."""
+    spec, output = write_spec(tmp_path / "killed.toml", KILLED_SPEC), tmp_path / "out"
+    table = output / "results.csv"
+    command = [sys.executable, "-m", "vcyto.cli", "sweep", spec, "--output", str(output), "--workers", "2",
+               "--chunk", "1", "--quiet"]
+    process = subprocess.Popen(command, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
+    try:
+        deadline = time.monotonic() + 120
+        while time.monotonic() < deadline and (not table.exists() or len(read_rows(table)) < 1):
+            time.sleep(0.05)
+        helpers = _descendants(process.pid)
+        assert len(helpers) >= 2, "the sweep's workers did not start"
+        process.kill()                                # the parent alone
+        process.wait()
+        deadline = time.monotonic() + 5.0
+        while time.monotonic() < deadline and _descendants(process.pid):
+            time.sleep(0.1)
+        left = _descendants(process.pid)
+    finally:
+        with contextlib.suppress(ProcessLookupError):
+            os.killpg(process.pid, signal.SIGKILL)       # whatever is left, so that the test run is not burdened
+    assert not left, f"processes of the killed sweep still running: {sorted(left)}"
 
 
 def fail_at_lead_0_75(scenario, settings):

@@ -107,9 +107,12 @@ def tolerance_override(args) -> list[str]:
 
 
 def cell_list(text: str) -> tuple[str, ...]:
-    names = tuple(name.strip() for name in text.split(",") if name.strip())
-    if not names:
+    names = tuple(name.strip() for name in text.split(","))
+    if not any(names):
         raise UsageError("--cells: needs at least one cell type, e.g. --cells RBC,melanoma")
+    if not all(names):
+        raise UsageError(f"--cells: an empty entry (two commas, or one at an end) in {text[:80]!r}; list one cell "
+                         "type between each pair of commas, e.g. RBC,melanoma")
     return names
 
 
@@ -182,6 +185,7 @@ def stream_settings(args, scenario):
                 scenario.with_numerics(mesh_h=window)           # resolves every inlet and outlet
             except ScenarioError as error:
                 raise UsageError(f"--window-h: {str(error).split(': ', 1)[1]}") from None
+        check_device_time(arrivals, args.max_time)
         if args.model == "feib":
             check_run_time(args, scenario, _device_time(arrivals, args.max_time), "--dt/--count/--rate")
         return stream.StreamSettings(arrivals, detector, controller, args.model, args.seed,
@@ -226,6 +230,20 @@ def _device_time(arrivals, cap) -> float:
     cells = len(arrivals.cells) or arrivals.count
     span = (cells - 1) / arrivals.rate + 5e-3
     return min(span, cap) if cap is not None else span
+
+
+MAX_DEVICE_TIME = 3600.0          # s of device time a stream may take without --max-time (--max-time's own limit)
+
+
+def check_device_time(arrivals, cap) -> None:
+    """Refuse, unless capped by --max-time, a stream whose arrivals alone span more than ``MAX_DEVICE_TIME``
+    (``--rate 1e-6`` with two cells: eleven days of device time)."""
+    span = _device_time(arrivals, None)
+    if cap is None and span > MAX_DEVICE_TIME:
+        cells = len(arrivals.cells) or arrivals.count
+        raise UsageError(f"--rate: {cells:,} cells at {arrivals.rate:g} cells/s take {span:,.4g} s of device time "
+                         f"(more than {MAX_DEVICE_TIME:g} s); give a higher rate, fewer cells, or cap the run "
+                         "with --max-time")
 
 
 def check_run_time(args, scenario, simulated: float, field: str):

@@ -62,6 +62,14 @@ def choose_view(args, have_default_file: bool, spawn_by_default: bool, error) ->
     """The view ``args`` ask for; ``error`` is the exception class for bad input. ``have_default_file``: an
     .rrd can be saved when no viewer is reached (else the view is dropped, with a note)."""
     from . import viewer
+    bind = getattr(args, "viewer_bind", None)
+    if bind is not None:
+        import ipaddress
+        try:
+            ipaddress.ip_address(bind)
+        except ValueError:
+            raise error(f"--viewer-bind: {bind[:60]!r} is not an IP address; give one of this machine's, e.g. "
+                        "127.0.0.1 (this machine only) or 0.0.0.0 (every interface)") from None
     if getattr(args, "no_viewer", False):
         given = [name for name, value in (("--save", args.save), ("--spawn", getattr(args, "spawn", False)),
                                           ("--connect", getattr(args, "connect", None) is not None)) if value]

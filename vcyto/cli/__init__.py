@@ -34,6 +34,7 @@ from .common import (
     EXIT_SIGTERM,
     RunStopped,
     UsageError,
+    check_switches,
     signals_seen,
 )
 
@@ -76,6 +77,7 @@ def main(argv=None) -> int:
 
 def _main(args) -> int:
     try:
+        check_switches()
         install_cache()
         with runfiles.signals_as_interrupt(signals_seen):     # SIGTERM ends every command as Ctrl-C does
             status = args.handler(args)

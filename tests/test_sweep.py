@@ -576,3 +576,55 @@ def test_an_interrupted_run_records_its_time_and_the_run_that_completes_counts_i
         final = sweep.run_sweep(built, tmp_path, pool, slots, simulator=fixed_result)
     assert final["status"] == "complete" and final["ran"] == 1 and final["ok"] == 3 and len(final["runs"]) == 2
     assert final["wall_time_s"] == pytest.approx(run["wall_time_s"] + final["run_wall_time_s"])
+
+
+# --- units in ranges and distributions: the one unit rule, in the parameter's own unit ------------------------
+
+def test_a_distribution_with_units_draws_in_the_unit_written(tmp_path):
+    """``lead = { uniform = ["0.2ms", "0.3ms"] }``: every drawn lead lies between 0.2 and 0.3 ms (it was read as
+    SI seconds and then as ms: 2.5e-4 ms, a lead that sorted nothing)."""
+    from vcyto.sweep.spec import load_sweep
+    spec = write_spec(tmp_path / "spec.toml", '[parameters]\nlead = { uniform = ["0.2ms", "300us"] }\n'
+                                              '[sweep]\nsampling = "random"\nsamples = 20\n')
+    leads = [point.settings.controller.lead for point in load_sweep(spec).points]
+    assert len(leads) == 20 and all(0.2e-3 <= lead <= 0.3e-3 for lead in leads), leads
+    assert len(set(leads)) == 20
+
+
+def test_a_range_with_units_gives_values_in_the_unit_written(tmp_path):
+    from vcyto.sweep.spec import load_sweep
+    spec = write_spec(tmp_path / "spec.toml", '[parameters]\nlead = { start = "0.1ms", stop = "300 us", num = 3 }\n'
+                                              '"saw.streaming_force" = ["4e7 N/m^3", 5e7]\n')
+    points = load_sweep(spec).points
+    assert sorted({point.settings.controller.lead for point in points}) == pytest.approx([1e-4, 2e-4, 3e-4])
+    assert sorted({point.scenario.saw.streaming_force for point in points}) == pytest.approx([4e7, 5e7])
+
+
+@pytest.mark.parametrize("parameter, words", [
+    ('"fluid.viscosity" = { start = "1 kHz", stop = "2 kHz", num = 2 }', "is a frequency, but"),
+    ('lead = { uniform = ["0.2 um", "0.3 um"] }', "is a length, but"),
+    ('"saw.streaming_force" = { start = "1e7 N/m^3", stop = "5e7 N/m", num = 2 }', "but"),
+    ('seed = { start = "1 ms", stop = 4, num = 2 }', "must be a finite number"),
+    ('lead = { start = "0.1 ms^(9^9^9)", stop = 1, num = 2 }', "cannot read the unit"),
+])
+def test_a_range_or_distribution_in_another_dimension_is_refused(tmp_path, parameter, words):
+    from vcyto.sweep.model import SweepError
+    from vcyto.sweep.spec import load_sweep
+    sampling = '[sweep]\nsampling = "random"\nsamples = 2\n' if "uniform" in parameter else ""
+    spec = write_spec(tmp_path / "spec.toml", f"{sampling}[parameters]\n{parameter}\n")
+    with pytest.raises(SweepError, match="parameters\\.") as refused:
+        load_sweep(spec)
+    assert words in str(refused.value)
+
+
+@pytest.mark.parametrize("value", ['"/etc/passwd"', '["../outside.toml"]', '["link.toml"]'])
+def test_a_controller_file_under_parameters_is_confined_to_the_specs_folder(tmp_path, value):
+    from vcyto.sweep.model import SweepError
+    from vcyto.sweep.spec import load_sweep
+    folder = tmp_path / "spec"
+    folder.mkdir()
+    (tmp_path / "outside.toml").write_text("[controller]\nlead = \"0.3 ms\"\n[secret]\n")
+    (folder / "link.toml").symlink_to(tmp_path / "outside.toml")
+    spec = write_spec(folder / "spec.toml", f"[parameters]\ncontroller = {value}\n")
+    with pytest.raises(SweepError, match="parameters.controller: must name a file in the spec's folder"):
+        load_sweep(spec)

@@ -178,8 +178,8 @@ def parse_toml(text: str, what: str, field: str = "scenario", limit: int = MAX_F
         document = tomllib.loads(text)
     except RecursionError:
         raise ScenarioError(field, f"{what} nests tables or arrays too deeply (at most {MAX_DEPTH} levels)") from None
-    except tomllib.TOMLDecodeError as error:
-        raise ScenarioError(field, f"{what} is not valid TOML: {_one_line(error)}") from None
+    except ValueError as error:                 # TOMLDecodeError, or an integer of thousands of digits
+        raise ScenarioError(field, f"{what} is not valid TOML: {_one_line(error)[:200]}") from None
     if nesting_depth(document) > MAX_DEPTH:
         raise ScenarioError(field, f"{what} nests tables or arrays too deeply (at most {MAX_DEPTH} levels)")
     return document
@@ -287,7 +287,7 @@ def _toml_literal(text: str):
         return None
     try:
         value = tomllib.loads(f"value = {text}")["value"]
-    except tomllib.TOMLDecodeError:
+    except (ValueError, RecursionError):       # not TOML (TOMLDecodeError), or an integer of thousands of digits
         return None
     return value if isinstance(value, (bool, int, float, str, list, dict)) else None
 
@@ -365,8 +365,8 @@ def _coerce_float(value, where: str, dimension: str | None = None) -> float:
     if isinstance(value, bool) or not isinstance(value, (str, numbers.Real)):
         raise ScenarioError(where, f"must be a number, optionally with a unit such as '2.5 us' (got {_shown(value)})")
     try:
-        return units.parse_quantity(value if isinstance(value, str) else float(value), dimension or "dimensionless",
-                                    field=where)
+        return units.parse_quantity(value if isinstance(value, (str, int)) else float(value),
+                                    dimension or "dimensionless", field=where)
     except units.QuantityError as error:
         raise ScenarioError(where, str(error).split(": ", 1)[1]) from None
 

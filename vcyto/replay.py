@@ -77,16 +77,17 @@ def _chunk_records(chunk: Chunk):
     if chunk.uncompressed_size > MAX_CHUNK_BYTES:
         raise Damaged(f"a chunk of {chunk.uncompressed_size:,} bytes decompressed (at most {MAX_CHUNK_BYTES:,})")
     if chunk.compression == "zstd":
-        data = _zstd(chunk.data)
+        data = _zstd(chunk.data, chunk.uncompressed_size + 1)
     elif chunk.compression == "lz4":
         import lz4.frame
-        data = lz4.frame.LZ4FrameDecompressor().decompress(chunk.data, max_length=MAX_CHUNK_BYTES + 1)
+        data = lz4.frame.LZ4FrameDecompressor().decompress(chunk.data, max_length=chunk.uncompressed_size + 1)
     elif chunk.compression == "":
         data = chunk.data
     else:
         raise Damaged(f"a chunk compressed with {chunk.compression!r}, which vcyto does not write")
-    if len(data) > MAX_CHUNK_BYTES:
-        raise Damaged(f"a chunk larger than {MAX_CHUNK_BYTES:,} bytes decompressed")
+    if len(data) != chunk.uncompressed_size:
+        raise Damaged(f"a chunk that decompresses to another size than the {chunk.uncompressed_size:,} bytes it "
+                      "claims")
     stream = ReadDataStream(io.BytesIO(data))
     while stream.count < len(data):
         opcode, length = stream.read1(), stream.read8()
@@ -98,10 +99,17 @@ def _chunk_records(chunk: Chunk):
             stream.read(length)
 
 
-def _zstd(data: bytes) -> bytes:
-    """``data`` decompressed, at most ``MAX_CHUNK_BYTES`` + 1 bytes of it (whatever size its frame claims)."""
+def _zstd(data: bytes, limit: int) -> bytes:
+    """``data`` decompressed, at most ``limit`` bytes of it (whatever size its frame claims)."""
     reader = zstandard.ZstdDecompressor().stream_reader(io.BytesIO(data))
-    return reader.read(MAX_CHUNK_BYTES + 1)
+    parts, size = [], 0
+    while size < limit:
+        part = reader.read(min(limit - size, 1 << 20))
+        if not part:
+            break
+        parts.append(part)
+        size += len(part)
+    return b"".join(parts)
 
 
 def read_metadata(path: Path) -> tuple[dict, dict, str]:

@@ -84,6 +84,9 @@ def parse_quantity(text, dimension: str, default_unit: str = "", field: str = "v
         raise KeyError(f"unknown dimension {dimension!r}")
     if isinstance(text, bool) or not isinstance(text, (str, int, float)):
         raise QuantityError(f"{field}: must be a {_kind(dimension)} (got {text!r})")
+    if isinstance(text, int) and text.bit_length() > 4 * MAX_TEXT_CHARS:       # more digits than a text may have
+        raise QuantityError(f"{field}: {_shown(text)} is not a finite {_kind(dimension)}; give a number such as "
+                            f"{DIMENSIONS[dimension][1]}")
     number, unit = _split(str(text), dimension, field) if isinstance(text, str) else (decimal.Decimal(repr(text)), "")
     if not number.is_finite():
         raise QuantityError(f"{field}: {_shown(text)} is not a finite {_kind(dimension)}; give a number such as "
@@ -303,5 +306,7 @@ def _describe(found, parsed) -> str:
 
 
 def _shown(text) -> str:
+    if isinstance(text, int) and text.bit_length() > 1000:
+        return f"an integer of {text.bit_length()} bits"
     text = str(text)
     return repr(text if len(text) <= 40 else text[:37] + "...")

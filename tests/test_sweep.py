@@ -200,19 +200,25 @@ metrics = ["yield", "outlet.upper"]
 """
 
 
+def _sweep_with_rows(spec, output, workers: int, rows: int) -> subprocess.Popen:
+    """``vcyto sweep SPEC`` started in a session of its own, returned once its table has ``rows`` rows."""
+    table = output / "results.csv"
+    command = [sys.executable, "-m", "vcyto.cli", "sweep", spec, "--output", str(output), "--workers", str(workers),
+               "--chunk", "1", "--quiet"]
+    process = subprocess.Popen(command, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
+    deadline = time.monotonic() + 120
+    while time.monotonic() < deadline and process.poll() is None and (
+            not table.exists() or len(read_rows(table)) < rows):
+        time.sleep(0.02)
+    return process
+
+
 def test_killing_a_sweep_and_rerunning_it_completes_only_the_missing_points(tmp_path):
     spec, output = write_spec(tmp_path / "killed.toml", KILLED_SPEC), tmp_path / "out"
     table = output / "results.csv"
-    command = [sys.executable, "-m", "vcyto.cli", "sweep", spec, "--output", str(output), "--workers", "1",
-               "--chunk", "1", "--quiet"]
-    process = subprocess.Popen(command, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
-    try:
-        deadline = time.monotonic() + 120
-        while time.monotonic() < deadline and (not table.exists() or len(read_rows(table)) < 3):
-            time.sleep(0.02)
-    finally:
-        os.killpg(process.pid, signal.SIGKILL)       # the sweep, its worker and their helpers: one session
-        process.wait()
+    process = _sweep_with_rows(spec, output, workers=1, rows=3)
+    os.killpg(process.pid, signal.SIGKILL)           # the sweep, its worker and their helpers: one session
+    process.wait()
     before = read_rows(table)
     assert 3 <= len(before) < 10, "the sweep was not killed half-way"
     rerun = vcyto("sweep", spec, "--output", str(output), "--workers", "1", "--json")
@@ -253,15 +259,9 @@ def _descendants(pid: int) -> set[int]:
 def test_a_sweep_killed_with_sigkill_leaves_no_process_behind(tmp_path):
     """SIGKILL to the sweep's own process alone (it can stop nothing): its pool workers and the resource tracker
     end within a few seconds, not holding their memory for ever."""
-    spec, output = write_spec(tmp_path / "killed.toml", KILLED_SPEC), tmp_path / "out"
-    table = output / "results.csv"
-    command = [sys.executable, "-m", "vcyto.cli", "sweep", spec, "--output", str(output), "--workers", "2",
-               "--chunk", "1", "--quiet"]
-    process = subprocess.Popen(command, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
+    spec = write_spec(tmp_path / "killed.toml", KILLED_SPEC)
+    process = _sweep_with_rows(spec, tmp_path / "out", workers=2, rows=1)
     try:
-        deadline = time.monotonic() + 120
-        while time.monotonic() < deadline and (not table.exists() or len(read_rows(table)) < 1):
-            time.sleep(0.05)
         helpers = _descendants(process.pid)
         assert len(helpers) >= 2, "the sweep's workers did not start"
         process.kill()                                # the parent alone

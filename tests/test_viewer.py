@@ -152,9 +152,9 @@ def test_a_display_without_a_server_is_seen_before_the_viewer_is_started(monkeyp
 
 # --- a program on the viewer's port that is not a viewer ---------------------------------------------------------
 
-@pytest.fixture
-def deaf_listener():
-    """A plain TCP listener on a free port that accepts every connection and never reads from it (nor answers)."""
+def never_reading(greeting: bytes = b""):
+    """A TCP server on a free port that accepts every connection, sends it ``greeting`` and never reads from it;
+    yields its port."""
     import socket
     import threading
     server = socket.socket()
@@ -165,15 +165,30 @@ def deaf_listener():
     def accept():
         while True:
             try:
-                held.append(server.accept()[0])
+                connection = server.accept()[0]
             except OSError:
                 return
+            held.append(connection)
+            connection.sendall(greeting)
 
     threading.Thread(target=accept, daemon=True).start()
     yield server.getsockname()[1]
     server.close()
     for connection in held:
         connection.close()
+
+
+@pytest.fixture
+def deaf_listener():
+    """A plain TCP listener that accepts every connection and never reads from it (nor answers)."""
+    yield from never_reading()
+
+
+@pytest.fixture
+def stalled_viewer():
+    """A server that answers the handshake as a gRPC server (an empty SETTINGS frame) and then never reads: a
+    viewer that has hung."""
+    yield from never_reading(bytes([0, 0, 0, 4, 0, 0, 0, 0, 0]))
 
 
 def vcyto_on_port(port: int, *args, env=None, **options):
@@ -235,32 +250,6 @@ def test_the_handshake_tells_a_grpc_server_from_a_deaf_port(deaf_listener):
     finally:
         server.terminate()
         server.wait(timeout=30)
-
-
-@pytest.fixture
-def stalled_viewer():
-    """A server that answers the handshake as a gRPC server and then never reads: a viewer that has hung."""
-    import socket
-    import threading
-    server = socket.socket()
-    server.bind(("127.0.0.1", 0))
-    server.listen(16)
-    held = []
-
-    def answer_then_stop_reading():
-        while True:
-            try:
-                connection = server.accept()[0]
-            except OSError:
-                return
-            held.append(connection)
-            connection.sendall(bytes([0, 0, 0, 4, 0, 0, 0, 0, 0]))      # an empty SETTINGS frame, then silence
-
-    threading.Thread(target=answer_then_stop_reading, daemon=True).start()
-    yield server.getsockname()[1]
-    server.close()
-    for connection in held:
-        connection.close()
 
 
 def test_a_viewer_that_stops_taking_the_view_is_left_within_the_bound(stalled_viewer, tmp_path):

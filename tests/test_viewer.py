@@ -293,3 +293,31 @@ def test_sigterm_ends_a_run_streaming_to_a_stalled_viewer_at_once(stalled_viewer
     assert process.returncode == 143, err
     assert took < 3.0, (took, err)
     assert json.loads((tmp_path / "run.json").read_text())["status"] == "interrupted"
+
+
+def test_a_real_rerun_server_takes_the_whole_run_without_a_note(tmp_path):
+    """The handshake and the bounded close cost a real viewer's server nothing: the run streams to
+    ``rerun --serve-grpc`` and ends without a note."""
+    import socket
+    import time
+
+    from vcyto import viewer
+    binary = viewer.find_viewer()
+    if binary is None:
+        pytest.skip("no Rerun viewer binary installed")
+    with socket.socket() as free:
+        free.bind(("127.0.0.1", 0))
+        port = free.getsockname()[1]
+    server = subprocess.Popen([str(binary), "--serve-grpc", "--port", str(port)], stdout=subprocess.DEVNULL,
+                              stderr=subprocess.DEVNULL)
+    try:
+        deadline = time.monotonic() + 30
+        while not viewer.listening("127.0.0.1", port, timeout=0.2) and time.monotonic() < deadline:
+            time.sleep(0.1)
+        result = vcyto("stream", "--model", "streamline", "--cells", "RBC,melanoma", "--output", str(tmp_path),
+                       "--name", "run", "--quiet", "--connect", f"rerun+http://127.0.0.1:{port}/proxy")
+    finally:
+        server.terminate()
+        server.wait(timeout=30)
+    assert result.returncode == 0 and result.stderr == "", result.stderr
+    assert f"streamed to the viewer at rerun+http://127.0.0.1:{port}/proxy" in result.stdout

@@ -74,7 +74,7 @@ VIEWER_PORT = 9876
 VIEWER_START_TIMEOUT = 15.0     # s until the spawned viewer listens
 VIEWER_GRACE = 1.0              # s it must then stay alive (a viewer without a usable display exits at once)
 PROBE_SECONDS = 1.0             # s a viewer has to answer the handshake
-FLUSH_SECONDS = 0.5             # s the run waits at its end for a viewer to take what is still queued
+FLUSH_SECONDS = 0.5             # s the run waits at its end for a viewer to take what is queued, and again to close
 # the client's opening of HTTP/2, on which gRPC (and so the Rerun viewer's server) runs: the connection preface
 # and an empty SETTINGS frame; a gRPC server answers with its own SETTINGS frame (RFC 9113, section 3.4)
 _HTTP2_PREFACE = b"PRI * HTTP/2.0\r\n\r\nSM\r\n\r\n" + bytes([0, 0, 0, 4, 0, 0, 0, 0, 0])
@@ -195,10 +195,11 @@ _LEFT_BEHIND: list = []        # streams whose viewer stopped reading: kept, sin
 
 def finish_stream(stream, connected: bool, path=None) -> None:
     """Flush and close a Rerun recording stream; one ``connected`` to a viewer gets ``FLUSH_SECONDS`` to take what
-    is queued and to close. A viewer that does not within that time is left: the stream is kept, never closed nor
-    freed (closing the connection or dropping the stream would wait for the viewer without end, and so would
-    Rerun's own exit handler, which is removed; the process ends without freeing it), and ``ConnectionError``
-    says so. A stream saved to the file ``path`` that cannot be written (a full disk) is an ``OSError`` naming it."""
+    is queued and as long again to close. A viewer that does not within that time is left: the stream is kept,
+    never closed nor freed (closing the connection or dropping the stream would wait for the viewer without end,
+    and so would Rerun's own exit handler, which is removed; the process ends without freeing it), and
+    ``ConnectionError`` says so. A stream saved to the file ``path`` that cannot be written (a full disk) is an
+    ``OSError`` naming it."""
     if not connected:
         try:
             stream.flush()
@@ -209,7 +210,6 @@ def finish_stream(stream, connected: bool, path=None) -> None:
                           str(path) if path else None) from None
         return
     import threading
-    deadline = time.monotonic() + FLUSH_SECONDS
     try:
         stream.flush(timeout_sec=FLUSH_SECONDS)
     except RuntimeError as error:
@@ -217,7 +217,7 @@ def finish_stream(stream, connected: bool, path=None) -> None:
                        f"({' '.join(str(error).split())})")
     closing = threading.Thread(target=stream.disconnect, name="vcyto-viewer-close", daemon=True)
     closing.start()
-    closing.join(max(0.05, deadline - time.monotonic()))
+    closing.join(FLUSH_SECONDS)
     if closing.is_alive():
         _leave(stream, f"the viewer did not close the connection within {FLUSH_SECONDS:g} s")
 

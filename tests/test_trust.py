@@ -451,8 +451,9 @@ def test_an_unreachable_viewer_means_an_rrd_and_a_finished_run(tmp_path):
     result = vcyto("stream", "--cells", "RBC", "--model", "streamline", "--mesh-h", "10um", "--quiet",
                    "--connect", "rerun+http://127.0.0.1:9/proxy", "--output", str(tmp_path), "--name", "r")
     assert result.returncode == 0, result.stderr
-    assert result.stderr.strip().splitlines() == ["vcyto: no Rerun viewer answers at rerun+http://127.0.0.1:9/proxy; "
-                                                  "saving the view to an .rrd file instead"]
+    assert result.stderr.strip().splitlines() == ["vcyto: no Rerun viewer answers at rerun+http://127.0.0.1:9/proxy: "
+                                                  "no connection (Connection refused); saving the view to an .rrd "
+                                                  "file instead"]
     assert (tmp_path / "r.rrd").stat().st_size > 1000 and finalised_mcap(tmp_path / "r.mcap") > 10
 
 

@@ -271,7 +271,7 @@ def test_a_viewer_that_stops_taking_the_view_is_left_within_the_bound(stalled_vi
 
 def test_sigterm_ends_a_run_streaming_to_a_stalled_viewer_at_once(stalled_viewer, tmp_path):
     """SIGTERM mid-run with the viewer no longer reading: the run finishes its files and the process ends within
-    a few seconds (a second of its own: the viewer's bound and the files), exit 143."""
+    three seconds on a loaded machine (0.6-0.7 s measured: the viewer's two bounds and the files), exit 143."""
     import signal
     import time
     process = vcyto_on_port(stalled_viewer, "stream", "--model", "rom", "--count", "5000", "--mix",

@@ -74,7 +74,7 @@ VIEWER_PORT = 9876
 VIEWER_START_TIMEOUT = 15.0     # s until the spawned viewer listens
 VIEWER_GRACE = 1.0              # s it must then stay alive (a viewer without a usable display exits at once)
 PROBE_SECONDS = 1.0             # s a viewer has to answer the handshake
-FLUSH_SECONDS = 0.5             # s the run waits at its end for a viewer to take what is queued, and again to close
+FLUSH_SECONDS = 0.25            # s the run waits at its end for a viewer to take what is queued, and again to close
 # the client's opening of HTTP/2, on which gRPC (and so the Rerun viewer's server) runs: the connection preface
 # and an empty SETTINGS frame; a gRPC server answers with its own SETTINGS frame (RFC 9113, section 3.4)
 _HTTP2_PREFACE = b"PRI * HTTP/2.0\r\n\r\nSM\r\n\r\n" + bytes([0, 0, 0, 4, 0, 0, 0, 0, 0])

@@ -14,6 +14,7 @@ import pytest
 from guard import assert_one_line_refusal, patch_heavy, vcyto_inline
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
+from test_fuzz import OTHER_COMMANDS
 
 EXAMPLES = int(os.environ.get("VCYTO_FUZZ_EXAMPLES", "40"))
 FUZZ = settings(max_examples=EXAMPLES, deadline=None, derandomize=not os.environ.get("VCYTO_FUZZ_RANDOM"),
@@ -104,6 +105,17 @@ def test_sweep_specs(sandbox, name, value, form):
     sampling = '[sweep]\nsampling = "random"\nsamples = 2\n' if "uniform" in form else ""
     (sandbox / "spec.toml").write_text(f'{sampling}[parameters]\n"{name}" = {text}\n')
     refused_in_time(["sweep", "spec.toml", "--output", str(sandbox / "out")])
+
+
+@FUZZ
+@given(data=st.data(), value=hostile_quantities)
+def test_every_other_command(sandbox, data, value):
+    """The options of every other command (``test_fuzz.OTHER_COMMANDS``), each given a hostile quantity."""
+    (sandbox / "spec.toml").write_text("[parameters]\nlead = [0.25, 0.5]\n")
+    command = data.draw(st.sampled_from(sorted(OTHER_COMMANDS)))
+    option = data.draw(st.sampled_from(OTHER_COMMANDS[command]))
+    argv = [str(sandbox / "spec.toml") if word == "SPEC" else word for word in command]
+    refused_in_time([*argv, option, value])
 
 
 def _recording(path, metadata=None, messages=(), compression="zstd", chunk_size=1 << 20):

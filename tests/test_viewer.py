@@ -227,13 +227,13 @@ def test_a_viewer_address_that_never_answers_is_not_connected_to(deaf_listener, 
     assert (tmp_path / "run.rrd").stat().st_size > 0
 
 
-def test_the_handshake_tells_a_grpc_server_from_a_deaf_port(deaf_listener):
-    """A real gRPC server of Rerun's (``rerun --serve-grpc``) answers the handshake; the deaf listener does not."""
+@pytest.fixture
+def rerun_server():
+    """The port of Rerun's own gRPC server (``rerun --serve-grpc``, what a viewer listens with), once it listens."""
     import socket
     import time
 
     from vcyto import viewer
-    assert "did not answer" in viewer.viewer_problem("127.0.0.1", deaf_listener, timeout=0.3)
     binary = viewer.find_viewer()
     if binary is None:
         pytest.skip("no Rerun viewer binary installed")
@@ -246,10 +246,17 @@ def test_the_handshake_tells_a_grpc_server_from_a_deaf_port(deaf_listener):
         deadline = time.monotonic() + 30
         while not viewer.listening("127.0.0.1", port, timeout=0.2) and time.monotonic() < deadline:
             time.sleep(0.1)
-        assert viewer.viewer_problem("127.0.0.1", port) is None
+        yield port
     finally:
         server.terminate()
         server.wait(timeout=30)
+
+
+def test_the_handshake_tells_a_grpc_server_from_a_deaf_port(deaf_listener, rerun_server):
+    """A real gRPC server of Rerun's answers the handshake; the deaf listener does not."""
+    from vcyto import viewer
+    assert "did not answer" in viewer.viewer_problem("127.0.0.1", deaf_listener, timeout=0.3)
+    assert viewer.viewer_problem("127.0.0.1", rerun_server) is None
 
 
 def test_a_viewer_that_stops_taking_the_view_is_left_within_the_bound(stalled_viewer, tmp_path):
@@ -295,29 +302,10 @@ def test_sigterm_ends_a_run_streaming_to_a_stalled_viewer_at_once(stalled_viewer
     assert json.loads((tmp_path / "run.json").read_text())["status"] == "interrupted"
 
 
-def test_a_real_rerun_server_takes_the_whole_run_without_a_note(tmp_path):
+def test_a_real_rerun_server_takes_the_whole_run_without_a_note(rerun_server, tmp_path):
     """The handshake and the bounded close cost a real viewer's server nothing: the run streams to
     ``rerun --serve-grpc`` and ends without a note."""
-    import socket
-    import time
-
-    from vcyto import viewer
-    binary = viewer.find_viewer()
-    if binary is None:
-        pytest.skip("no Rerun viewer binary installed")
-    with socket.socket() as free:
-        free.bind(("127.0.0.1", 0))
-        port = free.getsockname()[1]
-    server = subprocess.Popen([str(binary), "--serve-grpc", "--port", str(port)], stdout=subprocess.DEVNULL,
-                              stderr=subprocess.DEVNULL)
-    try:
-        deadline = time.monotonic() + 30
-        while not viewer.listening("127.0.0.1", port, timeout=0.2) and time.monotonic() < deadline:
-            time.sleep(0.1)
-        result = vcyto("stream", "--model", "streamline", "--cells", "RBC,melanoma", "--output", str(tmp_path),
-                       "--name", "run", "--quiet", "--connect", f"rerun+http://127.0.0.1:{port}/proxy")
-    finally:
-        server.terminate()
-        server.wait(timeout=30)
+    result = vcyto("stream", "--model", "streamline", "--cells", "RBC,melanoma", "--output", str(tmp_path),
+                   "--name", "run", "--quiet", "--connect", f"rerun+http://127.0.0.1:{rerun_server}/proxy")
     assert result.returncode == 0 and result.stderr == "", result.stderr
-    assert f"streamed to the viewer at rerun+http://127.0.0.1:{port}/proxy" in result.stdout
+    assert f"streamed to the viewer at rerun+http://127.0.0.1:{rerun_server}/proxy" in result.stdout

@@ -246,7 +246,7 @@ def test_a_foreign_mcap_is_not_replayed_as_zero_steps(sandbox):
 
 def test_replay_memory_does_not_grow_with_the_recordings_length(sandbox):
     """Replay decodes one message at a time: a recording ten times longer costs far less than ten times the Python
-    memory (keeping every decoded message, as replay did, holds 3.3 MB at 300 steps and 35 MB at 3,000; this
+    memory (a reader keeping every decoded message holds 3.3 MB at 300 steps and 35 MB at 3,000; this
     reader 1-4 MB, the rest
     being the Rerun view's batches and what other threads of the test process allocate meanwhile)."""
     import tracemalloc

@@ -7,7 +7,7 @@ from dataclasses import replace
 import pytest
 
 from sim.scenario import Inlet, Outlet, Scenario, ScenarioError
-from vcyto.config import UNITS, load_scenario, parse_quantity, scenario_to_toml
+from vcyto.config import load_scenario, scenario_to_toml
 
 if sys.version_info >= (3, 11):
     import tomllib
@@ -122,37 +122,6 @@ def test_file_inlets_and_outlets_replace_the_default_lists(write_toml):
     assert sample.tilt == 0.0
     assert sample.cutoff == pytest.approx(2e-6)
     assert channel.outlets == (Outlet("waste", (10e-6, 200e-6)),)
-
-
-@pytest.mark.parametrize("text, expected", [
-    ("3", 3.0), ("-2.5e-3", -2.5e-3), ("3.33 um", 3.33e-6), ("3.33um", 3.33e-6), ("1 m", 1.0),
-    ("2 mm", 2e-3), ("7 nm", 7e-9), ("2.5 us", 2.5e-6), ("4 ms", 4e-3), ("9 ns", 9e-9), ("1 s", 1.0),
-    ("100 MHz", 1e8), ("3 kHz", 3e3), ("60 Hz", 60.0), ("180 deg", math.pi), ("0.5 rad", 0.5),
-    ("1 Pa s", 1.0), ("6 mPa s", 6e-3), ("6 mPa  s", 6e-3), (".5 mm", 5e-4),
-])
-def test_parse_quantity_converts_units_to_si(text, expected):
-    assert parse_quantity(text) == pytest.approx(expected, rel=1e-12)
-
-
-def test_parse_quantity_rounds_once():
-    assert parse_quantity("10 um") == 1e-05
-    assert parse_quantity("25us") == 2.5e-05
-    assert parse_quantity("30 deg") == math.pi / 6
-
-
-def test_parse_quantity_overflow_is_infinite_not_an_exception():
-    assert parse_quantity("1e9999999 m") == math.inf
-
-
-@pytest.mark.parametrize("text", ["", "um", "fast", "3 parsec", "1e", "3 um um", "1,5 mm"])
-def test_parse_quantity_rejects_what_is_not_a_quantity(text):
-    with pytest.raises(ValueError):
-        parse_quantity(text)
-
-
-def test_unit_table_is_plain_factors():
-    assert UNITS["deg"] == pytest.approx(math.pi / 180)
-    assert all(isinstance(factor, float) for factor in UNITS.values())
 
 
 # --- overrides ----------------------------------------------------------------------------------

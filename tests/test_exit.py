@@ -13,6 +13,8 @@ import textwrap
 import time
 from pathlib import Path
 
+import pytest
+
 SCRIPT = textwrap.dedent("""
     import atexit, sys, threading, time
     from vcyto.cli import exit_now
@@ -259,3 +261,64 @@ def test_a_process_that_stepped_the_fluid_still_takes_the_quick_exit(tmp_path):
     assert done.returncode == 0, done.stderr
     assert done.stdout.strip().splitlines()[-1] == "[]"      # no thread but the main one holds the process
     assert left_open.read_text() == ""                       # the teardown was skipped
+
+
+# --- a disk that fills up mid-run: exit 1, one line, what was written kept and named ---------------------------
+
+@pytest.fixture
+def small_filesystem(tmp_path):
+    """A 120 MB tmpfs (the output check asks for 100 MB free), mounted for the test: needs root, else skipped."""
+    import shutil
+    if shutil.which("mount") is None or os.geteuid() != 0:
+        pytest.skip("mounting a small filesystem needs root")
+    mount = tmp_path / "small"
+    mount.mkdir()
+    if subprocess.run(["mount", "-t", "tmpfs", "-o", "size=120m", "tmpfs", str(mount)],
+                      capture_output=True).returncode != 0:
+        pytest.skip("cannot mount a tmpfs here")
+    try:
+        yield mount
+    finally:
+        subprocess.run(["umount", "-l", str(mount)], capture_output=True)
+
+
+def test_a_disk_that_fills_mid_run_keeps_what_it_can_and_says_which(small_filesystem):
+    """The run streams into a small filesystem; once its recording has begun, a filler file takes every byte
+    left. The run stops with exit 1 and one line naming the file and the cause, the files that hold what ran
+    (the MCAP up to its last flush, the .rrd) are kept and named, those that could not be written are named
+    too, and no placeholder is left claiming a run."""
+    output = small_filesystem / "out"
+    env = {key: value for key, value in os.environ.items() if key not in ("DISPLAY", "WAYLAND_DISPLAY")}
+    process = subprocess.Popen([sys.executable, "-m", "vcyto", "stream", "--model", "rom", "--count", "5000", "--mix",
+                                "RBC:0.9,melanoma:0.1", "--rate", "500", "--output", str(output), "--name", "run",
+                                "--quiet"], env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        recording = output / "run.mcap"
+        deadline = time.monotonic() + 120
+        while time.monotonic() < deadline and not (recording.exists() and recording.stat().st_size > 100_000):
+            time.sleep(0.1)
+        assert process.poll() is None, process.communicate()
+        with open(small_filesystem / "filler", "wb") as filler:
+            with pytest.raises(OSError):
+                while True:
+                    filler.write(b"\0" * (1 << 20))
+                    filler.flush()
+        _, err = process.communicate(timeout=300)
+    finally:
+        process.kill()
+    assert process.returncode == 1, err
+    lines = err.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith(f"vcyto: error: {recording}: cannot write it: "), err
+    assert "No space left on device" in lines[0] and "Traceback" not in err
+    kept = lines[0].split("kept (what ran up to the failure", 1)[1].split("; not written: ")[0]
+    assert str(recording) in kept and str(output / "run.rrd") in kept
+    named = {Path(word.strip(",;")) for word in lines[0].replace(": ", " ").split() if word.startswith(str(output))}
+    assert {path for path in output.iterdir()} <= named           # every file there is named, kept or not
+    for suffix in ("fcs", "gating.xml", "json"):                   # kept with its content, or absent
+        path = output / f"run.{suffix}"
+        assert not path.exists() or (str(path) in kept and path.stat().st_size > 0)
+    replayed = subprocess.run([sys.executable, "-m", "vcyto", "replay", str(recording), "--save",
+                               str(small_filesystem.parent / "replayed.rrd")], capture_output=True, text=True,
+                              timeout=300)
+    assert replayed.returncode == 0 and "replayed" in replayed.stdout, replayed.stderr
+    assert int(replayed.stdout.split("replayed ", 1)[1].split()[0]) > 0

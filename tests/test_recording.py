@@ -18,7 +18,7 @@ from sim.plant import StreamlinePlant
 from sim.scenario import Scenario
 from vcyto.recording import PER_STEP, McapRecorder
 from vcyto.sinks import BackgroundSinks
-from vcyto.stream import StreamSettings, run_stream
+from vcyto.stream import StreamSettings, StreamStopped, run_stream
 
 
 @pytest.fixture(scope="module")
@@ -123,13 +123,16 @@ def test_a_failing_sink_stops_the_run_with_its_error(plant):
 
     failing = FullDisk()
     settings = StreamSettings(Arrivals(cells=("RBC",)), model="streamline")
-    with pytest.raises(OSError, match="No space left"):
+    with pytest.raises(StreamStopped) as stopped:        # a failed run, its partial summary and the write's cause
         sink = BackgroundSinks([failing])
         try:
             run_stream(Scenario(), settings, plant=plant, sinks=[sink])
         finally:
             sink.close()
     assert failing.closed
+    assert stopped.value.status == "failed" and isinstance(stopped.value.__cause__, OSError)
+    assert "No space left" in stopped.value.reason and stopped.value.result["status"] == "failed"
+    assert 0 < stopped.value.result["steps"] < 1000
 
 
 def test_a_deferred_sink_is_built_on_the_sinks_thread_and_writes_the_same_messages(plant, tmp_path):
@@ -156,7 +159,7 @@ def test_a_deferred_sink_is_built_on_the_sinks_thread_and_writes_the_same_messag
 
     def unbuildable():
         raise OSError(28, "No space left on device")
-    with pytest.raises(OSError, match="No space left"):
+    with pytest.raises(StreamStopped, match="No space left"):
         sink = BackgroundSinks([Deferred(unbuildable)])
         try:
             run_stream(Scenario(), StreamSettings(Arrivals(cells=("RBC",)), model="streamline"), plant=plant,

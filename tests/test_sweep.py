@@ -1,6 +1,7 @@
 """vcyto sweep: spec parsing, one-line errors, local pool == Dask LocalCluster, resume after a kill, failed points,
 interrupts (SIGINT/SIGTERM to the main process alone), the record of the runs kept by a re-run."""
 
+import contextlib
 import csv
 import json
 import os
@@ -199,19 +200,25 @@ metrics = ["yield", "outlet.upper"]
 """
 
 
+def _sweep_with_rows(spec, output, workers: int, rows: int) -> subprocess.Popen:
+    """``vcyto sweep SPEC`` started in a session of its own, returned once its table has ``rows`` rows."""
+    table = output / "results.csv"
+    command = [sys.executable, "-m", "vcyto.cli", "sweep", spec, "--output", str(output), "--workers", str(workers),
+               "--chunk", "1", "--quiet"]
+    process = subprocess.Popen(command, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
+    deadline = time.monotonic() + 120
+    while time.monotonic() < deadline and process.poll() is None and (
+            not table.exists() or len(read_rows(table)) < rows):
+        time.sleep(0.02)
+    return process
+
+
 def test_killing_a_sweep_and_rerunning_it_completes_only_the_missing_points(tmp_path):
     spec, output = write_spec(tmp_path / "killed.toml", KILLED_SPEC), tmp_path / "out"
     table = output / "results.csv"
-    command = [sys.executable, "-m", "vcyto.cli", "sweep", spec, "--output", str(output), "--workers", "1",
-               "--chunk", "1", "--quiet"]
-    process = subprocess.Popen(command, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
-    try:
-        deadline = time.monotonic() + 120
-        while time.monotonic() < deadline and (not table.exists() or len(read_rows(table)) < 3):
-            time.sleep(0.02)
-    finally:
-        os.killpg(process.pid, signal.SIGKILL)       # the sweep, its worker and their helpers: one session
-        process.wait()
+    process = _sweep_with_rows(spec, output, workers=1, rows=3)
+    os.killpg(process.pid, signal.SIGKILL)           # the sweep, its worker and their helpers: one session
+    process.wait()
     before = read_rows(table)
     assert 3 <= len(before) < 10, "the sweep was not killed half-way"
     rerun = vcyto("sweep", spec, "--output", str(output), "--workers", "1", "--json")
@@ -228,6 +235,45 @@ def test_killing_a_sweep_and_rerunning_it_completes_only_the_missing_points(tmp_
     again = json.loads(vcyto("sweep", spec, "--output", str(output), "--workers", "1", "--json").stdout)
     assert again["ran"] == 2 and again["repaired_rows"] == 1 and again["ok"] == 10
     assert len(read_rows(table)) == 10 and (output / "summary.png").exists()
+
+
+def _descendants(pid: int) -> set[int]:
+    """The processes whose parent chain leads to ``pid`` (read from /proc), and those of its session."""
+    parents, sessions = {}, {}
+    for entry in Path("/proc").iterdir():
+        if entry.name.isdigit():
+            try:
+                fields = (entry / "stat").read_text().rsplit(")", 1)[1].split()
+            except OSError:
+                continue
+            parents[int(entry.name)], sessions[int(entry.name)] = int(fields[1]), int(fields[3])
+    found, grown = {p for p, session in sessions.items() if session == pid}, True
+    while grown:
+        more = {p for p, parent in parents.items() if parent in found | {pid}} - found
+        found |= more
+        grown = bool(more)
+    return found - {pid}
+
+
+@pytest.mark.skipif(not Path("/proc/self/stat").exists(), reason="reads the process table from /proc")
+def test_a_sweep_killed_with_sigkill_leaves_no_process_behind(tmp_path):
+    """SIGKILL to the sweep's own process alone (it can stop nothing): its pool workers and the resource tracker
+    end within a few seconds, not holding their memory for ever."""
+    spec = write_spec(tmp_path / "killed.toml", KILLED_SPEC)
+    process = _sweep_with_rows(spec, tmp_path / "out", workers=2, rows=1)
+    try:
+        helpers = _descendants(process.pid)
+        assert len(helpers) >= 2, "the sweep's workers did not start"
+        process.kill()                                # the parent alone
+        process.wait()
+        deadline = time.monotonic() + 5.0
+        while time.monotonic() < deadline and _descendants(process.pid):
+            time.sleep(0.1)
+        left = _descendants(process.pid)
+    finally:
+        with contextlib.suppress(ProcessLookupError):
+            os.killpg(process.pid, signal.SIGKILL)       # whatever is left, so that the test run is not burdened
+    assert not left, f"processes of the killed sweep still running: {sorted(left)}"
 
 
 def fail_at_lead_0_75(scenario, settings):
@@ -530,3 +576,55 @@ def test_an_interrupted_run_records_its_time_and_the_run_that_completes_counts_i
         final = sweep.run_sweep(built, tmp_path, pool, slots, simulator=fixed_result)
     assert final["status"] == "complete" and final["ran"] == 1 and final["ok"] == 3 and len(final["runs"]) == 2
     assert final["wall_time_s"] == pytest.approx(run["wall_time_s"] + final["run_wall_time_s"])
+
+
+# --- units in ranges and distributions: the one unit rule, in the parameter's own unit ------------------------
+
+def test_a_distribution_with_units_draws_in_the_unit_written(tmp_path):
+    """``lead = { uniform = ["0.2ms", "0.3ms"] }``: every drawn lead lies between 0.2 and 0.3 ms (it was read as
+    SI seconds and then as ms: 2.5e-4 ms, a lead that sorted nothing)."""
+    from vcyto.sweep.spec import load_sweep
+    spec = write_spec(tmp_path / "spec.toml", '[parameters]\nlead = { uniform = ["0.2ms", "300us"] }\n'
+                                              '[sweep]\nsampling = "random"\nsamples = 20\n')
+    leads = [point.settings.controller.lead for point in load_sweep(spec).points]
+    assert len(leads) == 20 and all(0.2e-3 <= lead <= 0.3e-3 for lead in leads), leads
+    assert len(set(leads)) == 20
+
+
+def test_a_range_with_units_gives_values_in_the_unit_written(tmp_path):
+    from vcyto.sweep.spec import load_sweep
+    spec = write_spec(tmp_path / "spec.toml", '[parameters]\nlead = { start = "0.1ms", stop = "300 us", num = 3 }\n'
+                                              '"saw.streaming_force" = ["4e7 N/m^3", 5e7]\n')
+    points = load_sweep(spec).points
+    assert sorted({point.settings.controller.lead for point in points}) == pytest.approx([1e-4, 2e-4, 3e-4])
+    assert sorted({point.scenario.saw.streaming_force for point in points}) == pytest.approx([4e7, 5e7])
+
+
+@pytest.mark.parametrize("parameter, words", [
+    ('"fluid.viscosity" = { start = "1 kHz", stop = "2 kHz", num = 2 }', "is a frequency, but"),
+    ('lead = { uniform = ["0.2 um", "0.3 um"] }', "is a length, but"),
+    ('"saw.streaming_force" = { start = "1e7 N/m^3", stop = "5e7 N/m", num = 2 }', "but"),
+    ('seed = { start = "1 ms", stop = 4, num = 2 }', "must be a finite number"),
+    ('lead = { start = "0.1 ms^(9^9^9)", stop = 1, num = 2 }', "cannot read the unit"),
+])
+def test_a_range_or_distribution_in_another_dimension_is_refused(tmp_path, parameter, words):
+    from vcyto.sweep.model import SweepError
+    from vcyto.sweep.spec import load_sweep
+    sampling = '[sweep]\nsampling = "random"\nsamples = 2\n' if "uniform" in parameter else ""
+    spec = write_spec(tmp_path / "spec.toml", f"{sampling}[parameters]\n{parameter}\n")
+    with pytest.raises(SweepError, match="parameters\\.") as refused:
+        load_sweep(spec)
+    assert words in str(refused.value)
+
+
+@pytest.mark.parametrize("value", ['"/etc/passwd"', '["../outside.toml"]', '["link.toml"]'])
+def test_a_controller_file_under_parameters_is_confined_to_the_specs_folder(tmp_path, value):
+    from vcyto.sweep.model import SweepError
+    from vcyto.sweep.spec import load_sweep
+    folder = tmp_path / "spec"
+    folder.mkdir()
+    (tmp_path / "outside.toml").write_text("[controller]\nlead = \"0.3 ms\"\n[secret]\n")
+    (folder / "link.toml").symlink_to(tmp_path / "outside.toml")
+    spec = write_spec(folder / "spec.toml", f"[parameters]\ncontroller = {value}\n")
+    with pytest.raises(SweepError, match="parameters.controller: must name a file in the spec's folder"):
+        load_sweep(spec)

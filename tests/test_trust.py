@@ -391,7 +391,9 @@ def test_a_disk_filling_up_mid_run_is_one_line_exit_1(tmp_path, monkeypatch):
                                       "--output", str(tmp_path), "--no-viewer", "--quiet", "--name", "full"])
     assert_one_line_refusal(status, stderr, allowed=(1,))
     assert "No space left on device" in stderr and "full.mcap" in stderr
-    assert not (tmp_path / "full.json").exists()       # no summary claims a run that did not finish
+    summary = strict_load((tmp_path / "full.json").read_text())     # written (room is left), marked failed
+    assert summary["status"] == "failed" and "full.mcap" in summary["reason"]
+    assert "kept (what ran up to the failure" in stderr and str(tmp_path / "full.json") in stderr
 
 
 # --- the viewer: the installed one, bound to this machine, never breaking a run --------------------------
@@ -449,8 +451,9 @@ def test_an_unreachable_viewer_means_an_rrd_and_a_finished_run(tmp_path):
     result = vcyto("stream", "--cells", "RBC", "--model", "streamline", "--mesh-h", "10um", "--quiet",
                    "--connect", "rerun+http://127.0.0.1:9/proxy", "--output", str(tmp_path), "--name", "r")
     assert result.returncode == 0, result.stderr
-    assert result.stderr.strip().splitlines() == ["vcyto: no Rerun viewer answers at rerun+http://127.0.0.1:9/proxy; "
-                                                  "saving the view to an .rrd file instead"]
+    assert result.stderr.strip().splitlines() == ["vcyto: no Rerun viewer answers at rerun+http://127.0.0.1:9/proxy: "
+                                                  "no connection (Connection refused); saving the view to an .rrd "
+                                                  "file instead"]
     assert (tmp_path / "r.rrd").stat().st_size > 1000 and finalised_mcap(tmp_path / "r.mcap") > 10
 
 

@@ -146,3 +146,164 @@ def test_a_display_without_a_server_is_seen_before_the_viewer_is_started(monkeyp
         monkeypatch.setenv("DISPLAY", f":{number}")
         monkeypatch.setenv("WAYLAND_DISPLAY", str(tmp_path / "wayland-0"))
         assert viewer.display_problem() is None
+
+
+# --- a program on the viewer's port that is not a viewer ---------------------------------------------------------
+
+def never_reading(greeting: bytes = b""):
+    """A TCP server on a free port that accepts every connection, sends it ``greeting`` and never reads from it;
+    yields its port."""
+    import socket
+    import threading
+    server = socket.socket()
+    server.bind(("127.0.0.1", 0))
+    server.listen(16)
+    held = []
+
+    def accept():
+        while True:
+            try:
+                connection = server.accept()[0]
+            except OSError:
+                return
+            held.append(connection)
+            connection.sendall(greeting)
+
+    threading.Thread(target=accept, daemon=True).start()
+    yield server.getsockname()[1]
+    server.close()
+    for connection in held:
+        connection.close()
+
+
+@pytest.fixture
+def deaf_listener():
+    """A plain TCP listener that accepts every connection and never reads from it (nor answers)."""
+    yield from never_reading()
+
+
+@pytest.fixture
+def stalled_viewer():
+    """A server that answers the handshake as a gRPC server (an empty SETTINGS frame) and then never reads: a
+    viewer that has hung."""
+    yield from never_reading(bytes([0, 0, 0, 4, 0, 0, 0, 0, 0]))
+
+
+def vcyto_on_port(port: int, *args, env=None, **options):
+    """``vcyto ARGS`` in a new process whose viewer port (``vcyto.viewer.VIEWER_PORT``, 9876) is ``port``."""
+    code = (f"import sys, vcyto.viewer as v; v.VIEWER_PORT = {port}; sys.argv = ['vcyto', *sys.argv[1:]]; "
+            "from vcyto.__main__ import run; run()")
+    return subprocess.Popen([sys.executable, "-c", code, *args], env=env, stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True, **options)
+
+
+def test_a_program_on_the_viewer_port_that_never_reads_cannot_hold_the_run(deaf_listener, tmp_path):
+    import os
+    import time
+    env = {**os.environ, "DISPLAY": ":0", "RUST_LOG": "off"}
+    started = time.monotonic()
+    process = vcyto_on_port(deaf_listener, "stream", "--model", "streamline", "--cells", "RBC,melanoma", "--output",
+                            str(tmp_path), "--name", "run", "--quiet", env=env)
+    out, err = process.communicate(timeout=300)
+    assert process.returncode == 0, err
+    lines = err.strip().splitlines()
+    assert len(lines) == 1 and "is not a Rerun viewer" in lines[0] and "did not answer the gRPC handshake" in lines[0]
+    assert "saving the view to an .rrd file instead" in lines[0], err
+    static, rows = entities(tmp_path / "run.rrd")
+    assert STATIC <= static and rows["/idt"] > 0
+    assert (tmp_path / "run.json").stat().st_size > 0 and (tmp_path / "run.mcap").stat().st_size > 0
+    assert time.monotonic() - started < 120
+
+
+def test_a_viewer_address_that_never_answers_is_not_connected_to(deaf_listener, tmp_path):
+    process = vcyto_on_port(deaf_listener, "stream", "--model", "streamline", "--cells", "RBC", "--output",
+                            str(tmp_path), "--name", "run", "--quiet", "--connect",
+                            f"rerun+http://127.0.0.1:{deaf_listener}/proxy")
+    _, err = process.communicate(timeout=300)
+    assert process.returncode == 0, err
+    assert "no Rerun viewer answers at" in err and "gRPC handshake" in err and len(err.strip().splitlines()) == 1
+    assert (tmp_path / "run.rrd").stat().st_size > 0
+
+
+@pytest.fixture
+def rerun_server():
+    """The port of Rerun's own gRPC server (``rerun --serve-grpc``, what a viewer listens with), once it listens."""
+    import socket
+    import time
+
+    from vcyto import viewer
+    binary = viewer.find_viewer()
+    if binary is None:
+        pytest.skip("no Rerun viewer binary installed")
+    with socket.socket() as free:
+        free.bind(("127.0.0.1", 0))
+        port = free.getsockname()[1]
+    server = subprocess.Popen([str(binary), "--serve-grpc", "--port", str(port)], stdout=subprocess.DEVNULL,
+                              stderr=subprocess.DEVNULL)
+    try:
+        deadline = time.monotonic() + 30
+        while not viewer.listening("127.0.0.1", port, timeout=0.2) and time.monotonic() < deadline:
+            time.sleep(0.1)
+        yield port
+    finally:
+        server.terminate()
+        server.wait(timeout=30)
+
+
+def test_the_handshake_tells_a_grpc_server_from_a_deaf_port(deaf_listener, rerun_server):
+    """A real gRPC server of Rerun's answers the handshake; the deaf listener does not."""
+    from vcyto import viewer
+    assert "did not answer" in viewer.viewer_problem("127.0.0.1", deaf_listener, timeout=0.3)
+    assert viewer.viewer_problem("127.0.0.1", rerun_server) is None
+
+
+def test_a_viewer_that_stops_taking_the_view_is_left_within_the_bound(stalled_viewer, tmp_path):
+    """The run ends, the close waits ``FLUSH_SECONDS`` for the viewer, and says so in a note instead of waiting
+    without end (nor when the process frees the stream)."""
+    import time
+    started = time.monotonic()
+    process = vcyto_on_port(stalled_viewer, "stream", "--model", "streamline", "--cells", "RBC,melanoma", "--output",
+                            str(tmp_path), "--name", "run", "--quiet", "--connect",
+                            f"rerun+http://127.0.0.1:{stalled_viewer}/proxy")
+    try:
+        _, err = process.communicate(timeout=300)
+    finally:
+        process.kill()
+    assert process.returncode == 0, err
+    assert "the Rerun viewer stopped receiving (the viewer did not" in err, err
+    assert (tmp_path / "run.json").stat().st_size > 0 and time.monotonic() - started < 120
+
+
+def test_sigterm_ends_a_run_streaming_to_a_stalled_viewer_at_once(stalled_viewer, tmp_path):
+    """SIGTERM mid-run with the viewer no longer reading: the run finishes its files and the process ends within
+    three seconds on a loaded machine (0.6-0.7 s measured: the viewer's two bounds and the files), exit 143."""
+    import signal
+    import time
+    process = vcyto_on_port(stalled_viewer, "stream", "--model", "rom", "--count", "5000", "--mix",
+                            "RBC:0.9,melanoma:0.1", "--rate", "500", "--output", str(tmp_path), "--name", "run",
+                            "--quiet", "--connect", f"rerun+http://127.0.0.1:{stalled_viewer}/proxy")
+    try:
+        deadline = time.monotonic() + 120
+        recording = tmp_path / "run.mcap"
+        while time.monotonic() < deadline and not (recording.exists() and recording.stat().st_size > 10_000):
+            time.sleep(0.2)
+        time.sleep(2.0)                               # well into the loop
+        assert process.poll() is None
+        process.send_signal(signal.SIGTERM)
+        sent = time.monotonic()
+        _, err = process.communicate(timeout=60)
+        took = time.monotonic() - sent
+    finally:
+        process.kill()
+    assert process.returncode == 143, err
+    assert took < 3.0, (took, err)
+    assert json.loads((tmp_path / "run.json").read_text())["status"] == "interrupted"
+
+
+def test_a_real_rerun_server_takes_the_whole_run_without_a_note(rerun_server, tmp_path):
+    """The handshake and the bounded close cost a real viewer's server nothing: the run streams to
+    ``rerun --serve-grpc`` and ends without a note."""
+    result = vcyto("stream", "--model", "streamline", "--cells", "RBC,melanoma", "--output", str(tmp_path),
+                   "--name", "run", "--quiet", "--connect", f"rerun+http://127.0.0.1:{rerun_server}/proxy")
+    assert result.returncode == 0 and result.stderr == "", result.stderr
+    assert f"streamed to the viewer at rerun+http://127.0.0.1:{rerun_server}/proxy" in result.stdout

@@ -6,8 +6,9 @@ keep their defaults; a [[channel.inlets]] or [[channel.outlets]] array replaces 
 An override is ``dotted.path=value`` (``numerics.dt=25us``, ``channel.inlets.1.v_hat=0.02``,
 ``channel.inlets.0.span=[30um, 80um]``); tuple entries are chosen by 0-based index.
 
-Numbers are SI unless written as a string with a unit suffix from ``UNITS`` ("3.33 um", "2.5 us",
-"30 deg"). Every problem is a ``ScenarioError`` whose one-line message names the full dotted field,
+Numbers are SI unless written as a string with a unit of the field's dimension ("3.33 um", "2.5 us",
+"30 deg"; ``vcyto.units``, the one unit rule). Files are read with their size and depth bounded (``read_toml``).
+Every problem is a ``ScenarioError`` whose one-line message names the full dotted field,
 e.g. ``channel.inlets[0].span: ...``.
 
 The sections are built generically from ``dataclasses.fields`` and their type hints, so a field added
@@ -18,8 +19,6 @@ TOML (``scenario_to_toml``) lives in ``vcyto.scenariotoml`` and is re-exported h
 from __future__ import annotations
 
 import dataclasses
-import decimal
-import math
 import numbers
 import os
 import re
@@ -58,19 +57,8 @@ FIELD_DIMENSIONS = {
     "ControllerSettings.lead": "time", "ControllerSettings.pulse": "time", "ControllerSettings.envelope": "time",
     "ControllerSettings.timing_error": "time",
 }
-MAX_FILE_BYTES = 1_000_000          # a scenario or sweep spec larger than this is refused before it is parsed
-
-# unit suffix -> factor to SI (angles to radians); whitespace inside a suffix is not significant
-UNITS = {
-    "m": 1.0, "mm": 1e-3, "um": 1e-6, "nm": 1e-9,
-    "s": 1.0, "ms": 1e-3, "us": 1e-6, "ns": 1e-9,
-    "Hz": 1.0, "kHz": 1e3, "MHz": 1e6,
-    "rad": 1.0, "deg": math.pi / 180,
-    "Pa s": 1.0, "mPa s": 1e-3,
-}
-
-_QUANTITY = re.compile(r"\s*([-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?)\s*(.*?)\s*")
-_DECIMAL = decimal.Context(prec=34, traps=[])  # overflow gives inf (rejected by validation), not an exception
+MAX_FILE_BYTES = 1_000_000          # a scenario, sweep spec or controller file larger than this is refused unread
+MAX_DEPTH = 16                      # tables and arrays nested deeper than this (the scenario's deepest: 4) are refused
 _INDEX = re.compile(r"\d+", re.ASCII)
 _OVERRIDE_FORM = "an override must have the form dotted.path=value, e.g. numerics.dt=25us"
 
@@ -98,13 +86,11 @@ def load_scenario(path: str | os.PathLike | None = None, overrides: Sequence[str
     return _build(Scenario, _inherit_sort_class(tree), "")
 
 
-def scenario_from_toml(text: str) -> Scenario:
-    """The scenario a TOML document describes (as written by ``scenario_to_toml``, e.g. into recordings)."""
+def scenario_from_toml(text: str, field: str = "scenario") -> Scenario:
+    """The scenario a TOML document describes (as written by ``scenario_to_toml``, e.g. into recordings); its size
+    and depth are bounded as a scenario file's are."""
     tree = as_dict(Scenario())
-    try:
-        _merge(tree, tomllib.loads(text))
-    except tomllib.TOMLDecodeError as error:
-        raise ScenarioError("scenario", f"not valid TOML: {_one_line(error)}") from None
+    _merge(tree, parse_toml(text, "stored scenario", field))
     return _build(Scenario, _inherit_sort_class(tree), "")
 
 
@@ -120,21 +106,19 @@ def _inherit_sort_class(tree: dict) -> dict:
     return tree
 
 
-def parse_quantity(text: str) -> float:
-    """The SI value of ``text``, a number with an optional unit suffix from ``UNITS`` ("25 us" -> 2.5e-05), for
-    display only (sweep plot axes): every input is read by ``vcyto.units.parse_quantity``, which checks its dimension.
-
-    Raises ``ValueError`` with a one-line explanation when ``text`` is not such a number.
-    """
-    match = _QUANTITY.fullmatch(text)
-    if match is None:
-        raise ValueError(f"cannot read {text!r} as a number; write a number with an optional unit ({_unit_names()})")
-    number, unit = match.groups()
-    unit = " ".join(unit.split())
-    if unit and unit not in UNITS:
-        raise ValueError(f"unknown unit {unit!r} in {text!r}; use one of {_unit_names()}, or none for SI")
-    # decimal product, rounded once: "10 um" is 1e-05 exactly, not 10 * 1e-06 = 9.999999999999999e-06
-    return float(_DECIMAL.multiply(decimal.Decimal(number), decimal.Decimal(repr(UNITS.get(unit, 1.0)))))
+def field_dimension(dotted: str) -> str | None:
+    """The dimension (of ``units.DIMENSIONS``) of the float scenario field ``dotted`` names
+    ("saw.streaming_force", "channel.inlets.1.v_hat"), or None if it names no float field."""
+    hint, owner, name = Scenario, None, None
+    for segment in re.sub(r"\[(\d+)\]", r".\1", dotted).split("."):
+        if _is_dataclass_type(hint) and segment in _init_fields(hint):
+            owner, name, hint = hint, segment, typing.get_type_hints(hint)[segment]
+        elif typing.get_origin(hint) in (tuple, list) and _INDEX.fullmatch(segment):
+            items = _item_hints(hint, int(segment) + 1)
+            hint = items[int(segment)] if int(segment) < len(items) else None
+        else:
+            return None
+    return FIELD_DIMENSIONS.get(f"{owner.__name__}.{name}") if owner is not None else None
 
 
 # --- reading the file ---------------------------------------------------------------------------
@@ -158,21 +142,61 @@ def check_input_file(path: str | os.PathLike, what: str, field: str = "path", li
 
 def _read_document(path: str | os.PathLike, field: str = "path") -> dict:
     """The parsed contents of the TOML scenario file at ``path``."""
+    return read_toml(path, "scenario file", field)
+
+
+def read_toml(path: str | os.PathLike, what: str, field: str = "path", limit: int = MAX_FILE_BYTES) -> dict:
+    """The TOML document in the file at ``path`` (a ``what``: "scenario file", "sweep spec", ...), its size
+    (``limit`` bytes) checked before it is read and its depth (``MAX_DEPTH``) before it is used; every problem a
+    ``ScenarioError`` naming ``field`` and the file."""
     name = os.fspath(path)
-    check_input_file(path, "scenario file", field)
+    check_input_file(path, what, field, limit)
     try:
         with open(path, "rb") as file:
-            return tomllib.load(file)
-    except RecursionError:
-        raise ScenarioError(field, f"scenario file '{name}' nests tables or arrays too deeply") from None
+            data = file.read(limit + 1)          # the file may have grown since it was checked
     except FileNotFoundError:
-        raise ScenarioError(field, f"scenario file '{name}' does not exist; check the path") from None
+        raise ScenarioError(field, f"{what} '{name}' does not exist; check the path") from None
     except OSError as error:
-        raise ScenarioError(field, f"cannot read scenario file '{name}': {error.strerror}") from None
-    except tomllib.TOMLDecodeError as error:
-        raise ScenarioError(field, f"scenario file '{name}' is not valid TOML: {_one_line(error)}") from None
+        raise ScenarioError(field, f"cannot read {what} '{name}': {error.strerror}") from None
+    if len(data) > limit:
+        raise ScenarioError(field, f"{what} '{name}' is larger than {limit:,} bytes; a {what} is at most that")
+    try:
+        text = data.decode()
     except UnicodeDecodeError as error:
-        raise ScenarioError(field, f"scenario file '{name}' is not UTF-8 text: {_one_line(error)}") from None
+        raise ScenarioError(field, f"{what} '{name}' is not UTF-8 text: {_one_line(error)}") from None
+    return parse_toml(text, f"{what} '{name}'", field, limit)
+
+
+def parse_toml(text: str, what: str, field: str = "scenario", limit: int = MAX_FILE_BYTES) -> dict:
+    """The TOML document ``text`` (a ``what``, named in errors), refused unparsed when longer than ``limit``
+    characters and once parsed when nested deeper than ``MAX_DEPTH``: ``ScenarioError`` naming ``field``."""
+    if not isinstance(text, str):
+        raise ScenarioError(field, f"the {what} is not TOML text (got {type(text).__name__})")
+    if len(text) > limit:
+        raise ScenarioError(field, f"the {what} is {len(text):,} characters; at most {limit:,} are read")
+    try:
+        document = tomllib.loads(text)
+    except RecursionError:
+        raise ScenarioError(field, f"{what} nests tables or arrays too deeply (at most {MAX_DEPTH} levels)") from None
+    except ValueError as error:                 # TOMLDecodeError, or an integer of thousands of digits
+        raise ScenarioError(field, f"{what} is not valid TOML: {_one_line(error)[:200]}") from None
+    if nesting_depth(document) > MAX_DEPTH:
+        raise ScenarioError(field, f"{what} nests tables or arrays too deeply (at most {MAX_DEPTH} levels)")
+    return document
+
+
+def nesting_depth(value, stop: int = MAX_DEPTH + 1) -> int:
+    """How deeply tables (dicts) and arrays (lists, tuples) nest in ``value`` (a scalar: 0), counted without
+    recursion and only up to ``stop``."""
+    deepest, level = 0, [(value, 0)]
+    while level:
+        node, depth = level.pop()
+        if isinstance(node, (dict, list, tuple)):
+            deepest = max(deepest, depth + 1)
+            if deepest >= stop:
+                return deepest
+            level.extend((item, depth + 1) for item in (node.values() if isinstance(node, dict) else node))
+    return deepest
 
 
 def _merge(base: dict, update: dict) -> None:
@@ -263,7 +287,7 @@ def _toml_literal(text: str):
         return None
     try:
         value = tomllib.loads(f"value = {text}")["value"]
-    except tomllib.TOMLDecodeError:
+    except (ValueError, RecursionError):       # not TOML (TOMLDecodeError), or an integer of thousands of digits
         return None
     return value if isinstance(value, (bool, int, float, str, list, dict)) else None
 
@@ -341,8 +365,8 @@ def _coerce_float(value, where: str, dimension: str | None = None) -> float:
     if isinstance(value, bool) or not isinstance(value, (str, numbers.Real)):
         raise ScenarioError(where, f"must be a number, optionally with a unit such as '2.5 us' (got {_shown(value)})")
     try:
-        return units.parse_quantity(value if isinstance(value, str) else float(value), dimension or "dimensionless",
-                                    field=where)
+        return units.parse_quantity(value if isinstance(value, (str, int)) else float(value),
+                                    dimension or "dimensionless", field=where)
     except units.QuantityError as error:
         raise ScenarioError(where, str(error).split(": ", 1)[1]) from None
 
@@ -393,7 +417,3 @@ def _one_line(error: Exception) -> str:
     """The text of ``error`` with all whitespace runs (newlines too) collapsed to single spaces."""
     return " ".join(str(error).split())
 
-
-def _unit_names() -> str:
-    """The unit suffixes ``parse_quantity`` knows, comma separated."""
-    return ", ".join(UNITS)

@@ -13,32 +13,43 @@ from pathlib import Path
 from controller.sorter import ControllerSettings
 from sim.scenario import ScenarioError
 
-from .config import _build, tomllib
+from .config import _build, read_toml
 
 MAX_BYTES = 1 << 20
+MAX_TIME = 10e-3        # s: the longest delay, lead, pulse, timing error or envelope offset (as the options')
+TIMES = ("delay", "lead", "pulse", "timing_error")
 
 
-def load_controller(path: str | os.PathLike) -> ControllerSettings:
+def load_controller(path: str | os.PathLike, field: str = "--controller") -> ControllerSettings:
     """The settings in the controller file ``path``; ScenarioError (one line, naming the field) if it is wrong."""
     path = Path(path)
     if not path.is_file():
-        raise ScenarioError("--controller", f"'{path}' is not a file (write one with vcyto calibrate)")
-    if path.stat().st_size > MAX_BYTES:
-        raise ScenarioError("--controller", f"'{path}' is larger than {MAX_BYTES >> 10} kB: not a controller file")
-    try:
-        document = tomllib.loads(path.read_text())
-    except (tomllib.TOMLDecodeError, UnicodeDecodeError, RecursionError) as error:
-        raise ScenarioError("--controller", f"'{path}' is not valid TOML: {' '.join(str(error).split())}") from None
+        raise ScenarioError(field, f"'{path}' is not a file (write one with vcyto calibrate)")
+    document = read_toml(path, "controller file", field, MAX_BYTES)
     unknown = set(document) - {"controller", "calibration"}
     if "controller" not in document or unknown:
-        raise ScenarioError("--controller", f"'{path}' needs one [controller] table (and optionally [calibration]); "
+        raise ScenarioError(field, f"'{path}' needs one [controller] table (and optionally [calibration]); "
                                             f"found {', '.join(sorted(document)) or 'nothing'}")
     try:
-        return _build(ControllerSettings, document["controller"], "controller")
+        settings = _build(ControllerSettings, document["controller"], "controller")
     except ValueError as error:
         if isinstance(error, ScenarioError):
             raise
         raise ScenarioError("controller", str(error)) from None
+    check_times(settings, "controller.")
+    return settings
+
+
+def check_times(settings: ControllerSettings, prefix: str = "--") -> None:
+    """Refuse times beyond ``MAX_TIME`` (a delay of days would have the controller plan days of queue)."""
+    for name in TIMES:
+        if getattr(settings, name) > MAX_TIME:
+            raise ScenarioError(f"{prefix}{name.replace('_', '-' if prefix == '--' else '_')}",
+                                f"{getattr(settings, name) * 1e3:g} ms is more than {MAX_TIME * 1e3:g} ms, several "
+                                "times a cell's passage through the device; give at most that")
+    if max(abs(value) for value in settings.envelope) > MAX_TIME:
+        raise ScenarioError(f"{prefix}envelope", f"offsets {settings.envelope[0] * 1e3:g}, "
+                            f"{settings.envelope[1] * 1e3:g} ms reach beyond +-{MAX_TIME * 1e3:g} ms; give smaller")
 
 
 def controller_toml(settings: ControllerSettings, provenance: dict) -> str:

@@ -124,9 +124,12 @@ def tolerance_override(args) -> list[str]:
 
 
 def cell_list(text: str) -> tuple[str, ...]:
-    names = tuple(name.strip() for name in text.split(",") if name.strip())
-    if not names:
+    names = tuple(name.strip() for name in text.split(","))
+    if not any(names):
         raise UsageError("--cells: needs at least one cell type, e.g. --cells RBC,melanoma")
+    if not all(names):
+        raise UsageError(f"--cells: an empty entry (two commas, or one at an end) in {text[:80]!r}; list one cell "
+                         "type between each pair of commas, e.g. RBC,melanoma")
     return names
 
 
@@ -204,6 +207,7 @@ def stream_settings(args, scenario):
             raise UsageError(f"--plant-from: runs your plant instead of --model {args.model}: give one of them")
         if controller_from is not None and args.no_controller:
             raise UsageError("--controller-from: --no-controller turns the controller off: give one of them")
+        check_device_time(arrivals, args.max_time)
         if args.model == "feib" and plant_from is None:
             check_run_time(args, scenario, _device_time(arrivals, args.max_time), "--dt/--count/--rate")
         return stream.StreamSettings(arrivals, detector, controller, args.model, args.seed,
@@ -269,6 +273,20 @@ def _device_time(arrivals, cap) -> float:
     return min(span, cap) if cap is not None else span
 
 
+MAX_DEVICE_TIME = 3600.0          # s of device time a stream may take without --max-time (--max-time's own limit)
+
+
+def check_device_time(arrivals, cap) -> None:
+    """Refuse, unless capped by --max-time, a stream whose arrivals alone span more than ``MAX_DEVICE_TIME``
+    (``--rate 1e-6`` with two cells: eleven days of device time)."""
+    span = _device_time(arrivals, None)
+    if cap is None and span > MAX_DEVICE_TIME:
+        cells = len(arrivals.cells) or arrivals.count
+        raise UsageError(f"--rate: {cells:,} cells at {arrivals.rate:g} cells/s take {span:,.4g} s of device time "
+                         f"(more than {MAX_DEVICE_TIME:g} s); give a higher rate, fewer cells, or cap the run "
+                         "with --max-time")
+
+
 def check_run_time(args, scenario, simulated: float, field: str):
     limits.check_run_time(simulated, scenario.numerics.dt, limits.mesh_dofs(
         scenario.channel.length, scenario.channel.height, scenario.numerics.mesh_h), field,
@@ -308,6 +326,16 @@ def late_pulse_note(settings) -> str | None:
     return (f"the lead {settings.lead * 1e3:g} ms is not shorter than the sort delay {settings.delay * 1e3:g} ms: a "
             "pulse cannot start before its cell is detected, so each starts late, at the decision, and a sort "
             "whose pulse would already be over is aborted ('too late'); use a lead below the delay to sort on time")
+
+
+def short_pulse_note(settings, scenario) -> str | None:
+    """A note when the pulse is shorter than a tenth of the SAW drive's spin-up time: the drive barely rises
+    before it is switched off again, so the pulse deflects (almost) nothing. Accepted, never silently."""
+    if not settings.enabled or settings.pulse >= scenario.saw.spin_up_time / 10:
+        return None
+    return (f"the pulse {settings.pulse * 1e3:g} ms is less than a tenth of the SAW drive's spin-up time "
+            f"{scenario.saw.spin_up_time * 1e3:g} ms (saw.spin_up_time): the drive barely rises, so a sorted cell is "
+            "most likely not deflected; use a pulse of the order of the spin-up time or longer")
 
 
 def stream_run_options() -> argparse.ArgumentParser:

@@ -39,9 +39,15 @@ cells in the channel (their paths until they leave) and one batch.
 from __future__ import annotations
 
 import base64
+import collections
 import dataclasses
+import errno
 import json
+import logging
 import math
+import os
+import re
+import shutil
 import time
 from pathlib import Path
 
@@ -63,6 +69,46 @@ PER_STEP = ("/loop/steps", "/cells/rows")
 # 1: JSON channels only, membranes in /cells; 2: Foxglove channels beside them (um); 3: the per-step channels as
 # columns per batch (/loop/steps, /cells/rows), Foxglove coordinates in metres, scene entities with lifetimes
 FORMAT = "3"
+FULL_BYTES = 1 << 20          # a filesystem with less free space than this is full (for a failed write's cause)
+
+
+class _SdkWarnings(logging.Handler):
+    """The Foxglove SDK's warnings (a write that failed: "error logging message: McapError(Io(Os { code: 28 ...")
+    kept for the one-line error that names the cause, instead of printed as they come."""
+
+    def __init__(self):
+        super().__init__(logging.WARNING)
+        self.recent: collections.deque = collections.deque(maxlen=4)
+
+    def emit(self, record):
+        self.recent.append(record.getMessage())
+
+
+_SDK_WARNINGS = _SdkWarnings()
+_sdk_logger = logging.getLogger("foxglove")
+_sdk_logger.addHandler(_SDK_WARNINGS)
+_sdk_logger.propagate = False
+
+
+def write_error(error: RuntimeError, path: Path) -> OSError:
+    """The SDK's failure to write the MCAP at ``path`` as an ``OSError`` naming the file and the cause: the
+    operating system's error when the SDK's warnings carry its code (28: no space left on device), ENOSPC when
+    the file's filesystem has (almost) no space left, else EIO with the SDK's words."""
+    said = " ".join([*_SDK_WARNINGS.recent, str(error)])
+    code = re.search(r"code: (\d+)", said)
+    number = int(code.group(1)) if code else errno.ENOSPC if _full(Path(path).parent) else None
+    if number is None:
+        return OSError(errno.EIO, f"the MCAP writer failed ({' '.join(str(error).split())})", str(path))
+    return OSError(number, os.strerror(number), str(path))
+
+
+def _full(directory: Path) -> bool:
+    try:
+        return shutil.disk_usage(directory).free < FULL_BYTES
+    except OSError:
+        return False
+
+
 
 
 def plain_metadata(metadata: dict) -> dict:
@@ -111,9 +157,10 @@ class McapRecorder:
         # the Foxglove SDK's MCAP writer (compiled): a message costs a few microseconds instead of ~15 in the pure
         # Python writer; its own context, so that recorders in one process do not share channels
         self._context = Context()
-        self._writer = open_mcap(str(self.path), allow_overwrite=True, context=self._context,
-                                 writer_options=MCAPWriteOptions(compression=MCAPCompression.Zstd, profile="",
-                                                                 compression_threads=0))
+        self.failed = False
+        self._writer = self._writing(open_mcap, str(self.path), allow_overwrite=True, context=self._context,
+                                     writer_options=MCAPWriteOptions(compression=MCAPCompression.Zstd, profile="",
+                                                                     compression_threads=0))
         self._channels = {}
         for topic, schema in SCHEMAS.items():
             self._channels[topic] = Channel(topic, message_encoding="json", context=self._context, schema=Schema(
@@ -125,8 +172,8 @@ class McapRecorder:
         self.origin_ns = time.time_ns()
         detection_window = detection_window or getattr(metadata.get("detector"), "window", None)
         scenario = scenario or _scenario_of(metadata)
-        self._writer.write_metadata("run", plain_metadata({**metadata, "time_origin_unix_ns": self.origin_ns,
-                                                           "recording_format": FORMAT}))
+        self._writing(self._writer.write_metadata, "run", plain_metadata({
+            **metadata, "time_origin_unix_ns": self.origin_ns, "recording_format": FORMAT}))
         self.flush_every = max(1, flush_every)
         self.field_every = field_every
         self._classes = CellClasses(scenario)
@@ -138,8 +185,16 @@ class McapRecorder:
         self._cloud = foxglove.Membranes()
         outlines = device_outlines(scenario, detection_window)
         self._write_proto("/foxglove/scene", 0.0, foxglove.device(self.origin_ns, outlines))
-        self._writer.flush()
+        self._writing(self._writer.flush)
         self.closed = False
+
+    def _writing(self, call, *args, **kwargs):
+        """``call`` of the SDK's writer; its failure to write (a full disk) is an ``OSError`` naming the file."""
+        try:
+            return call(*args, **kwargs)
+        except RuntimeError as error:
+            self.failed = True
+            raise write_error(error, self.path) from None
 
     def _stamp(self, time_s: float) -> int:
         return self.origin_ns + int(round(time_s * 1e9))
@@ -198,6 +253,9 @@ class McapRecorder:
 
     def flush(self):
         """Write the batch's per-step columns and scene entities, then flush the file (a kill keeps this)."""
+        self._writing(self._flush)
+
+    def _flush(self):
         steps = self._steps
         if steps["time"]:
             now = steps["time"][-1]
@@ -262,15 +320,23 @@ class McapRecorder:
         """How the run ended (complete, truncated, interrupted, failed; why; its sort figures): the metadata record
         ``run_end``, so that a recording of a partial run says so."""
         self.flush()
-        self._writer.write_metadata("run_end", plain_metadata(ending))
+        self._writing(self._writer.write_metadata, "run_end", plain_metadata(ending))
 
     def close(self):
+        """Finish the file (its summary and index). After a write that failed (reported then), closing fails too
+        and is not reported again: what was flushed before stays readable (readers take a torn tail)."""
         if not self.closed:
             self.closed = True
+            failed_before = self.failed
             try:
-                self.flush()
+                if not failed_before:
+                    self.flush()
             finally:
-                self._writer.close()
+                try:
+                    self._writing(self._writer.close)
+                except OSError:
+                    if not failed_before:
+                        raise
 
 
 STEP_COLUMNS = ("time", "step", "idt", "cells_in_channel", "wall_time", "diagnostics", "rows")

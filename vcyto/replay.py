@@ -9,15 +9,18 @@ what the live one did: cells coloured by class, detector event markers, pulses, 
 
 from __future__ import annotations
 
+import io
 import json
 import struct
 from pathlib import Path
 
 import numpy as np
+import zstandard
+from mcap.data_stream import ReadDataStream
 from mcap.exceptions import McapError
-from mcap.records import Channel, Message, Metadata
+from mcap.opcode import Opcode
+from mcap.records import Channel, Chunk, Message, Metadata
 from mcap.stream_reader import StreamReader
-from zstandard import ZstdError
 
 from sim.scenario import Scenario
 
@@ -29,40 +32,139 @@ from .rerunlog import POINT_LIKE, RerunLogger, decision_text
 MEMBRANES = "/foxglove/membranes"
 
 
+MAX_RECORD_BYTES = 64 << 20          # one record as stored (a chunk: compressed); vcyto's chunks are ~1 MB
+MAX_CHUNK_BYTES = 256 << 20          # one chunk decompressed, refused before it is decompressed further
+MAX_MESSAGE_BYTES = 32 << 20         # one message's payload
+VCYTO_TOPICS = ("/loop/step", "/cells", "/loop/steps", "/cells/rows",
+                "/detector/event", "/controller/decision", "/outcome", "/flow/velocity",
+                MEMBRANES)
+
+
+MAX_FIELD_PIXELS = 16_000_000      # the flow image at 1 um pixels (the paper's channel: ~0.2 million)
+
+
 class ReplayError(ValueError):
     """The file is not a vcyto recording at all."""
 
 
+class Damaged(Exception):
+    """The file cannot be read past this point (truncated, corrupted, or a record beyond the size limits)."""
+
+
 def _decode(topic: str, data: bytes):
+    if len(data) > MAX_MESSAGE_BYTES:
+        raise Damaged(f"a {topic} message of {len(data):,} bytes (at most {MAX_MESSAGE_BYTES:,})")
     if topic == MEMBRANES:          # (its time stamp in ns, its points)
         from . import foxglove
         cloud = foxglove.PointCloud.FromString(data)
         return cloud.timestamp.seconds * 1_000_000_000 + cloud.timestamp.nanos, foxglove.membrane_points(cloud)
-    return json.loads(data)
+    try:
+        return json.loads(data)
+    except RecursionError:
+        raise ValueError(f"a {topic} message nests its JSON too deeply") from None
 
 
-def read_recording(path: Path, protobuf_topics=(MEMBRANES,)):
-    """(metadata, [(topic, data)], problem) from an MCAP file, reading past nothing that is damaged. JSON messages
-    are decoded to dicts; of the protobuf ones only ``protobuf_topics`` are kept (the membranes, as an array)."""
-    metadata, channels, messages, problem = {}, {}, [], ""
+_DAMAGE = (McapError, ValueError, EOFError, struct.error, zstandard.ZstdError, RuntimeError, Damaged)
+
+
+def _records(handle):
+    """The records of an MCAP stream, chunks opened one at a time with their decompressed size bounded: memory
+    stays within a record's and a chunk's limits however long the recording is."""
+    for record in StreamReader(handle, skip_magic=False, emit_chunks=True, record_size_limit=MAX_RECORD_BYTES).records:
+        if isinstance(record, Chunk):
+            yield from _chunk_records(record)
+        else:
+            yield record
+
+
+def _chunk_records(chunk: Chunk):
+    if chunk.uncompressed_size > MAX_CHUNK_BYTES:
+        raise Damaged(f"a chunk of {chunk.uncompressed_size:,} bytes decompressed (at most {MAX_CHUNK_BYTES:,})")
+    if chunk.compression == "zstd":
+        data = _zstd(chunk.data, chunk.uncompressed_size + 1)
+    elif chunk.compression == "lz4":
+        import lz4.frame
+        data = lz4.frame.LZ4FrameDecompressor().decompress(chunk.data, max_length=chunk.uncompressed_size + 1)
+    elif chunk.compression == "":
+        data = chunk.data
+    else:
+        raise Damaged(f"a chunk compressed with {chunk.compression!r}, which vcyto does not write")
+    if len(data) != chunk.uncompressed_size:
+        raise Damaged(f"a chunk that decompresses to another size than the {chunk.uncompressed_size:,} bytes it "
+                      "claims")
+    stream = ReadDataStream(io.BytesIO(data))
+    while stream.count < len(data):
+        opcode, length = stream.read1(), stream.read8()
+        if opcode == Opcode.CHANNEL:
+            yield Channel.read(stream)
+        elif opcode == Opcode.MESSAGE:
+            yield Message.read(stream, length)
+        else:
+            stream.read(length)
+
+
+def _zstd(data: bytes, limit: int) -> bytes:
+    """``data`` decompressed, at most ``limit`` bytes of it (whatever size its frame claims)."""
+    reader = zstandard.ZstdDecompressor().stream_reader(io.BytesIO(data))
+    parts, size = [], 0
+    while size < limit:
+        part = reader.read(min(limit - size, 1 << 20))
+        if not part:
+            break
+        parts.append(part)
+        size += len(part)
+    return b"".join(parts)
+
+
+def read_metadata(path: Path) -> tuple[dict, dict, str]:
+    """(the run's metadata, {channel id: topic} of the channels replay reads, the problem that stopped the
+    reading or ""): a first pass over the file that opens no chunk but to find its channels."""
+    metadata, channels, problem = {}, {}, ""
     with open(path, "rb") as handle:
         try:
-            for record in StreamReader(handle, skip_magic=False).records:
+            for record in _records(handle):
                 if isinstance(record, Metadata) and record.name == "run":
                     metadata.update(record.metadata)
                 elif isinstance(record, Metadata) and record.name == "run_end":      # how the run ended
                     metadata["_run_end"] = dict(record.metadata)
-                elif isinstance(record, Channel):
-                    if record.message_encoding == "json" or record.topic in protobuf_topics:
-                        channels[record.id] = record.topic
-                elif isinstance(record, Message) and record.channel_id in channels:
-                    topic = channels[record.channel_id]
-                    messages.append((topic, _decode(topic, record.data)))
-        except (McapError, ValueError, EOFError, struct.error, ZstdError) as error:   # damaged: stop there
-            problem = f"{type(error).__name__}: {error}".strip()
+                elif isinstance(record, Channel) and record.topic in VCYTO_TOPICS and \
+                        (record.message_encoding == "json" or record.topic == MEMBRANES):
+                    channels[record.id] = record.topic
+        except _DAMAGE as error:                 # damaged: stop there
+            problem = _problem(error)
     if not channels and not metadata:
-        raise ReplayError(f"{path}: not a readable vcyto MCAP recording ({problem or 'no channels'})")
-    return metadata, messages, problem
+        why = problem or "none of its channels is one vcyto stream writes, and it has no run metadata"
+        raise ReplayError(f"{path}: not a vcyto MCAP recording ({why})")
+    return metadata, channels, problem
+
+
+def messages(path: Path, channels: dict):
+    """(topic, decoded data) of each message on ``channels``, one at a time, in file order; a damaged file ends
+    with ``Damaged``."""
+    with open(path, "rb") as handle:
+        try:
+            for record in _records(handle):
+                if isinstance(record, Message) and record.channel_id in channels:
+                    topic = channels[record.channel_id]
+                    yield topic, _decode(topic, record.data)
+        except _DAMAGE as error:
+            raise Damaged(_problem(error)) from None
+
+
+def read_recording(path: Path):
+    """(metadata, [(topic, data)], problem) of a whole (small) recording: for tests and tools; replay streams."""
+    metadata, channels, problem = read_metadata(path)
+    read = []
+    try:
+        for item in messages(path, channels):
+            read.append(item)
+    except Damaged as error:
+        problem = problem or str(error)
+    return metadata, read, problem
+
+
+def _problem(error: BaseException) -> str:
+    return f"{type(error).__name__}: {error}".strip() if not isinstance(error, Damaged) else str(error)
 
 
 def detection_window(metadata: dict):
@@ -113,7 +215,7 @@ class _Replayer:
             name = data.get("class") or self._settle(data)
             logger.outcome(data["key"], name, f"cell {data['key']} ({data['type']}) left by: {data['outlet']} ({name})")
         elif topic == "/flow/velocity":
-            logger.field(data)
+            logger.field(_checked_field(data))
 
     def batched(self, topic: str, data):
         """A message of a format-3 recording: kept until its batch's ``/loop/steps``, which replays them."""
@@ -206,32 +308,54 @@ def _time_of(item) -> float:
     return data.get("time", 0.0) if data.get("time") is not None else 0.0
 
 
+def _checked_field(data: dict) -> dict:
+    """A ``/flow/velocity`` payload whose image (1 um pixels over its grid's extent) is at most
+    ``MAX_FIELD_PIXELS``, with as many samples as its shape says; ValueError otherwise (a malformed message)."""
+    x, y = (np.asarray(data[key], dtype=float) for key in ("x_um", "y_um"))
+    rows, columns = data["shape"]
+    if x.ndim != 1 or y.ndim != 1 or (rows, columns) != (len(y), len(x)) or len(x) < 2 or len(y) < 2 \
+            or not (np.isfinite(x).all() and np.isfinite(y).all()):
+        raise ValueError("a /flow/velocity message whose grid does not match its shape")
+    pixels = (x[-1] - x[0]) * (y[-1] - y[0])
+    if not 0 < pixels <= MAX_FIELD_PIXELS or not 0 < rows * columns <= MAX_FIELD_PIXELS:
+        raise ValueError(f"a /flow/velocity message of {pixels:.3g} square um (at most {MAX_FIELD_PIXELS:,})")
+    return data
+
+
 def replay(path: Path, target, progress=None) -> dict:
-    metadata, messages, problem = read_recording(path)
-    scenario = scenario_from_toml(metadata["scenario_toml"]) if "scenario_toml" in metadata else Scenario()
+    """Re-log the recording at ``path`` to the Rerun ``target``, message by message (memory independent of the
+    recording's length); a damaged file replays what comes before the damage."""
+    metadata, channels, problem = read_metadata(path)
+    scenario = scenario_from_toml(metadata["scenario_toml"], "scenario_toml") if "scenario_toml" in metadata \
+        else Scenario()
     columns = metadata.get("recording_format", "1") >= "3"
     logger = RerunLogger(scenario, detection_window(metadata), target,
                          membranes=metadata.get("model") not in POINT_LIKE)
     replayer = _Replayer(logger, scenario, int(metadata.get("time_origin_unix_ns", 0)), metres=columns)
-    steps = 0
+    steps = count = 0
     last_time = 0.0
-    for topic, data in messages:
-        if columns:
-            if topic == "/loop/steps" and data["time"]:
-                steps += len(data["time"])
-                last_time = data["time"][-1]
-            replayer.batched(topic, data)
-        elif topic == "/loop/step":
-            steps += 1
-            last_time = data["time"]
-            logger.time(data["time"], data["step"])
-            logger.idt(data["idt"])
-        else:
-            replayer.on(topic, data)
-    if columns and replayer.waiting:         # a torn tail: what came after the last whole batch
-        replayer.on_all_waiting()
-    logger.close()
+    try:
+        for topic, data in messages(path, channels):
+            count += 1
+            if columns:
+                if topic == "/loop/steps" and data["time"]:
+                    steps += len(data["time"])
+                    last_time = data["time"][-1]
+                replayer.batched(topic, data)
+            elif topic == "/loop/step":
+                steps += 1
+                last_time = data["time"]
+                logger.time(data["time"], data["step"])
+                logger.idt(data["idt"])
+            else:
+                replayer.on(topic, data)
+    except Damaged as error:
+        problem = problem or str(error)
+    finally:
+        if columns and replayer.waiting:         # a torn tail: what came after the last whole batch
+            replayer.on_all_waiting()
+        logger.close()
     ending = metadata.get("_run_end", {})
-    return {"steps": steps, "messages": len(messages), "last_time_ms": last_time * 1e3, "damaged": bool(problem),
+    return {"steps": steps, "messages": count, "last_time_ms": last_time * 1e3, "damaged": bool(problem),
             "problem": problem, "format": metadata.get("recording_format", "1"),
             "run_status": ending.get("status"), "run_reason": ending.get("reason", "")}

@@ -49,7 +49,7 @@ from sim.scenario import UM, Scenario
 
 from .classes import CLASS_COLOURS, CLASS_IDS, CLASS_NAMES, CellClasses
 from .foxglove import speed_grid
-from .viewer import import_rerun, speed_scale_mm_s
+from .viewer import finish_stream, import_rerun, speed_scale_mm_s
 
 POINT_LIKE = ("rom", "streamline")     # plants whose cells have no membrane (their view has no area panel)
 RECENT_EVENTS = 16                     # markers shown with each new detector event
@@ -168,6 +168,8 @@ class RerunLogger:
         self.stream = rr.RecordingStream(application_id)
         kind = target[0]
         view = blueprint(membranes)
+        self.connected = kind in ("spawn", "connect")
+        self.path = target[1] if kind == "save" else None
         if kind == "save":
             self.stream.save(str(target[1]), default_blueprint=view)
         elif kind == "spawn":
@@ -399,8 +401,7 @@ class RerunLogger:
 
     def close(self):
         self.send_pending()
-        self.stream.flush()
-        self.stream.disconnect()
+        finish_stream(self.stream, self.connected, self.path)
 
 
 def _cell_view(cell, class_name: str) -> dict:

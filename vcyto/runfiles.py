@@ -62,6 +62,14 @@ def choose_view(args, have_default_file: bool, spawn_by_default: bool, error) ->
     """The view ``args`` ask for; ``error`` is the exception class for bad input. ``have_default_file``: an
     .rrd can be saved when no viewer is reached (else the view is dropped, with a note)."""
     from . import viewer
+    bind = getattr(args, "viewer_bind", None)
+    if bind is not None:
+        import ipaddress
+        try:
+            ipaddress.ip_address(bind)
+        except ValueError:
+            raise error(f"--viewer-bind: {bind[:60]!r} is not an IP address; give one of this machine's, e.g. "
+                        "127.0.0.1 (this machine only) or 0.0.0.0 (every interface)") from None
     if getattr(args, "no_viewer", False):
         given = [name for name, value in (("--save", args.save), ("--spawn", getattr(args, "spawn", False)),
                                           ("--connect", getattr(args, "connect", None) is not None)) if value]
@@ -77,9 +85,10 @@ def choose_view(args, have_default_file: bool, spawn_by_default: bool, error) ->
             host, port = viewer.parse_viewer_url(url)
         except ValueError as problem:
             raise error(f"--connect: {problem}") from None
-        if viewer.listening(host, port):
+        problem = viewer.viewer_problem(host, port, secure=url.startswith("rerun+https"))
+        if problem is None:
             return View("connect", url=url)
-        return _fall_back(fallback, f"no Rerun viewer answers at {url}")
+        return _fall_back(fallback, f"no Rerun viewer answers at {url}: {problem}")
     if not (args.spawn or spawn_by_default):
         return fallback
     if not viewer.has_display():
@@ -150,6 +159,35 @@ class StreamFiles:
             gatingml.write_gatingml(self.path("gating.xml"), settings.detector.gate)
         outputs.write_into(summary_path, outputs.strict_json(result) + "\n")
         return fcs_path, summary_path
+
+    def finish_what_can(self, result: dict, settings=None, scenario=None) -> tuple[list[str], list[str]]:
+        """``finish`` after a write failed (a full disk): each of the FCS events, the gate and the summary is
+        written if it can be, the others are left out (their reservations removed: no placeholder claims a run);
+        (the files kept, including the recording and the view as far as they were flushed; the files lost)."""
+        from . import fcs, gatingml
+        command = " ".join(["vcyto", *sys.argv[1:]]).rstrip("/ ") or "vcyto"
+        writers = {"fcs": lambda path: fcs.write_fcs(path, result, {
+                       "VCYTO_COMMAND": command, "VCYTO_STATUS": result.get("status", "failed"),
+                       "VCYTO_RUN_ID": self.run_id}, settings=settings, scenario=scenario),
+                   "json": lambda path: outputs.write_into(path, outputs.strict_json(result) + "\n")}
+        if settings is not None:
+            writers["gating.xml"] = lambda path: gatingml.write_gatingml(path, settings.detector.gate)
+        kept, lost = [], []
+        for suffix in self.suffixes:
+            path = self.path(suffix)
+            if suffix in writers:
+                try:
+                    writers[suffix](path)
+                except OSError:
+                    path.unlink(missing_ok=True)
+                    lost.append(str(path))
+                    continue
+            if path.exists() and path.stat().st_size > 0:
+                kept.append(str(path))
+            else:
+                path.unlink(missing_ok=True)
+                lost.append(str(path))
+        return kept, lost
 
     def discard_unwritten(self) -> None:
         """Remove the reserved summary and events that were never written (a run that failed before it ran)."""

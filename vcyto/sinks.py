@@ -14,7 +14,9 @@ message, as with the sinks called inline; what changes is that their cost overla
   flushes), others get ``on_step`` per step.
 - Bounded: at most ``depth`` batches wait in the queue (the loop blocks when the sinks fall behind), so a
   killed process loses at most the batch being filled and ``depth`` queued ones beyond the last flush.
-- Failures: an exception in a sink (a full disk) stops the loop at its next step with that exception.
+- Failures: an exception in a sink (a full disk) stops the loop at its next step with that exception, raised
+  once; the sinks are given nothing more after it (a writer that failed would fail again), and ``close`` still
+  closes each of them.
 - ``close`` waits until every queued step has been written, then closes the sinks (the caller calls it
   on normal exit, Ctrl-C and SIGTERM, as for a single sink).
 - Deferred: a ``Deferred`` sink is built on the worker thread as it starts, before any step, so building it
@@ -55,6 +57,7 @@ class BackgroundSinks:
         self._batch: list = []
         self._handed = time.monotonic()
         self._failure: BaseException | None = None
+        self._failed = False                # a sink failed: nothing more is given to the sinks
         self._thread = threading.Thread(target=self._work, name="vcyto-sinks", daemon=True)
         self._thread.start()
 
@@ -67,7 +70,7 @@ class BackgroundSinks:
             for sink in self.sinks:
                 built += sink.build() if isinstance(sink, Deferred) else [sink]
         except BaseException as error:      # reported to the loop's thread at its next step
-            self._failure = error
+            self._failure, self._failed = error, True
         self.sinks = built                  # one assignment: the loop's thread reads the list as a whole
 
     def _work(self):
@@ -77,15 +80,15 @@ class BackgroundSinks:
             try:
                 if item is _STOP:
                     return
-                if self._failure is None and isinstance(item, tuple) and item[0] is _END:
+                if not self._failed and isinstance(item, tuple) and item[0] is _END:
                     for sink in self.sinks:
                         if hasattr(sink, "on_end"):
                             sink.on_end(item[1])
-                elif self._failure is None:
+                elif not self._failed:
                     for sink in self.sinks:
                         steps_of(sink)(item)
             except BaseException as error:     # reported to the loop's thread at its next step
-                self._failure = error
+                self._failure, self._failed = error, True
             finally:
                 self._queue.task_done()
 
@@ -128,12 +131,20 @@ class BackgroundSinks:
         self._raise_failure()
 
     def close(self):
-        """Write what is queued, then close every sink (even after a failure); re-raise a sink's failure."""
+        """Write what is queued, then close every sink (even after a failure, and each even if another's close
+        fails); re-raise a sink's failure not yet raised, else the first failure to close."""
+        failure = None
         try:
             self.drain()
-        finally:
-            for sink in self.sinks:
+        except BaseException as error:
+            failure = error
+        for sink in self.sinks:
+            try:
                 sink.close()
+            except BaseException as error:
+                failure = failure or error
+        if failure is not None:
+            raise failure
 
     def _raise_failure(self):
         if self._failure is not None:

@@ -131,7 +131,7 @@ def run_stream(scenario: Scenario, settings: StreamSettings, progress=None, plan
         loop.control.finish()
     except KeyboardInterrupt:
         status, reason = "interrupted", "interrupted by the user (SIGINT or SIGTERM)"
-    except (NumericalBlowUp, SolverError) as error:
+    except (NumericalBlowUp, SolverError, OSError) as error:      # OSError: a sink could not write (a full disk)
         status, reason, failure = "failed", str(error), error
     except (ControllerError, ConnectionError) as error:
         status, reason, failure = "failed", f"controller: {error}", error

@@ -6,7 +6,12 @@ unit of another dimension than the field's (``--dt 3um``) is an error naming the
 dimension; so are NaN, infinity and text that is not a number.
 
 Units are read with pint (names, SI prefixes, products and quotients such as ``N/m^3``); the number itself is
-read here (a plain decimal, never an expression), so ``10**10**10`` or ``1e999`` cannot run away.
+read here (a plain decimal, never an expression), so ``10**10**10`` or ``1e999`` cannot run away. pint evaluates
+what it is given (``um^(9^9^9)`` would have it compute an astronomically large power), so a unit reaches it only
+once it is read here as names joined by ``*``, ``/``, ``·`` or spaces, each with at most a one-digit integer power
+(``m^3``, ``s**-1``, ``m^(-1)``), parentheses one deep: any unit pint then sees costs it a bounded, small work.
+A value whose magnitude lies beyond physical sense for its dimension (``MAGNITUDES``: ``1e300 s``, ``1e-300 s``,
+a gate of ``1e308``) is refused too, naming the range; zero passes (each field says whether it takes zero).
 """
 
 from __future__ import annotations
@@ -35,10 +40,32 @@ DIMENSIONS = {
     "dimensionless": ("", "0.5"),
 }
 
+# dimension -> (smallest nonzero, largest) magnitude in SI that a value of it can have in any vcyto input: far
+# beyond every device, cell and run vcyto models, yet nowhere near the float range a number can overflow in
+MAGNITUDES = {
+    "length": (1e-15, 1e3),
+    "time": (1e-15, 1e7),
+    "frequency": (1e-6, 1e15),
+    "speed": (1e-12, 1e4),
+    "angle": (1e-12, 1e3),
+    "density": (1e-6, 1e6),
+    "viscosity": (1e-12, 1e6),
+    "force density": (1e-12, 1e18),
+    "tension": (1e-15, 1e6),
+    "bending modulus": (1e-30, 1e-6),
+    "dimensionless": (1e-30, 1e15),
+}
+MAX_TEXT_CHARS = 100                # a quantity's text is read only up to this length
+
 _NUMBER = re.compile(r"\s*([-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?|[-+]?(?:nan|inf|infinity))\s*(.*?)\s*",
                      re.IGNORECASE)
 _DECIMAL = decimal.Context(prec=34, traps=[])   # overflow gives inf (refused below), not an exception
-_SUFFIX_OK = re.compile(r"[A-Za-zµμΩ°%][A-Za-z0-9µμΩ°%*/^ .\-()]*")
+_NAME = r"[A-Za-zµμΩ°%_]+"
+_POWER = r"\s*(?:\^|\*\*)\s*(?:[-+]?\d|\(\s*[-+]?\d\s*\))"          # one digit: m^3, s**-1, m^(-1)
+_JOIN = r"(?:\s*[*/·]\s*|\s+)"
+_FLAT = rf"{_NAME}(?:{_POWER})?(?:{_JOIN}{_NAME}(?:{_POWER})?)*"
+_FACTOR = rf"(?:{_NAME}|\(\s*{_FLAT}\s*\))(?:{_POWER})?"                     # parentheses one deep
+_UNIT_FORM = re.compile(rf"{_FACTOR}(?:{_JOIN}{_FACTOR})*")
 _MAX_UNIT_CHARS = 40
 
 
@@ -57,13 +84,32 @@ def parse_quantity(text, dimension: str, default_unit: str = "", field: str = "v
         raise KeyError(f"unknown dimension {dimension!r}")
     if isinstance(text, bool) or not isinstance(text, (str, int, float)):
         raise QuantityError(f"{field}: must be a {_kind(dimension)} (got {text!r})")
+    if isinstance(text, int) and text.bit_length() > 4 * MAX_TEXT_CHARS:       # more digits than a text may have
+        raise QuantityError(f"{field}: {_shown(text)} is not a finite {_kind(dimension)}; give a number such as "
+                            f"{DIMENSIONS[dimension][1]}")
     number, unit = _split(str(text), dimension, field) if isinstance(text, str) else (decimal.Decimal(repr(text)), "")
+    if not number.is_finite():
+        raise QuantityError(f"{field}: {_shown(text)} is not a finite {_kind(dimension)}; give a number such as "
+                            f"{DIMENSIONS[dimension][1]}")
     factor = _factor(unit or default_unit, dimension, field, text)
     value = float(_DECIMAL.multiply(number, decimal.Decimal(repr(factor))))
     if not math.isfinite(value):
-        raise QuantityError(f"{field}: {text!r} is not a finite {_kind(dimension)}; give a number such as "
+        raise QuantityError(f"{field}: {_shown(text)} is not a finite {_kind(dimension)}; give a number such as "
                             f"{DIMENSIONS[dimension][1]}")
-    return value
+    if number and not value:           # so small that it rounds to zero: refused as too small, not read as 0
+        value = math.ulp(0.0)
+    return check_magnitude(value, dimension, field, text)
+
+
+def check_magnitude(value: float, dimension: str, field: str = "value", text=None) -> float:
+    """``value`` (SI) if zero or within ``MAGNITUDES[dimension]``; else ``QuantityError`` naming the range."""
+    smallest, largest = MAGNITUDES[dimension]
+    if value == 0 or smallest <= abs(value) <= largest:
+        return value
+    unit = DIMENSIONS[dimension][0]
+    shown = _shown(text if text is not None else value)
+    raise QuantityError(f"{field}: {shown} is beyond physical sense for a {_kind(dimension)}: give 0 or a magnitude "
+                        f"from {smallest:g} to {largest:g}{(' ' + unit) if unit else ''}")
 
 
 def parse_list(text: str, dimension: str, default_unit: str = "", field: str = "value") -> list[float]:
@@ -84,6 +130,9 @@ def _kind(dimension: str) -> str:
 
 
 def _split(text: str, dimension: str, field: str) -> tuple[decimal.Decimal, str]:
+    if len(text) > MAX_TEXT_CHARS:
+        raise QuantityError(f"{field}: {_shown(text)} is {len(text):,} characters long; a {_kind(dimension)} is a "
+                            f"number with an optional unit, e.g. {DIMENSIONS[dimension][1]}")
     match = _NUMBER.fullmatch(text)
     if match is None:
         example = DIMENSIONS[dimension][1]
@@ -104,16 +153,16 @@ def _factor(unit: str, dimension: str, field: str, text) -> float:
         return 1.0
     if dimension == "dimensionless":
         raise QuantityError(f"{field}: is a plain number and takes no unit (got {_shown(text)})")
-    if len(unit) > _MAX_UNIT_CHARS or not _SUFFIX_OK.fullmatch(unit):
-        raise QuantityError(f"{field}: cannot read the unit {unit!r}; expected a {dimension} such as "
-                            f"{DIMENSIONS[dimension][1]}")
+    if len(unit) > _MAX_UNIT_CHARS or not _UNIT_FORM.fullmatch(unit):
+        raise QuantityError(f"{field}: cannot read the unit {_shown(unit)}; a unit is names with one-digit powers "
+                            f"(m^3, s**-1), expected a {dimension} such as {DIMENSIONS[dimension][1]}")
     try:
         return _si_factor(unit, dimension)
     except _WrongDimension as error:
         raise QuantityError(f"{field}: {_shown(text)} is a {error.found}, but {field} is a {dimension} "
                             f"(e.g. {DIMENSIONS[dimension][1]})") from None
     except _UnknownUnit:
-        raise QuantityError(f"{field}: unknown unit {unit!r}; expected a {dimension} such as "
+        raise QuantityError(f"{field}: unknown unit {_shown(unit)}; expected a {dimension} such as "
                             f"{DIMENSIONS[dimension][1]}") from None
 
 
@@ -257,5 +306,7 @@ def _describe(found, parsed) -> str:
 
 
 def _shown(text) -> str:
+    if isinstance(text, int) and text.bit_length() > 1000:
+        return f"an integer of {text.bit_length()} bits"
     text = str(text)
     return repr(text if len(text) <= 40 else text[:37] + "...")

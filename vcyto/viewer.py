@@ -73,6 +73,12 @@ def display_problem() -> str | None:
 VIEWER_PORT = 9876
 VIEWER_START_TIMEOUT = 15.0     # s until the spawned viewer listens
 VIEWER_GRACE = 1.0              # s it must then stay alive (a viewer without a usable display exits at once)
+PROBE_SECONDS = 1.0             # s a viewer has to answer the handshake
+FLUSH_SECONDS = 0.25            # s the run waits at its end for a viewer to take what is queued, and again to close
+# the client's opening of HTTP/2, on which gRPC (and so the Rerun viewer's server) runs: the connection preface
+# and an empty SETTINGS frame; a gRPC server answers with its own SETTINGS frame (RFC 9113, section 3.4)
+_HTTP2_PREFACE = b"PRI * HTTP/2.0\r\n\r\nSM\r\n\r\n" + bytes([0, 0, 0, 4, 0, 0, 0, 0, 0])
+_SETTINGS = 4
 URL_SCHEMES = ("rerun", "rerun+http", "rerun+https")
 
 
@@ -115,12 +121,45 @@ def listening(host: str, port: int, timeout: float = 2.0) -> bool:
         return False
 
 
-def start_viewer(bind: str = "127.0.0.1", port: int = VIEWER_PORT) -> tuple[str, str]:
+def viewer_problem(host: str, port: int, secure: bool = False, timeout: float = PROBE_SECONDS) -> str | None:
+    """Why what listens at host:port is not a Rerun viewer (None: it answers the gRPC handshake as the viewer's
+    server does). Asked before a run streams to it: a program that accepts connections and never reads (or
+    answers something else) would otherwise take the view and hold the run at its end."""
+    deadline = time.monotonic() + timeout
+    try:
+        with socket.create_connection((host, port), timeout=timeout) as connection:
+            if secure:
+                import ssl
+                context = ssl.create_default_context()
+                context.set_alpn_protocols(["h2"])
+                connection = context.wrap_socket(connection, server_hostname=host)
+            connection.sendall(_HTTP2_PREFACE)
+            header = b""
+            while len(header) < 9:
+                connection.settimeout(max(0.01, deadline - time.monotonic()))
+                part = connection.recv(9 - len(header))
+                if not part:
+                    return "it closed the connection without answering the gRPC handshake"
+                header += part
+    except (socket.timeout, TimeoutError):
+        return f"it did not answer the gRPC handshake within {timeout:g} s"
+    except (OSError, ValueError) as error:
+        return f"no connection ({getattr(error, 'strerror', None) or error})"
+    if header[3] != _SETTINGS:
+        return "it answered, but not as a gRPC server does"
+    return None
+
+
+def start_viewer(bind: str = "127.0.0.1", port: int | None = None) -> tuple[str, str]:
     """Start the installed Rerun viewer listening on ``bind``:``port`` (detached: it outlives the run), or find
     the one already listening there; (its URL, what was done). Raises ``ViewerUnavailable`` if it cannot be
     started, does not listen within ``VIEWER_START_TIMEOUT`` or exits at once (no usable display)."""
+    port = port or VIEWER_PORT
     url = f"rerun+http://127.0.0.1:{port}/proxy"
     if listening("127.0.0.1", port, timeout=0.5):
+        problem = viewer_problem("127.0.0.1", port)
+        if problem is not None:
+            raise ViewerUnavailable(f"a program listens on port {port} but is not a Rerun viewer ({problem})")
         return url, f"streaming to the viewer already listening on port {port}"
     binary = find_viewer()
     if binary is None:
@@ -149,6 +188,44 @@ def start_viewer(bind: str = "127.0.0.1", port: int = VIEWER_PORT) -> tuple[str,
             raise ViewerUnavailable(f"the viewer exited at once (status {process.returncode}; no usable display?)")
         time.sleep(0.05)
     return url, f"started the Rerun viewer (pid {process.pid}, listening on {bind}:{port})"
+
+
+_LEFT_BEHIND: list = []        # streams whose viewer stopped reading: kept, since freeing one waits for the viewer
+
+
+def finish_stream(stream, connected: bool, path=None) -> None:
+    """Flush and close a Rerun recording stream; one ``connected`` to a viewer gets ``FLUSH_SECONDS`` to take what
+    is queued and as long again to close. A viewer that does not within that time is left: the stream is kept,
+    never closed nor freed (closing the connection or dropping the stream would wait for the viewer without end,
+    and so would Rerun's own exit handler, which is removed; the process ends without freeing it), and
+    ``ConnectionError`` says so. A stream saved to the file ``path`` that cannot be written (a full disk) is an
+    ``OSError`` naming it."""
+    if not connected:
+        try:
+            stream.flush()
+            stream.disconnect()
+        except RuntimeError as error:
+            import errno
+            raise OSError(errno.EIO, f"Rerun's file writer failed ({' '.join(str(error).split())})",
+                          str(path) if path else None) from None
+        return
+    import threading
+    try:
+        stream.flush(timeout_sec=FLUSH_SECONDS)
+    except RuntimeError as error:
+        _leave(stream, f"the viewer did not take the rest of the view within {FLUSH_SECONDS:g} s "
+                       f"({' '.join(str(error).split())})")
+    closing = threading.Thread(target=stream.disconnect, name="vcyto-viewer-close", daemon=True)
+    closing.start()
+    closing.join(FLUSH_SECONDS)
+    if closing.is_alive():
+        _leave(stream, f"the viewer did not close the connection within {FLUSH_SECONDS:g} s")
+
+
+def _leave(stream, why: str):
+    import_rerun().unregister_shutdown()
+    _LEFT_BEHIND.append(stream)
+    raise ConnectionError(why)
 
 
 class _NoPandasNow:

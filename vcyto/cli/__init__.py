@@ -49,6 +49,7 @@ from .common import (
     EXIT_SIGTERM,
     RunStopped,
     UsageError,
+    check_switches,
     signals_seen,
 )
 
@@ -93,6 +94,7 @@ def main(argv=None) -> int:
 def _main(args) -> int:
     try:
         install_speed_settings()
+        check_switches()
         install_cache()
         with runfiles.signals_as_interrupt(signals_seen):     # SIGTERM ends every command as Ctrl-C does
             status = args.handler(args)

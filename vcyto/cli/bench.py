@@ -120,9 +120,9 @@ def _sort_parser(targets):
                                                  "linearity in run length, peak memory, file sizes")
     scenario_options(sort_bench)
     sort_bench.add_argument("--counts", default="1000,10000", help="cells offered per run (default 1000,10000)")
-    sort_bench.add_argument("--rate", type=float, default=2000.0,
+    sort_bench.add_argument("--rate", type=Quantity("frequency", "Hz", low=0, low_open=True), default="2000",
                             help="offered rate, cells/s (default 2000: about 1000 events/s after the dead time)")
-    sort_bench.add_argument("--seed", type=int, default=3, help="random seed (default 3)")
+    sort_bench.add_argument("--seed", type=Integer(low=0, high=2**63 - 1), default="3", help="random seed (default 3)")
     sort_bench.add_argument("--no-record", action="store_true", help="no MCAP and no Rerun")
     sort_bench.add_argument("--no-rerun", action="store_true", help="MCAP only")
     output_options(sort_bench)
@@ -253,8 +253,9 @@ def _sweep(args, scenario, progress):
         counts = tuple(int(part) for part in args.workers.split(","))
     except ValueError:
         raise UsageError(f"--workers: wants pool sizes such as 1,2 (got {args.workers!r})") from None
-    if args.repeats < 1 or not counts or min(counts) < 1:
-        raise UsageError("--repeats/--workers: the repeats and every pool size must be at least 1")
+    if args.repeats < 1 or not counts or min(counts) < 1 or max(counts) > 1024:
+        raise UsageError("--repeats/--workers: the repeats and every pool size must be at least 1 (pool sizes at "
+                         "most 1024, as vcyto sweep's --workers)")
     spec = args.spec or str(EXAMPLES / "sweeps" / "bench-rom.toml")
     progress = Progress(quiet=args.quiet or args.json)
     try:

@@ -17,7 +17,7 @@ from ..outputs import strict_json
 
 __all__ = ["EXIT_INPUT", "EXIT_INTERNAL", "EXIT_NUMERICAL", "EXIT_SIGINT", "EXIT_SIGTERM", "RunStopped", "UsageError",
            "emit", "non_negative_list", "output_directory", "output_options", "output_path", "plain_number",
-           "positive_list", "signals_seen", "stderr_progress"]
+           "positive_list", "signals_seen", "stderr_progress", "check_switches"]
 
 
 EXIT_INPUT = 2
@@ -28,6 +28,23 @@ EXIT_SIGTERM = 143          # 128 + SIGTERM
 EXIT_PIPE = 141             # 128 + SIGPIPE: the reader of stdout went away (`vcyto ... | head`)
 MIN_FREE_BYTES = 100e6      # a stream's recordings
 SMALL_FILES_BYTES = 5e6     # tables, summaries and figures (calibrate, sweep, tradeoff)
+
+
+# vcyto's switches read from the environment -> the values each takes (case and surrounding spaces aside)
+ON_OFF = ("on", "off", "1", "0", "true", "false", "yes", "no")
+SWITCHES = {"VCYTO_CACHE": ON_OFF, "VCYTO_C_KERNELS": ON_OFF, "VCYTO_PREFETCH": ("1", "0"),
+            "VCYTO_SPLIT_SOLVE": ("1", "0"), "VCYTO_OWN_SUBSTITUTIONS": ("1", "0")}
+
+
+def check_switches(environment=None) -> None:
+    """Refuse, before any work, a switch of ``SWITCHES`` set to a value it does not take (``VCYTO_CACHE=maybe``
+    would otherwise be read as on without a word)."""
+    environment = os.environ if environment is None else environment
+    for name, values in SWITCHES.items():
+        value = environment.get(name)
+        if value is not None and value.strip().lower() not in values:
+            shown = " or ".join(values[:2])
+            raise UsageError(f"{name}: {value[:40]!r} is not a value of this switch; set it to {shown} (or unset it)")
 
 
 class RunStopped(Exception):
@@ -53,13 +70,16 @@ def output_options(parser: argparse.ArgumentParser):
     parser.add_argument("--quiet", action="store_true", help="no progress messages on stderr")
 
 
-def output_path(path: str | None, default: bool = False, option: str = "--png") -> Path | None:
+def output_path(path: str | None, default: bool = False, option: str = "--png", suffix: str = ".png") -> Path | None:
     """Check before any work that an output file can be written, and reserve it: a file that exists is never
     overwritten (a default name becomes NAME-2, NAME-3, ...; a name the user gave is refused). A file that cannot
     be written is bad input (``UsageError`` naming ``option``), refused before the run."""
     if path is None:
         return None
     target = Path(path)
+    if suffix and target.suffix.lower() != suffix:
+        raise UsageError(f"{option}: {path[:80]} does not end in {suffix}, but the file written is one; name it "
+                         f"e.g. {target.with_suffix(suffix).name[:80]}")
     directory = target.parent if str(target.parent) else Path(".")
     if default:
         directory.mkdir(parents=True, exist_ok=True)
@@ -102,7 +122,11 @@ def output_directory(path: str | None, option: str = "--output", min_free: float
     if path is None or path == "":
         return None
     directory = Path(path)
-    created = [p for p in (directory, *directory.parents) if not p.exists()]    # innermost first
+    try:
+        created = [p for p in (directory, *directory.parents) if not p.exists()]    # innermost first
+    except OSError as error:            # a name too long for the filesystem, a loop of links
+        raise UsageError(f"{option}: cannot use the directory {path[:60]!r}{'...' if len(path) > 60 else ''} "
+                         f"({error.strerror}); choose a shorter or another path") from None
     try:
         directory.mkdir(parents=True, exist_ok=True)
     except OSError as error:

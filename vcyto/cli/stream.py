@@ -14,6 +14,7 @@ from ..options import (
     late_pulse_note,
     scenario_from,
     scenario_options,
+    short_pulse_note,
     stream_options,
     stream_settings,
     tolerance_options,
@@ -160,8 +161,9 @@ def command_stream(args):
             outputs.check_name(args.name)
         except ValueError as error:
             raise UsageError(str(error)) from None
-    if note := late_pulse_note(settings.controller):
-        print(f"vcyto: note: {note}", file=sys.stderr)
+    for note in (late_pulse_note(settings.controller), short_pulse_note(settings.controller, scenario)):
+        if note:
+            print(f"vcyto: note: {note}", file=sys.stderr)
     timing = _timing(args)
     controller = _controller(args, settings, timing)
     try:
@@ -187,7 +189,10 @@ def _stream_with(args, scenario, settings, output, loop: dict):
             except outputs.NameTaken as error:
                 raise UsageError(str(error)) from None
         background = _open_sinks(args, scenario, settings, view, files)
-    result, stopped = _run_with_sinks(args, scenario, settings, view, files, background, setting_up.pending, loop)
+    result, stopped, unwritten = _run_with_sinks(args, scenario, settings, view, files, background,
+                                                 setting_up.pending, loop)
+    if unwritten is not None:
+        _report_write_failure(args, result, unwritten, view, files, settings, scenario)
     _report_stream(args, result, stopped, view, files, settings, scenario)
     return _partial_status(args, result)
 
@@ -208,14 +213,15 @@ def _open_sinks(args, scenario, settings, view, files):
 
 
 def _run_with_sinks(args, scenario, settings, view, files, background, interrupted: bool, loop: dict):
-    """Run the loop with the sinks; (summary, StreamStopped or None). The sinks are closed whatever happens; a
-    run stopped by Ctrl-C, SIGTERM or a numerical failure returns its partial summary. ``interrupted``: a signal
-    came while the files and sinks were created; the run stops before its first step. ``loop``: the controller,
-    plant and timing for ``run_stream``."""
+    """Run the loop with the sinks; (summary, StreamStopped or None, the OSError of a file that could not be
+    written or None). The sinks are closed whatever happens; a run stopped by Ctrl-C, SIGTERM, a numerical
+    failure or a write that failed (a full disk) returns its partial summary. ``interrupted``: a signal came
+    while the files and sinks were created; the run stops before its first step. ``loop``: the
+    controller, plant and timing for ``run_stream``."""
     from .. import runfiles, stream
     from ..progress import Progress
     progress = Progress(quiet=args.quiet or args.json)
-    stopped, failed = None, True
+    stopped, failed, unwritten = None, True, None
     try:
         with runfiles.signals_as_interrupt(signals_seen):
             try:
@@ -226,6 +232,11 @@ def _run_with_sinks(args, scenario, settings, view, files, background, interrupt
                                            **loop)
             except stream.StreamStopped as error:
                 stopped, result = error, error.result
+                if isinstance(error.__cause__, OSError):       # a file of the run could not be written
+                    stopped, unwritten = None, error.__cause__
+            except OSError as error:                       # found after the loop: the summary is not known
+                unwritten = error
+                result = runfiles.stopped_summary(settings, "stopped: a file of the run could not be written")
             except KeyboardInterrupt:                      # before the loop began (setting up the plant)
                 stopped = stream.StreamStopped("interrupted", "interrupted while setting up, before the first step",
                                                runfiles.stopped_summary(settings, "interrupted while setting up"))
@@ -241,17 +252,28 @@ def _run_with_sinks(args, scenario, settings, view, files, background, interrupt
                 stream.announce_end([background] if background else [], result)
         failed = False
     finally:                                               # the sinks are closed once, whatever happened
-        view.notes += _close_run(progress, background, files, failed)
-    return result, stopped
+        notes, closing = _close_run(progress, background, files, failed)
+        view.notes += notes
+    if unwritten is None and closing is not None and files is not None:
+        unwritten = closing
+    elif unwritten is None and closing is not None:
+        raise closing
+    if unwritten is not None:
+        result.update(status="failed", reason=f"cannot write {unwritten.filename or 'a file'}: "
+                                              f"{unwritten.strerror or unwritten}")
+    return result, stopped, unwritten
 
 
-def _close_run(progress, background, files, failed: bool) -> list[str]:
-    """Close the progress line and the sinks (a full disk surfaces here too); notes on a viewer that went away.
-    Files reserved but never written are removed if the run or the closing failed."""
+def _close_run(progress, background, files, failed: bool) -> tuple[list[str], OSError | None]:
+    """Close the progress line and the sinks (a full disk surfaces here too); (notes on a viewer that went away,
+    the OSError of a file that could not be written or None). Files reserved but never written are removed if
+    the run or the closing failed otherwise."""
     from .. import runfiles
     progress.close()
     try:
-        return runfiles.close_quietly(background, files and files.path("mcap"))
+        return runfiles.close_quietly(background, files and files.path("mcap")), None
+    except OSError as error:
+        return [], error
     except BaseException:
         failed = True
         raise
@@ -277,6 +299,24 @@ def _rerun_sink(args, scenario, settings, view, files) -> list:
         runfiles.say(f"cannot write the Rerun view ({reason}); the run goes on without it")
         view.kind = None
         return []
+
+
+def _report_write_failure(args, result, unwritten: OSError, view, files, settings, scenario):
+    """A run stopped because one of its files could not be written (a full disk): what can be written is, one
+    line names the file, the cause and what was kept, and the exit status is 1 (``RunStopped``)."""
+    from .. import runfiles
+    kept, lost = files.finish_what_can(result, settings, scenario) if files is not None else ([], [])
+    if view.kind == "save" and view.path is not None and view.path.exists() and view.path.stat().st_size > 0:
+        kept.append(str(view.path))
+    for note in view.notes:
+        runfiles.say(note)
+    marked = "; the summary's status is \"failed\"" if files is not None and str(files.path("json")) in kept else ""
+    what = f"kept (what ran up to the failure{marked}): {', '.join(kept)}" if kept else "nothing could be kept"
+    lost = f"; not written: {', '.join(lost)}" if lost else ""
+    runfiles.say(f"error: {unwritten.filename or 'a file of the run'}: cannot write it: "
+                 f"{unwritten.strerror or unwritten}; the run stopped at t = "
+                 f"{result.get('simulated_time_ms', 0):.3f} ms; {what}{lost}")
+    raise RunStopped(EXIT_NUMERICAL)
 
 
 def _report_stream(args, result, stopped, view, files, settings, scenario):

@@ -1,6 +1,7 @@
 """Where a sweep's points run: a local process pool (one thread per process), a Dask ``LocalCluster`` or a Dask
 scheduler at an address; Ctrl-C is left to the parent, which stops the workers (an interrupt, SIGTERM included,
-cancels the points not started and terminates the local workers, waiting ``STOP_WAIT_S`` before killing them)."""
+cancels the points not started and terminates the local workers, waiting ``STOP_WAIT_S`` before killing them).
+Local workers die with their parent even when it is killed with SIGKILL (``_start_worker``)."""
 
 from __future__ import annotations
 
@@ -53,9 +54,39 @@ def _one_thread_per_process():
                 os.environ[name] = value
 
 
-def _ignore_interrupts():
-    """Workers leave Ctrl-C to the parent, which stops them."""
+def _start_worker(parent: int):
+    """A local worker's start: Ctrl-C is left to the parent, which stops the workers, and the worker dies with its
+    parent, even one killed with SIGKILL (which stops nothing): on Linux the kernel sends it SIGKILL when the
+    parent goes (``PR_SET_PDEATHSIG``), elsewhere a watchdog thread sees that the parent changed."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
+    if not _die_with_parent():
+        import threading
+        threading.Thread(target=_watch_parent, args=(parent,), name="vcyto-parent-watch", daemon=True).start()
+    if os.getppid() != parent:            # the parent went before the worker could ask to follow it
+        os._exit(1)
+
+
+PR_SET_PDEATHSIG = 1                    # <linux/prctl.h>
+PARENT_POLL_S = 0.5                     # the watchdog's interval where the kernel cannot be asked
+
+
+def _die_with_parent() -> bool:
+    """Ask Linux to kill this process when its parent ends; False where that cannot be asked."""
+    import ctypes
+    import sys
+    if not sys.platform.startswith("linux"):
+        return False
+    try:
+        libc = ctypes.CDLL(None, use_errno=True)
+        return libc.prctl(PR_SET_PDEATHSIG, signal.SIGKILL, 0, 0, 0) == 0
+    except (OSError, AttributeError):
+        return False
+
+
+def _watch_parent(parent: int):
+    while os.getppid() == parent:
+        time.sleep(PARENT_POLL_S)
+    os._exit(1)
 
 
 @contextlib.contextmanager
@@ -76,7 +107,7 @@ def _interrupts_ignored():
 def _process_pool(workers: int):
     before = set(multiprocessing.active_children())
     pool = ProcessPoolExecutor(max_workers=workers, mp_context=multiprocessing.get_context("spawn"),
-                               initializer=_ignore_interrupts)
+                               initializer=_start_worker, initargs=(os.getpid(),))
     try:
         yield pool
     except BaseException:

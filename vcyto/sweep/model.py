@@ -18,6 +18,7 @@ class Parameter:
     name: str
     values: tuple = ()                 # a list or a range
     distribution: tuple | None = None  # ("uniform" | "log_uniform" | "integers", low, high): random sampling only
+    quantity: tuple | None = None      # (dimension, unit of a bare number) of a physical quantity, else None
 
     def draw(self, rng: np.random.Generator):
         if self.distribution is None:

@@ -8,7 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..config import parse_quantity
+from .. import units
 from .model import Sweep, float_or_nan
 
 
@@ -19,8 +19,9 @@ def save_plot(path: Path, sweep: Sweep, rows: list[dict]) -> None:
     plt = pyplot()
     values = {point.id: dict(point.values) for point in sweep.points}
     names = [parameter.name for parameter in sweep.parameters][:2]
-    samples = [([_axis_value(values[row["point"]][name]) for name in names], float_or_nan(row.get(sweep.plot)))
-               for row in rows if row["status"] == "ok" and row["point"] in values]
+    quantities = [parameter.quantity for parameter in sweep.parameters][:2]
+    samples = [([_axis_value(values[row["point"]][name], quantity) for name, quantity in zip(names, quantities)],
+                float_or_nan(row.get(sweep.plot))) for row in rows if row["status"] == "ok" and row["point"] in values]
     averaged = [parameter.name for parameter in sweep.parameters[2 if len(names) == 2 else 1:]]
     figure, axis = plt.subplots(figsize=(6.4, 4.8))
     if len(names) == 1:
@@ -36,14 +37,19 @@ def save_plot(path: Path, sweep: Sweep, rows: list[dict]) -> None:
     plt.close(figure)
 
 
-def _axis_value(value):
-    """A parameter value as a number on an axis (unit strings in SI), or its text for a categorical axis."""
+def _axis_value(value, quantity=None):
+    """A parameter value as a number on an axis, or its text for a categorical axis; a text with a unit of the
+    parameter's ``quantity`` (dimension, unit of its bare numbers) in the unit of its bare numbers."""
     if isinstance(value, (int, float)) and not isinstance(value, bool):
         return float(value)
-    try:
-        return parse_quantity(str(value))
-    except ValueError:
-        return str(value)
+    if quantity is not None:
+        dimension, unit = quantity
+        try:
+            return units.parse_quantity(str(value), dimension, unit) / (units.unit_factor(unit, dimension)
+                                                                        if unit else 1.0)
+        except units.QuantityError:
+            pass
+    return str(value)
 
 
 def _axis(values):

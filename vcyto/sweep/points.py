@@ -37,10 +37,11 @@ def base_arguments(table: dict, options: dict, directory: Path) -> argparse.Name
         if key not in options:
             raise SweepError(f"base.{key}: unknown option; known: {', '.join(sorted(options))}")
         if key in ("scenario", "controller"):          # files beside (or below) the spec
-            setattr(arguments, key, str(_beside_spec(_checked_text(value, f"base.{key}"), directory)))
+            setattr(arguments, key, str(beside_spec(value, directory, f"base.{key}")))
         elif key in ("controller_from", "plant_from"):   # FILE.py:NAME, the file beside (or below) the spec
             where, _, name = _checked_text(value, f"base.{key}").rpartition(":")
-            setattr(arguments, key, f"{_beside_spec(where, directory)}:{name}" if where.endswith(".py") else value)
+            setattr(arguments, key, f"{beside_spec(where, directory, f'base.{key}')}:{name}" if where.endswith(".py")
+                    else value)
         elif key == "set":
             if not isinstance(value, list) or not all(isinstance(item, str) for item in value):
                 raise SweepError('base.set: must be a list of "FIELD=VALUE" strings, e.g. ["saw.model=streaming"]')
@@ -50,13 +51,17 @@ def base_arguments(table: dict, options: dict, directory: Path) -> argparse.Name
     return arguments
 
 
-def _beside_spec(text: str, directory: Path) -> Path:
-    """The scenario file ``text`` names, relative to the spec's folder and inside it (a spec shared with you
-    cannot make vcyto read files elsewhere)."""
-    path = (directory / text).resolve()
-    if Path(text).is_absolute() or not path.is_relative_to(directory.resolve()):
-        raise SweepError(f"base.scenario: must name a file in the spec's folder or below it, relative to the spec "
-                         f"(got {text!r}); copy the scenario next to the spec")
+def beside_spec(text, directory: Path, where: str) -> Path:
+    """The file ``text`` names (a scenario or controller file at ``where`` in the spec), relative to the spec's
+    folder and inside it, symbolic links resolved (a spec shared with you cannot make vcyto read files elsewhere)."""
+    text = _checked_text(text, where)
+    try:
+        path = (directory / text).resolve()
+    except (OSError, RuntimeError, ValueError):      # a loop of links, a NUL
+        path = None
+    if path is None or Path(text).is_absolute() or not path.is_relative_to(directory.resolve()):
+        raise SweepError(f"{where}: must name a file in the spec's folder or below it, relative to the spec "
+                         f"(got {text!r}); copy the file next to the spec")
     return path
 
 

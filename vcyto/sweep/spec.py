@@ -6,21 +6,18 @@ from __future__ import annotations
 import itertools
 import math
 import os
-import sys
 from pathlib import Path
 
 import numpy as np
 
-from ..arguments import MAX_SWEEP_POINTS
-from ..config import check_input_file, parse_quantity
-from .metrics import DEFAULT_METRICS, check_metrics
-from .model import Parameter, Sweep, SweepError, one_line, rounded
-from .points import DEFAULT_MODEL, base_arguments, make_points, option_actions
+from sim.scenario import ScenarioError
 
-if sys.version_info >= (3, 11):
-    import tomllib
-else:  # pragma: no cover - exercised on Python 3.10 only
-    import tomli as tomllib
+from .. import units
+from ..arguments import MAX_SWEEP_POINTS, Quantity
+from ..config import field_dimension, read_toml
+from .metrics import DEFAULT_METRICS, check_metrics
+from .model import Parameter, Sweep, SweepError, rounded
+from .points import DEFAULT_MODEL, base_arguments, beside_spec, make_points, option_actions
 
 SAMPLINGS = ("grid", "random")
 SWEEP_KEYS = ("metrics", "plot", "sampling", "samples", "sampling_seed")
@@ -31,20 +28,9 @@ DISTRIBUTIONS = ("uniform", "log_uniform", "integers")
 def load_sweep(path: str | os.PathLike) -> Sweep:
     """The sweep the spec file at ``path`` describes, every point built and checked (no plant is built)."""
     try:
-        check_input_file(path, "sweep spec", field="spec")
-    except ValueError as error:
+        document = read_toml(path, "sweep spec", field="spec")
+    except ScenarioError as error:
         raise SweepError(str(error)) from None
-    try:
-        with open(path, "rb") as file:
-            document = tomllib.load(file)
-    except RecursionError:
-        raise SweepError(f"{os.fspath(path)}: the sweep spec nests tables or arrays too deeply") from None
-    except FileNotFoundError:
-        raise SweepError(f"{os.fspath(path)}: the sweep spec does not exist; check the path") from None
-    except OSError as error:
-        raise SweepError(f"{os.fspath(path)}: cannot read the sweep spec: {error.strerror}") from None
-    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as error:
-        raise SweepError(f"{os.fspath(path)}: the sweep spec is not valid TOML: {one_line(error)}") from None
     return parse_sweep(document, Path(path).parent, name=os.fspath(path))
 
 
@@ -53,7 +39,8 @@ def parse_sweep(document: dict, directory: Path = Path("."), name: str = "spec")
     check_known(document, ("base", "parameters", "sweep"), "", "tables")
     options = option_actions()
     base = base_arguments(_table(document, "base"), options, directory)
-    parameters = tuple(_parameter(key, value, options) for key, value in _flat(_table(document, "parameters")))
+    parameters = tuple(_parameter(key, value, options, directory)
+                       for key, value in _flat(_table(document, "parameters")))
     if not parameters:
         raise SweepError("parameters: no parameter to vary; add one, e.g. lead = [0.25, 0.5, 0.75]")
     sweep = _table(document, "sweep")
@@ -107,24 +94,38 @@ def _check_size(parameters, sampling: str, sweep: dict) -> None:
                          f"{MAX_SWEEP_POINTS:,} points: use fewer values or a random sample")
 
 
-def _parameter(name: str, spec, options: dict) -> Parameter:
+def _parameter(name: str, spec, options: dict, directory: Path = Path(".")) -> Parameter:
     where = f"parameters.{name}"
     if "." not in name and (name not in options or name in ("scenario", "set")):
         allowed = sorted(set(options) - {"scenario", "set"})
         raise SweepError(f"{where}: unknown parameter; use an option of vcyto stream ({', '.join(allowed)}) or a "
                          "dotted scenario field such as saw.streaming_force (see vcyto scenario)")
+    quantity = _quantity(name, options)
     if isinstance(spec, list):
         if not spec:
             raise SweepError(f"{where}: empty list; give at least one value")
-        return Parameter(name, tuple(spec))
+        if name == "controller":                  # files beside (or below) the spec, as [base]'s
+            spec = [str(beside_spec(value, directory, where)) for value in spec]
+        return Parameter(name, tuple(spec), quantity=quantity)
     if not isinstance(spec, dict):
-        return Parameter(name, (spec,))
+        return Parameter(name, (str(beside_spec(spec, directory, where)) if name == "controller" else spec,),
+                         quantity=quantity)
     if any(key in spec for key in DISTRIBUTIONS):
-        return Parameter(name, distribution=_distribution(spec, where))
-    return Parameter(name, _range(spec, where, allow_units="." in name))
+        return Parameter(name, distribution=_distribution(spec, where, quantity), quantity=quantity)
+    return Parameter(name, _range(spec, where, quantity), quantity=quantity)
 
 
-def _distribution(spec: dict, where: str) -> tuple:
+def _quantity(name: str, options: dict) -> tuple[str, str] | None:
+    """(dimension, unit of a bare number) of the parameter ``name``: its option's (``--lead``: time in ms) or its
+    scenario field's (SI); None for a parameter that is no quantity (a count, a seed, a name)."""
+    action = options.get(name)
+    if action is not None:
+        return (action.type.dimension, action.type.unit) if isinstance(action.type, Quantity) else None
+    dimension = field_dimension(name)
+    return (dimension, "") if dimension is not None else None
+
+
+def _distribution(spec: dict, where: str, quantity) -> tuple:
     if len(spec) != 1:
         raise SweepError(f"{where}: a distribution is one key ({', '.join(DISTRIBUTIONS)}) = [low, high]")
     (kind, bounds), = spec.items()
@@ -132,7 +133,7 @@ def _distribution(spec: dict, where: str) -> tuple:
         raise SweepError(f"{where}.{kind}: unknown; known distributions: {', '.join(DISTRIBUTIONS)}")
     if not (isinstance(bounds, list) and len(bounds) == 2):
         raise SweepError(f"{where}.{kind}: must be [low, high] (got {bounds!r})")
-    low, high = (_number(bound, f"{where}.{kind}", allow_units=True) for bound in bounds)
+    low, high = (_number(bound, f"{where}.{kind}", quantity) for bound in bounds)
     if not low <= high or (kind == "log_uniform" and low <= 0):
         raise SweepError(f"{where}.{kind}: empty range [{low:g}, {high:g}]; need low <= high"
                          + (" and low > 0" if kind == "log_uniform" else ""))
@@ -141,14 +142,14 @@ def _distribution(spec: dict, where: str) -> tuple:
     return (kind, int(low), int(high)) if kind == "integers" else (kind, low, high)
 
 
-def _range(spec: dict, where: str, allow_units: bool) -> tuple:
+def _range(spec: dict, where: str, quantity) -> tuple:
     """The values of ``{start, stop, num}`` (both ends included) or ``{start, stop, step}`` (stop included when
     a whole number of steps reaches it); ``log = true`` spaces them geometrically."""
     check_known(spec, RANGE_KEYS, where, "range keys (or a distribution: uniform, log_uniform, integers)")
     if "start" not in spec or "stop" not in spec or ("num" in spec) == ("step" in spec):
         raise SweepError(f"{where}: a range needs start, stop and one of num or step, e.g. {{start = 0, stop = 1, "
                          "num = 5}")
-    start, stop = (_number(spec[key], f"{where}.{key}", allow_units) for key in ("start", "stop"))
+    start, stop = (_number(spec[key], f"{where}.{key}", quantity) for key in ("start", "stop"))
     log = spec.get("log", False)
     if log and (start <= 0 or stop <= 0):
         raise SweepError(f"{where}: a log range needs positive start and stop")
@@ -160,7 +161,7 @@ def _range(spec: dict, where: str, allow_units: bool) -> tuple:
             raise SweepError(f"{where}.num: {num:,} values; a sweep has at most {MAX_SWEEP_POINTS:,} points")
         values = np.geomspace(start, stop, num) if log else np.linspace(start, stop, num)
         return tuple(rounded(value) for value in values)
-    step = _number(spec["step"], f"{where}.step", allow_units)
+    step = _number(spec["step"], f"{where}.step", quantity)
     if log:
         raise SweepError(f"{where}: a log range takes num, not step")
     ratio = (stop - start) / step if step else -1.0
@@ -176,12 +177,18 @@ def _range(spec: dict, where: str, allow_units: bool) -> tuple:
     return tuple(int(start + i * step) if integers else rounded(start + i * step) for i in range(count))
 
 
-def _number(value, where: str, allow_units: bool) -> float:
-    if isinstance(value, str) and allow_units:
+def _number(value, where: str, quantity) -> float:
+    """An end of a range or distribution: for a ``quantity`` (dimension, unit of a bare number) read by the unit
+    rule and given in that unit (``"0.2ms"`` of ``lead``, whose bare numbers are ms: 0.2), else a plain number."""
+    if quantity is not None and not isinstance(value, bool) and isinstance(value, (int, float, str)):
+        dimension, unit = quantity
         try:
-            return parse_quantity(value)
-        except ValueError as error:
-            raise SweepError(f"{where}: {error}") from None
+            si = units.parse_quantity(value, dimension, unit, field=where)
+        except units.QuantityError as error:
+            raise SweepError(str(error)) from None
+        if isinstance(value, (int, float)):
+            return value                        # as written: bare numbers are in the parameter's own unit
+        return rounded(si / units.unit_factor(unit, dimension)) if unit else si
     if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
         raise SweepError(f"{where}: must be a finite number (got {value!r})")
     return value

@@ -157,7 +157,7 @@ class ReferenceStep:
         A = c * self.M + fluid.viscosity * self.K
         system = sp.bmat([[A, None, -self.B[0].T], [None, A, -self.B[1].T], [-self.B[0], -self.B[1], None]], "csc")
         time = now.time + dt
-        weight = actuation * saw_jet_factor(self.scenario.saw, time) if actuation else 0.0
+        weight = actuation * saw_jet_factor(self.scenario.saw) if actuation else 0.0
         boundary = np.concatenate([(self.inflow + weight * self.jet).ravel(), np.zeros(self.P)])
         D = np.concatenate([self.dirichlet, self.dirichlet + self.N])
         solution = boundary.copy()

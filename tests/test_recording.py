@@ -124,7 +124,7 @@ def test_a_failing_sink_stops_the_run_with_its_error(plant):
     failing = FullDisk()
     settings = StreamSettings(Arrivals(cells=("RBC",)), model="streamline")
     with pytest.raises(StreamStopped) as stopped:        # a failed run, its partial summary and the write's cause
-        sink = BackgroundSinks([failing])
+        sink = BackgroundSinks([failing], batch_steps=1)      # handed over each step: the failure seen at once
         try:
             run_stream(Scenario(), settings, plant=plant, sinks=[sink])
         finally:

@@ -10,6 +10,7 @@ with its length; pandas (``read_parquet``), polars and pyarrow read the file.
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import pyarrow as pa
@@ -52,29 +53,48 @@ class CellTable:
 
     def __init__(self, path: Path, rows_per_group: int = ROWS_PER_GROUP):
         self.path = Path(path)
-        self._writer = pq.ParquetWriter(str(self.path), SCHEMA, compression="zstd")
+        self.failed = False
+        self._writer = None
+        self._writer = self._guarded(pq.ParquetWriter, str(self.path), SCHEMA, compression="zstd")
         self._rows: list[dict] = []
         self.rows_per_group = rows_per_group
         self.written = 0
 
+    def _guarded(self, call, *args, **kwargs):
+        """``call``; a failed write (a full disk) is an ``OSError`` naming the table's file, raised once: the
+        table then takes no more rows."""
+        try:
+            return call(*args, **kwargs)
+        except OSError as error:
+            self.failed = True
+            number = error.errno or (28 if "No space left" in str(error) else 5)
+            raise OSError(number, os.strerror(number), str(self.path)) from None
+
     def append(self, record: dict):
+        if self.failed:
+            return
         self._rows.append(flat(record))
         if len(self._rows) >= self.rows_per_group:
             self._write()
 
     def _write(self):
-        if self._rows:
-            self._writer.write_table(pa.Table.from_pylist(self._rows, schema=SCHEMA))
+        if self._rows and not self.failed:
+            self._guarded(self._writer.write_table, pa.Table.from_pylist(self._rows, schema=SCHEMA))
             self.written += len(self._rows)
             self._rows = []
 
     def close(self):
         if self._writer is not None:
+            failed_before = self.failed
             try:
                 self._write()
             finally:
-                self._writer.close()
-                self._writer = None
+                writer, self._writer = self._writer, None
+                try:
+                    self._guarded(writer.close)
+                except OSError:
+                    if not failed_before:
+                        raise
 
 
 def read_table(path: Path, columns=None) -> pa.Table:

@@ -135,6 +135,8 @@ def run_stream(scenario: Scenario, settings: StreamSettings, progress=None, plan
         status, reason, failure = "failed", str(error), error
     except (ControllerError, ConnectionError) as error:
         status, reason, failure = "failed", f"controller: {error}", error
+    except OSError as error:                 # a file of the run could not be written (a full disk)
+        status, reason, failure = "failed", f"{error.filename or 'a file of the run'}: {error.strerror}", error
     loop.finish()
     result = loop.summary(status, reason)
     if status == "interrupted":

@@ -232,7 +232,8 @@ def _run_with_sinks(args, scenario, settings, view, files, background, interrupt
                                            **loop)
             except stream.StreamStopped as error:
                 stopped, result = error, error.result
-                if isinstance(error.__cause__, OSError):       # a file of the run could not be written
+                if isinstance(error.__cause__, OSError) and not isinstance(error.__cause__, ConnectionError):
+                    # a file of the run could not be written (a lost controller is a failed run, not a file)
                     stopped, unwritten = None, error.__cause__
             except OSError as error:                       # found after the loop: the summary is not known
                 unwritten = error

@@ -435,7 +435,7 @@ def test_a_finished_sweep_run_again_keeps_its_timing_in_sweep_json(tmp_path):
     first = vcyto("sweep", spec, "--output", str(output), "--workers", "1")
     assert first.returncode == 0, first.stderr
     recorded = json.loads((output / "sweep.json").read_text())
-    assert recorded["ran"] == 2 and recorded["wall_time_s"] > 1            # a pool, a plant, two points
+    assert recorded["ran"] == 2 and recorded["wall_time_s"] > 0            # a pool, a plant, two points (timed)
     again = vcyto("sweep", spec, "--output", str(output), "--workers", "1")
     assert again.returncode == 0, again.stderr
     assert "all 2 points are already in the table: nothing to run" in again.stderr

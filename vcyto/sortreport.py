@@ -61,27 +61,6 @@ SORT_HORIZON = 0.1             # s: sorts kept for the co-deflection check after
 EVENT_NAMES = 1 << 16          # recent detector events whose cells a decision's reason can name
 
 
-def summarise(sample, truth, events, controller, scenario, settings, partial: bool = False, table=None) -> dict:
-    """A JSON-ready record of a run from its end state: cells (admitted, in arrival order), statistics, the yield
-    estimate (``SortLedger.summary``, fed every cell of ``truth`` with its event and decision).
-
-    ``partial`` (a run interrupted, failed or cut short): the statistics count only the cells due by the time the
-    run reached (admitted or turned away at the inlet by then); the sample's later cells never had their chance,
-    and counting them (as "never injected", and in the yield's denominator) would understate every rate. Their
-    number is ``not_yet_due`` (a cell injected counts, even when the plant injected it a step before its
-    arrival time); the per-cell records still list every admitted cell, those not yet due with outcome
-    ``not_injected``."""
-    ledger = SortLedger(sample, scenario, settings, controller.predicted_arrival, table=table, keep=None)
-    for event in sorted(events.values(), key=lambda e: e.event_id):
-        ledger.event(event)
-        decision = controller.decision_for(event.event_id)
-        if decision is not None:
-            ledger.decision(decision)
-    for cell in truth.cells:
-        ledger.cell(cell)
-    return ledger.summary(truth.time, controller.latencies, partial)
-
-
 class SortLedger:
     """The sort report built as the run goes, with memory bounded by the cells in the channel.
 
@@ -185,7 +164,13 @@ class SortLedger:
 
     def summary(self, time: float, latencies, partial: bool = False) -> dict:
         """The run's summary at ``time`` (s): the cells still in the channel and those never injected recorded,
-        statistics over the cells due (all of them unless ``partial``), the table closed."""
+        statistics over the cells due (all of them unless ``partial``), the table closed.
+
+        ``partial`` (a run interrupted, failed or cut short): the statistics count only the cells due by the time
+        the run reached (admitted or turned away at the inlet by then); the sample's later cells never had their
+        chance, and counting them (as "never injected", and in the yield's denominator) would understate every
+        rate. Their number is ``not_yet_due``; the per-cell records still list every admitted cell, those not yet
+        due with outcome ``not_injected``."""
         self.time = time
         for key in sorted(self._inside):
             self._record(key, self._inside[key], partial)
@@ -616,7 +601,7 @@ def sort_report_lines(result: dict) -> list[str]:
     return lines
 
 
-__all__ = ["summarise", "statistics_of", "yield_estimate", "report_lines", "true_class", "DEFAULT_OUTLET"]
+__all__ = ["SortLedger", "statistics_of", "yield_estimate", "report_lines", "true_class", "DEFAULT_OUTLET"]
 
 
 def _controller_words(result: dict) -> str:

@@ -294,3 +294,19 @@ def test_calibrate_checks_a_controller_of_ones_own_with_the_new_calibration(tmp_
     assert [c["outlet"] for c in check["cells"]] == ["lower", "upper", "lower", "upper"]
     one_line_error(vcyto("calibrate", "--plant-from", f"{THRESHOLD}:Threshold", "--output", ""),
                    "--plant-from", "not a plant")
+
+
+def test_calibrate_checks_a_controller_in_another_process_with_the_new_calibration():
+    """``vcyto calibrate --controller-exec CMD``: the served built-in controller gets the new calibration's
+    device facts in its hello and sorts the check's cells; a dead one is one line and exit 1."""
+    served = f"{sys.executable} -m vcyto.wire.serve --once"
+    result = vcyto("calibrate", "--controller-exec", served, "--pulse", "0.4", "--lead", "0.3",
+                   "--offset-step", "0.1", "--resolution", "0.02", "--output", "", "--json")
+    assert result.returncode == 0, result.stderr
+    check = json.loads(result.stdout)["check"]
+    assert "wire" in check["controller"] and check["sorted_right"] == 4
+    assert [c["outlet"] for c in check["cells"]] == ["lower", "upper", "lower", "upper"]
+    dead = vcyto("calibrate", "--controller-exec", f"{sys.executable} -c pass", "--pulse", "0.4", "--lead", "0.3",
+                 "--offset-step", "0.1", "--resolution", "0.02", "--output", "", "--quiet")
+    assert dead.returncode == 1 and "--controller-exec" in dead.stderr and "exited" in dead.stderr
+    assert len(dead.stderr.strip().splitlines()) == 1

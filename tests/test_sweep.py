@@ -628,3 +628,30 @@ def test_a_controller_file_under_parameters_is_confined_to_the_specs_folder(tmp_
     spec = write_spec(folder / "spec.toml", f"[parameters]\ncontroller = {value}\n")
     with pytest.raises(SweepError, match="parameters.controller: must name a file in the spec's folder"):
         load_sweep(spec)
+
+
+WIRE_SPEC = COMPARED_SPEC.replace("seed = [1, 2, 3]", "seed = [1]")
+
+
+def test_every_point_can_talk_to_a_controller_in_another_process_given_on_the_command_line(tmp_path):
+    """``vcyto sweep SPEC --controller-exec CMD``: each point starts its own controller (the built-in one served
+    over the wire, its settings from the point's device facts), with the metrics of the in-process sweep; a
+    spec cannot name a program to run."""
+    spec = write_spec(tmp_path / "wire.toml", WIRE_SPEC)
+    served = f"{sys.executable} -m vcyto.wire.serve --once"
+    local = vcyto("sweep", spec, "--output", str(tmp_path / "local"), "--workers", "1", "--json")
+    wired = vcyto("sweep", spec, "--output", str(tmp_path / "wired"), "--workers", "2", "--json",
+                  "--controller-exec", served)
+    assert local.returncode == 0 and wired.returncode == 0, local.stderr + wired.stderr
+
+    def table(name):
+        return [{key: value for key, value in row.items() if key not in ("wall_time_s", "point", "inputs")}
+                for row in read_rows(tmp_path / name / "results.csv")]
+    assert len(table("local")) == 2 and all(row["status"] == "ok" for row in table("wired"))
+    assert table("wired") == table("local")
+    ids = {name: {row["point"] for row in read_rows(tmp_path / name / "results.csv")} for name in ("local", "wired")}
+    assert not ids["local"] & ids["wired"]          # a point's identity names the controller it ran with
+    refused = vcyto("sweep", write_spec(tmp_path / "bad.toml", WIRE_SPEC.replace(
+        "[base]", f"[base]\ncontroller_exec = {json.dumps(served)}")), "--output", str(tmp_path / "bad"))
+    assert refused.returncode == 2 and "given on the command line" in refused.stderr
+    assert len(refused.stderr.strip().splitlines()) == 1

@@ -160,7 +160,7 @@ def _run(argv, controller=None):
     try:
         return run_stream(scenario, stream_settings(args, scenario), controller=controller)
     finally:
-        if controller is not None:
+        if hasattr(controller, "close"):
             controller.close()
 
 
@@ -330,3 +330,73 @@ def test_closing_is_bounded_even_for_a_controller_that_ignores_end_and_sigterm()
     assert time.monotonic() - started < 15
     assert process.returncode == -9                 # SIGKILL: it is gone
     port.close()                                    # twice: nothing more to do
+
+
+# --- a controller that sets the drive itself, over the wire -------------------------------------------------
+
+DRIVER = '''
+import math
+from controller.events import Decision
+
+
+class WindowDriver:
+    """Sets the drive itself: on for the calibrated pulse around each type II cell's predicted arrival."""
+
+    name = "window driver"
+
+    def __init__(self, settings):
+        self.settings, self.windows = settings, []
+
+    def on_event(self, event, clock):
+        if event.classification == "II":
+            s = self.settings
+            arrival = event.time + s.delay * s.reference_velocity / event.velocity
+            self.windows.append((arrival - s.lead, arrival - s.lead + s.pulse))
+        return [Decision(event.event_id, "pass", math.nan)]
+
+    def drive(self, clock):
+        return 1.0 if any(on <= clock < off for on, off in self.windows) else 0.0
+'''
+
+
+def test_a_controller_that_sets_the_drive_itself_over_the_wire_sorts_as_in_process(tmp_path):
+    """The ``drive`` capability: a controller served over the wire that sets the drive each period (lock-step)
+    gives the outcomes, decisions and IDT on-time of the same controller in process; it sorts the melanomas."""
+    from vcyto import plugins
+    path = tmp_path / "driver.py"
+    path.write_text(DRIVER)
+    stream = ["--model", "rom", "--cells", "RBC,melanoma,RBC,melanoma", "--rate", "300", "--seed", "3"]
+    in_process = _run(stream, plugins.controller(f"{path}:WindowDriver", ControllerSettings()))
+    served = wire.launch(shlex.join([sys.executable, "-m", "vcyto.wire.serve", "--once", "--controller",
+                                     f"{path}:WindowDriver"]), timeout=60)
+    over_wire = _run(stream, served)
+    assert served.drives and "drive" in served.capabilities
+    assert [c["outlet"] for c in in_process["cells"]] == ["lower", "upper", "lower", "upper"]
+    assert _outcomes(over_wire) == _outcomes(in_process)
+    assert over_wire["idt_on_time_ms"] == in_process["idt_on_time_ms"] > 0
+
+
+def test_a_drive_answer_out_of_range_or_for_no_period_is_refused_naming_the_field():
+    with pytest.raises(framing.WireError, match=r"level must be in \[0, 1\]"):
+        messages.drive({"type": "drive", "clock": 0.0, "level": 1.5})
+    with pytest.raises(framing.WireError, match="clock must be a finite number"):
+        messages.drive({"type": "drive", "clock": None, "level": 1.0})
+    assert messages.drive({"type": "drive", "clock": 2.5e-5, "level": 1}) == (2.5e-5, 1.0)
+
+
+def test_a_driving_controller_in_paced_real_time_holds_the_drive_it_last_set(tmp_path):
+    """Paced real time (x0.05): each period's drive is the level the controller last set by then; a controller
+    that holds the IDT on deflects an RBC, and the IDT is on for nearly the whole run."""
+    path = tmp_path / "hold.py"
+    path.write_text("from controller.events import Decision\n\n\n"
+                    "class HoldOn:\n    name = 'hold on'\n\n    def __init__(self, settings):\n        pass\n\n"
+                    "    def on_event(self, event, clock):\n"
+                    "        return [Decision(event.event_id, 'pass', float('nan'))]\n\n"
+                    "    def drive(self, clock):\n        return 1.0\n")
+    command = shlex.join([sys.executable, "-m", "vcyto.wire.serve", "--once", "--controller", f"{path}:HoldOn"])
+    result = vcyto("stream", "--model", "rom", "--cells", "RBC", "--realtime", "0.05", "--controller-exec", command,
+                   "--output", str(tmp_path), "--no-viewer", "--json", "--quiet", timeout=120)
+    assert result.returncode == 0, result.stderr
+    summary = json.loads(result.stdout)
+    assert summary["cells"][0]["outlet"] == "upper"
+    assert 0.5 * summary["simulated_time_ms"] < summary["idt_on_time_ms"] <= summary["simulated_time_ms"]

@@ -37,6 +37,8 @@ from controller.protocol import (
 
 LATENCY_SAMPLES = 100_000          # the latest latencies kept (bounded memory over long runs)
 LAG_SAMPLES = 100_000
+SPIN = 0.3e-3                      # s: the end of a pace is waited for in a loop, not a sleep (which overshoots
+                                   # by 0.1-2 ms on a shared host: the plant would lag the wall clock by that)
 
 
 @dataclass(frozen=True)
@@ -170,8 +172,10 @@ class Control:
         lag = max(0.0, now - target)
         self.lags.append(lag)
         self.max_lag = max(self.max_lag, lag)
-        if target > now:
-            time.sleep(target - now)
+        if target - now > SPIN:
+            time.sleep(target - now - SPIN)
+        while time.perf_counter() < target:       # the last SPIN s in a loop: a sleep can overshoot by more
+            pass
 
     def next_deadline(self) -> float:
         """The earliest deadline of an event still unanswered (inf if none): the loop steps no further before
@@ -193,18 +197,28 @@ class Control:
 
     # --- events and answers
     def deliver(self, events, clock: float) -> None:
-        """Tell the controller of ``events`` (detected by ``clock``); lock-step: take each answer before going on."""
+        """Tell the controller of ``events`` (detected by ``clock``); lock-step: take every answer before going on."""
+        self.post(events)
+        self.collect()
+
+    def post(self, events) -> None:
+        """Tell the controller of ``events`` without waiting for its answers (``collect`` takes them in lock-step).
+
+        The controller sees the events in order and answers each in turn whether or not the loop waits between
+        them: the loop's state (schedule, ledger) is not part of what it is told. So a loop may post, do work that
+        does not depend on the answers (looking at the plant for its sinks), then collect, with the same results as
+        taking each answer at once; over the wire that work overlaps the controller's."""
         for event in events:
             self.events[event.event_id] = event
             self.outstanding[event.event_id] = (event, time.perf_counter())
             self.port.post(event, event.time)
-            if not self.timing.realtime:
-                self._wait_for(event.event_id)
 
-    def _wait_for(self, event_id: int) -> None:
-        while event_id in self.outstanding:
-            replies = self.port.replies(wait=math.inf)
-            for reply in replies:
+    def collect(self) -> None:
+        """Lock-step: wait for the answer to every event posted (paced real time: ``settle`` judges them)."""
+        if self.timing.realtime:
+            return
+        while self.outstanding:
+            for reply in self.port.replies(wait=math.inf):
                 self._apply(reply)
 
     def settle(self, now: float) -> None:

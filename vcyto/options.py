@@ -212,11 +212,47 @@ def stream_settings(args, scenario):
             check_run_time(args, scenario, _device_time(arrivals, args.max_time), "--dt/--count/--rate")
         return stream.StreamSettings(arrivals, detector, controller, args.model, args.seed,
                                      max_time=args.max_time, window_mesh_h=window, controller_from=controller_from,
-                                     plant_from=plant_from)
+                                     plant_from=plant_from, controller_wire=getattr(args, "controller_wire", None))
     except ValueError as error:
         if isinstance(error, (UsageError, ScenarioError, units.QuantityError)):
             raise
         raise UsageError(str(error)) from None
+
+
+def wire_options(parser: argparse.ArgumentParser, what: str = "the run's") -> None:
+    """``--controller-connect``, ``--controller-exec``, ``--controller-timeout``: a controller in another process
+    (``vcyto.wire``) for ``what``."""
+    wire = parser.add_argument_group(f"{what} controller in another process (docs/wire-protocol.md)")
+    wire.add_argument("--controller-connect", metavar="ADDRESS",
+                      help="the controller listening at ADDRESS: tcp:HOST:PORT (e.g. tcp:127.0.0.1:7070) or "
+                           "unix:PATH, spoken to over the wire protocol")
+    wire.add_argument("--controller-exec", metavar="CMD",
+                      help="start the controller CMD (split as a shell would; {address} in it, and the environment "
+                           "variable VCYTO_CONTROLLER_ADDRESS, say where to listen), connect, stop it at the end")
+    wire.add_argument("--controller-timeout", type=Quantity("time", "s", low=0, low_open=True, high=3600),
+                      metavar="TIME",
+                      help="how long to wait for the connection, the handshake and each lock-step answer "
+                           "(default 10 s); a controller that takes longer stops the run with an error")
+
+
+def wire_controller(args):
+    """The ``vcyto.wire.WireController`` that ``wire_options`` name, or None (``UsageError``: one line)."""
+    from .wire import DEFAULT_TIMEOUT, WireController
+    given = [(how, target) for how, target in (("connect", args.controller_connect), ("exec", args.controller_exec))
+             if target is not None]
+    if len(given) > 1:
+        raise UsageError("--controller-connect: --controller-exec names the controller too: give one of them")
+    if not given:
+        if args.controller_timeout is not None:
+            raise UsageError("--controller-timeout: applies to a controller in another process: add "
+                             "--controller-connect ADDRESS or --controller-exec CMD, or drop it")
+        return None
+    how, target = given[0]
+    timeout = DEFAULT_TIMEOUT if args.controller_timeout is None else args.controller_timeout
+    try:
+        return WireController(how, target, timeout)
+    except ValueError as error:
+        raise UsageError(f"--controller-{how}: {error}") from None
 
 
 def plugin_spec(args, name: str) -> str | None:

@@ -14,6 +14,7 @@ import math
 import sys
 import time
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
@@ -65,6 +66,7 @@ class StreamSettings:
     record_interval: float = RECORD_INTERVAL
     controller_from: str | None = None        # FILE.py:NAME or MODULE:NAME of a controller (vcyto.plugins)
     plant_from: str | None = None             # FILE.py:NAME or MODULE:NAME of a plant; replaces ``model``
+    controller_wire: Any = None               # a controller in another process (``vcyto.wire.WireController``)
 
     def __post_init__(self):
         if self.model not in MODELS:
@@ -74,6 +76,9 @@ class StreamSettings:
         for name in ("drain_time", "record_interval"):
             if not (math.isfinite(getattr(self, name)) and getattr(self, name) > 0):
                 raise ValueError(f"{name} must be a finite positive time (got {getattr(self, name)!r})")
+        if self.controller_wire is not None and self.controller_from is not None:
+            raise ValueError(f"{self.controller_wire.option} and --controller-from both name the controller: give "
+                             "one of them")
         if self.window_mesh_h is not None and not (math.isfinite(self.window_mesh_h) and self.window_mesh_h > 0):
             raise ValueError("the auto model's window mesh size must be a positive length "
                              f"(got {self.window_mesh_h!r})")
@@ -123,7 +128,17 @@ def run_stream(scenario: Scenario, settings: StreamSettings, progress=None, plan
     The sort report is built as cells leave (``sortreport.SortLedger``, memory bounded by the cells in the
     channel); ``table``: the path of the per-cell table it writes (Parquet, ``vcyto.celltable``), or None.
     """
-    loop = Loop(scenario, settings, progress, plant, sinks, controller, timing, table)
+    port = None
+    if controller is None and settings.controller_wire is not None:     # opened here, closed when the run ends
+        controller = port = settings.controller_wire.open(timing)
+    try:
+        return _run(Loop(scenario, settings, progress, plant, sinks, controller, timing, table))
+    finally:
+        if port is not None:
+            port.close()
+
+
+def _run(loop: Loop) -> dict:
     status, reason, failure = "complete", "", None
     try:
         while loop.proceed:
@@ -254,8 +269,12 @@ class Loop:
 
     def step(self):
         events = self.advance()
-        self.control.deliver(events, self.clock)
-        self.conclude(events)
+        self.control.post(events)
+        # what the sinks are shown of the plant does not depend on the answers: looked at while the controller
+        # thinks (over the wire, in another process), then the answers are collected (lock-step)
+        look = self._look() if self._show_due() else None
+        self.control.collect()
+        self.conclude(events, look)
 
     def advance(self) -> list:
         """The plant up to the next moment the loop must look; the detector events completed by then."""
@@ -282,23 +301,32 @@ class Loop:
         self.detected += len(new_events)
         return new_events
 
-    def conclude(self, new_events):
-        """After the controller was told of ``new_events``: late answers settled, the drive set, the sinks shown."""
+    def conclude(self, new_events, look=None):
+        """After the controller was told of ``new_events``: late answers settled, the drive set, the sinks shown
+        (``look``: the plant as ``_look`` saw it at this stop, if already taken)."""
         control, now = self.control, self.now
         control.settle(now)
         self.actuation = control.actuation(self.plant.clock if self.single else now)
         self.pending.extend(new_events)
-        # an event-driven plant shows its state every record_interval (events and decisions wait for it)
-        if self.sinks and (not self.grouped or self.single or now >= self.shown + self.settings.record_interval - 1e-12
-                           or self.plant.done):
-            self._show()
+        if look is not None or self._show_due():
+            self._show(look)
 
-    def _show(self):
+    def _show_due(self) -> bool:
+        """Whether the sinks see this stop: every step, or an event-driven plant's state every record_interval
+        (events and decisions wait for it), and its last."""
+        return bool(self.sinks) and (not self.grouped or self.single or self.plant.done
+                                     or self.now >= self.shown + self.settings.record_interval - 1e-12)
+
+    def _look(self) -> tuple:
+        """The plant at this stop as the sinks see it: its observation, the cells' truth, its diagnostics."""
         if self.grouped:
             self.observation = self.plant.observe()
-        record = StepRecord(self.steps, self.observation, self.truth_update(), self.actuation, tuple(self.pending),
-                            tuple(self.control.ledger.take_changes()), self.fields,
-                            self.diagnostics() if self.diagnostics is not None else None)
+        return (self.observation, self.truth_update(), self.diagnostics() if self.diagnostics is not None else None)
+
+    def _show(self, look=None):
+        observation, truth, diagnostics = look if look is not None else self._look()
+        record = StepRecord(self.steps, observation, truth, self.actuation, tuple(self.pending),
+                            tuple(self.control.ledger.take_changes()), self.fields, diagnostics)
         for sink in self.sinks:
             sink.on_step(record)
         self.pending, self.shown = [], self.now

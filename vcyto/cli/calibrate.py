@@ -9,14 +9,32 @@ import time
 
 import numpy as np
 
+from controller.protocol import ControllerError
 from controller.sorter import MODES
 from sim import plants
 
 from .. import outputs, runfiles, units
 from ..arguments import Number, Quantity
-from ..options import controller_settings, detector_settings, plugin_spec, scenario_from, scenario_options
+from ..options import (
+    controller_settings,
+    detector_settings,
+    plugin_spec,
+    scenario_from,
+    scenario_options,
+    wire_controller,
+    wire_options,
+)
 from ..outputs import strict_json
-from .common import SMALL_FILES_BYTES, UsageError, emit, output_directory, output_options, signals_seen
+from .common import (
+    EXIT_NUMERICAL,
+    SMALL_FILES_BYTES,
+    RunStopped,
+    UsageError,
+    emit,
+    output_directory,
+    output_options,
+    signals_seen,
+)
 
 
 def add_command(commands):
@@ -44,6 +62,7 @@ def _calibration_options(parser: argparse.ArgumentParser):
     parser.add_argument("--controller-from", metavar="FILE.py:NAME",
                         help="then check your controller: NAME, called with the new calibration, sorts "
                              + ",".join(CHECK_CELLS) + " on the calibrated plant; the report says where each cell went")
+    wire_options(parser, "the check's")
     for name in ("delay", "envelope", "timing_error"):
         parser.set_defaults(**{name: None})
     parser.set_defaults(no_controller=False)
@@ -88,6 +107,10 @@ def command_calibrate(args):
         pulse = (base.pulse, base.lead)
     detector = detector_settings(args, scenario)
     plant_from, controller_from = plugin_spec(args, "plant_from"), plugin_spec(args, "controller_from")
+    reached = wire_controller(args)
+    if reached is not None and controller_from is not None:
+        raise UsageError(f"{reached.option}: --controller-from names the controller too: give one of them")
+    checked = (controller_from, reached) if controller_from is not None or reached is not None else None
     if plant_from is not None and args.model != "rom":
         raise UsageError(f"--plant-from: calibrates your plant instead of --model {args.model}: give one of them")
     from ..progress import Progress
@@ -96,7 +119,7 @@ def command_calibrate(args):
     try:
         plant = _plant(scenario, args.model, plant_from)
         result = calibrate.calibrate(plant, scenario, detector, grid, pulse, base, progress)
-        check = _check(scenario, plant, detector, result.settings, controller_from) if controller_from else None
+        check = _check(scenario, plant, detector, result.settings, *checked) if checked else None
     except calibrate.CalibrationError as error:
         raise UsageError(str(error)) from None
     except calibrate.CalibrationInterrupted as interrupted:
@@ -148,18 +171,22 @@ def _model_name(plant) -> str:
     return model_name(plant)
 
 
-def _check(scenario, plant, detector, settings, controller_from: str) -> dict:
-    """The user's controller, built from the new calibration, on ``CHECK_CELLS``: where each cell went."""
+def _check(scenario, plant, detector, settings, controller_from: str | None, reached=None) -> dict:
+    """The user's controller (``controller_from``'s, built from the new calibration, or one in another process,
+    ``reached``: it gets the new calibration's device facts) on ``CHECK_CELLS``: where each cell went."""
     from sim.arrivals import Arrivals
 
     from .. import plugins
     from ..stream import StreamSettings, run_stream
     stream_settings = StreamSettings(Arrivals(cells=CHECK_CELLS), detector, settings, model="rom",
-                                     controller_from=controller_from)
+                                     controller_from=controller_from, controller_wire=reached)
     try:
         result = run_stream(scenario, stream_settings, plant=plant)
     except plugins.PluginError as error:
         raise UsageError(f"--controller-from: {error}") from None
+    except (ControllerError, ConnectionError) as error:
+        print(f"vcyto: error: {reached.option}: {' '.join(str(error).split())}", file=sys.stderr)
+        raise RunStopped(EXIT_NUMERICAL) from None
     cells = [{"type": c["type"], "true_class": c["true_class"], "decision": c["decision"], "outlet": c["outlet"]}
              for c in result["cells"]]
     right = sum(c["outlet"] == ("upper" if c["true_class"] == "II" else "lower") for c in cells)

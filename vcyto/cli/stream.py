@@ -9,7 +9,7 @@ import sys
 from controller.protocol import ControllerError
 
 from .. import outputs
-from ..arguments import Integer, Number, Quantity
+from ..arguments import Integer, Number
 from ..options import (
     late_pulse_note,
     scenario_from,
@@ -18,6 +18,8 @@ from ..options import (
     stream_options,
     stream_settings,
     tolerance_options,
+    wire_controller,
+    wire_options,
 )
 from .common import (
     EXIT_NUMERICAL,
@@ -65,17 +67,7 @@ def _timing_options(parser: argparse.ArgumentParser):
                        help="paced real time: device time follows the wall clock (FACTOR device seconds per wall "
                             "second, default 1); an answer later than its event's deadline is a missed decision. "
                             "Default: lock-step (the loop waits for every answer; results depend on the seed only)")
-    wire = parser.add_argument_group("a controller in another process (docs/wire-protocol.md)")
-    wire.add_argument("--controller-connect", metavar="ADDRESS",
-                      help="the controller listening at ADDRESS: tcp:HOST:PORT (e.g. tcp:127.0.0.1:7070) or "
-                           "unix:PATH, spoken to over the wire protocol")
-    wire.add_argument("--controller-exec", metavar="CMD",
-                      help="start the controller CMD (split as a shell would; {address} in it, and the environment "
-                           "variable VCYTO_CONTROLLER_ADDRESS, say where to listen), connect, stop it at the end")
-    wire.add_argument("--controller-timeout", type=Quantity("time", "s", low=0, low_open=True, high=3600),
-                      metavar="TIME",
-                      help="how long to wait for the connection, the handshake and each lock-step answer "
-                           "(default 10 s); a controller that takes longer stops the run with an error")
+    wire_options(parser)
 
 
 def _timing(args):
@@ -93,11 +85,9 @@ def _controller(args, settings, timing):
                                           ("--no-controller", args.no_controller)) if given is not None and given]
     if len(named) > 1:
         raise UsageError(f"{named[0]}: {named[1]} names the controller too: give one of them")
-    if named and named[0] in ("--controller-connect", "--controller-exec"):
-        return _wire_port(args, named[0], timing)
-    if args.controller_timeout is not None:
-        raise UsageError("--controller-timeout: applies to a controller in another process: add "
-                         "--controller-connect ADDRESS or --controller-exec CMD, or drop it")
+    reached = wire_controller(args)
+    if reached is not None:
+        return _wire_port(reached, timing)
     if settings.controller_from is None:
         return None
     try:
@@ -106,16 +96,12 @@ def _controller(args, settings, timing):
         raise UsageError(f"--controller-from: {error}") from None
 
 
-def _wire_port(args, option: str, timing):
-    """The port to a controller in another process (``vcyto.wire``): connected, or its process started; a bad
-    address or command is a usage error, a controller that cannot be reached one line and exit 1."""
-    from .. import wire
-    timeout = wire.DEFAULT_TIMEOUT if args.controller_timeout is None else args.controller_timeout
+def _wire_port(reached, timing):
+    """The port to a controller in another process (``vcyto.wire.WireController``): connected, or its process
+    started; a bad command is a usage error, a controller that cannot be reached one line and exit 1."""
+    option = reached.option
     try:
-        if option == "--controller-connect":
-            wire.parse_address(args.controller_connect)
-            return wire.connect(args.controller_connect, timeout, timing)
-        return wire.launch(args.controller_exec, timeout, timing)
+        return reached.open(timing)
     except (ControllerError, ConnectionError) as error:
         print(f"vcyto: error: {option}: {' '.join(str(error).split())}", file=sys.stderr)
         raise RunStopped(EXIT_NUMERICAL) from None

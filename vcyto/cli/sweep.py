@@ -8,6 +8,7 @@ from pathlib import Path
 
 from .. import outputs
 from ..arguments import Integer
+from ..options import wire_controller, wire_options
 from ..outputs import strict_json
 from .common import SMALL_FILES_BYTES, UsageError, emit, output_directory, output_options, signals_seen
 
@@ -28,6 +29,7 @@ def add_command(commands):
                             "upgrade recomputes every point; the summary counts the rows kept)")
     sweep.add_argument("--chunk", type=Integer(low=1), default="8", metavar="N",
                        help="points sharing a plant go to one worker N at a time (default 8)")
+    wire_options(sweep, "every point's")
     output_options(sweep)
     sweep.set_defaults(handler=command_sweep)
 
@@ -38,7 +40,7 @@ def command_sweep(args):
     try:
         if args.scheduler is not None:
             sweep.check_scheduler(args.scheduler)
-        spec = sweep.load_sweep(args.spec)
+        spec = sweep.load_sweep(args.spec, wire_controller(args))
     except sweep.SweepError as error:
         raise UsageError(str(error)) from None
     output = output_directory(args.output or str(Path("recordings") / "sweeps" / Path(args.spec).stem),

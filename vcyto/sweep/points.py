@@ -20,6 +20,7 @@ from ..options import stream_run, stream_run_options
 from .model import Point, SweepError, one_line
 
 DEFAULT_MODEL = "rom"
+WIRE_OPTIONS = ("controller_connect", "controller_exec", "controller_timeout")
 
 
 def option_actions() -> dict[str, argparse.Action]:
@@ -34,6 +35,9 @@ def base_arguments(table: dict, options: dict, directory: Path) -> argparse.Name
     arguments = stream_run_options().parse_args([])
     arguments.model = DEFAULT_MODEL
     for key, value in table.items():
+        if key in WIRE_OPTIONS:
+            raise SweepError(f"base.{key}: a controller in another process is given on the command line, not in "
+                             f"a spec: vcyto sweep SPEC --{key.replace('_', '-')} ...")
         if key not in options:
             raise SweepError(f"base.{key}: unknown option; known: {', '.join(sorted(options))}")
         if key in ("scenario", "controller"):          # files beside (or below) the spec

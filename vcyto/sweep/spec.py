@@ -25,20 +25,23 @@ RANGE_KEYS = ("start", "stop", "num", "step", "log")
 DISTRIBUTIONS = ("uniform", "log_uniform", "integers")
 
 
-def load_sweep(path: str | os.PathLike) -> Sweep:
-    """The sweep the spec file at ``path`` describes, every point built and checked (no plant is built)."""
+def load_sweep(path: str | os.PathLike, controller_wire=None) -> Sweep:
+    """The sweep the spec file at ``path`` describes, every point built and checked (no plant is built);
+    ``controller_wire``: every point's controller in another process (``vcyto.wire.WireController``; given on
+    the command line, never by a spec, which could otherwise make vcyto run a program)."""
     try:
         document = read_toml(path, "sweep spec", field="spec")
     except ScenarioError as error:
         raise SweepError(str(error)) from None
-    return parse_sweep(document, Path(path).parent, name=os.fspath(path))
+    return parse_sweep(document, Path(path).parent, name=os.fspath(path), controller_wire=controller_wire)
 
 
-def parse_sweep(document: dict, directory: Path = Path("."), name: str = "spec") -> Sweep:
+def parse_sweep(document: dict, directory: Path = Path("."), name: str = "spec", controller_wire=None) -> Sweep:
     """The sweep of a parsed spec; ``directory`` resolves a relative ``[base] scenario`` file."""
     check_known(document, ("base", "parameters", "sweep"), "", "tables")
     options = option_actions()
     base = base_arguments(_table(document, "base"), options, directory)
+    base.controller_wire = controller_wire
     parameters = tuple(_parameter(key, value, options, directory)
                        for key, value in _flat(_table(document, "parameters")))
     if not parameters:

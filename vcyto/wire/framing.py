@@ -84,6 +84,12 @@ class Frames:
         del self._buffer[:end]
         return decode(body)
 
+    def wanted(self) -> int:
+        """Bytes that complete the message begun (its header first), at least 1."""
+        if len(self._buffer) < HEADER.size:
+            return HEADER.size - len(self._buffer)
+        return max(1, HEADER.size + self._check_length() - len(self._buffer))
+
     @property
     def partial(self) -> int:
         """Bytes of a message begun but not complete (a peer that closes now cut a message short)."""

@@ -1,8 +1,9 @@
 """The messages of the wire protocol, built and checked (docs/wire-protocol.md lists every field).
 
 vcyto sends ``hello`` (the protocol, its version, vcyto's capabilities, the device facts, the timing mode),
-``event`` (a detector event with its deadline and the device clock) and ``end``; the controller answers
-``welcome`` (or ``error``), one ``decisions`` per event, and ``bye``. Either side may send ``error``. All times
+``event`` (a detector event with its deadline and the device clock), ``period`` (to a controller that offers
+``drive``: a control period starts) and ``end``; the controller answers ``welcome`` (or ``error``), one
+``decisions`` per event, one ``drive`` per period, and ``bye``. Either side may send ``error``. All times
 are device times in seconds, lengths in metres, velocities in m/s.
 """
 
@@ -17,8 +18,9 @@ from .framing import WireError
 
 PROTOCOL = "vcyto-controller"
 VERSION = 1
-CAPABILITIES = ("decisions",)      # what this version offers: an answer of decisions to each event
+CAPABILITIES = ("decisions", "drive")   # what this version offers: decisions to each event; the drive each period
 REQUIRED = "decisions"             # what a controller must offer
+DRIVE = "drive"                    # a controller that offers it sets the IDT drive each control period itself
 
 
 def hello(facts: DeviceFacts, timing) -> dict:
@@ -36,6 +38,23 @@ def event(event: DetectorEvent, deadline: float, clock: float) -> dict:
     return {"type": "event", "event_id": event.event_id, "time": event.time, "fluorescence": event.fluorescence,
             "scatter": event.scatter, "velocity": event.velocity, "classification": event.classification,
             "key": event.key, "deadline": deadline, "clock": clock}
+
+
+def period(clock: float) -> dict:
+    """A control period starts at ``clock``: a controller that offers ``drive`` answers its drive level."""
+    return {"type": "period", "clock": clock}
+
+
+def drive(message: dict) -> tuple[float, float]:
+    """The period (its start, s) and the drive level in [0, 1] of a ``drive`` message (``WireError`` names the
+    field that is wrong)."""
+    clock, level = message.get("clock"), message.get("level")
+    for name, value in (("clock", clock), ("level", level)):
+        if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+            raise WireError(f"drive: {name} must be a finite number (got {value!r})")
+    if not 0.0 <= level <= 1.0:
+        raise WireError(f"drive: level must be in [0, 1] (got {level!r} for the period at {clock!r} s)")
+    return float(clock), float(level)
 
 
 def end(reason: str) -> dict:

@@ -4,7 +4,9 @@
 timeout)`` starts one (``{address}`` in the command and the environment variable ``VCYTO_CONTROLLER_ADDRESS`` say
 where to listen), waits for it to listen, connects, and stops it when the port closes. A thread reads the
 controller's messages as they come and stamps each with the wall time it arrived, so that a reply's latency is
-measured when it arrives, not when the loop looks. Every failure raises ``ControllerError`` (``WireError``) or
+measured when it arrives, not when the loop looks: over TCP the kernel stamps it (``SO_TIMESTAMPNS``, read with
+each message), elsewhere a reader thread does (paced real time only; lock-step reads inline). Paced real time
+launches its controller on TCP loopback for that reason. Every failure raises ``ControllerError`` (``WireError``) or
 ``ConnectionError`` with one line naming the cause; every wait is bounded by ``timeout``, closing included.
 """
 
@@ -13,15 +15,18 @@ from __future__ import annotations
 import math
 import os
 import queue
+import select
 import shlex
 import shutil
 import signal
 import socket
+import struct
 import subprocess
 import sys
 import tempfile
 import threading
 import time
+from dataclasses import dataclass
 
 from controller.protocol import ControllerError, DeviceFacts
 
@@ -33,6 +38,8 @@ ENV_ADDRESS = "VCYTO_CONTROLLER_ADDRESS"    # where a controller started by ``la
 DEFAULT_TIMEOUT = 10.0                      # s: connect, handshake, each lock-step answer
 CLOSE_WAIT = 2.0                            # s at most for the controller's bye, then for its process to exit
 RECEIVE_CHUNK = 1 << 16
+SO_TIMESTAMPNS = getattr(socket, "SO_TIMESTAMPNS", 35 if sys.platform.startswith("linux") else None)
+TIMESPEC = struct.Struct("@qq")             # the kernel's receive time: seconds, nanoseconds (CLOCK_REALTIME)
 
 
 def parse_address(text: str) -> tuple:
@@ -72,6 +79,18 @@ def _socket(address: tuple, timeout: float) -> socket.socket:
         raise ConnectionError(f"cannot connect to the controller at {shown}: {_reason(error)}") from None
 
 
+def _readable(sock: socket.socket, wait: float) -> bool:
+    """Whether ``sock`` has something to read within ``wait`` s: ``select`` waits to the microsecond (a socket's
+    own timeout, ``poll``, rounds a wait up to the next millisecond, which would pace a real-time loop badly)."""
+    try:
+        ready, _, _ = select.select((sock,), (), (), max(wait, 0.0))
+    except ValueError:                           # a descriptor beyond select's range: poll, to the millisecond
+        poller = select.poll()
+        poller.register(sock, select.POLLIN)
+        ready = poller.poll(max(0, math.ceil(wait * 1e3)))
+    return bool(ready)
+
+
 def _reason(error: BaseException) -> str:
     if isinstance(error, (socket.timeout, TimeoutError)):
         return "timed out"
@@ -98,7 +117,8 @@ def launch(command: str, timeout: float = DEFAULT_TIMEOUT, timing: Timing = Timi
     if not argv:
         raise ValueError("the controller command is empty")
     directory = tempfile.mkdtemp(prefix="vcyto-wire-")
-    address = address or _private_address(directory)
+    # paced real time judges answers by the kernel's receive time, which TCP gives and Unix sockets do not
+    address = address or _private_address(directory, tcp=timing.realtime and SO_TIMESTAMPNS is not None)
     parsed = parse_address(address)
     argv = [word.replace("{address}", address) for word in argv]
     try:
@@ -117,9 +137,9 @@ def launch(command: str, timeout: float = DEFAULT_TIMEOUT, timing: Timing = Timi
     return WirePort(sock, address, timeout, timing, process=process, directory=directory, label="started by vcyto")
 
 
-def _private_address(directory: str) -> str:
+def _private_address(directory: str, tcp: bool = False) -> str:
     path = os.path.join(directory, "controller.sock")
-    if hasattr(socket, "AF_UNIX") and len(path.encode()) < 100:
+    if not tcp and hasattr(socket, "AF_UNIX") and len(path.encode()) < 100:
         return f"unix:{path}"
     probe = socket.socket()           # a free port on this machine (another program could take it first: rare)
     probe.bind(("127.0.0.1", 0))
@@ -167,6 +187,37 @@ def _stop(process, wait: float = CLOSE_WAIT) -> None:
             continue
 
 
+@dataclass(frozen=True)
+class WireController:
+    """Where a run finds its controller in another process, as plain data (a sweep's workers open one each):
+    ``how`` is ``"connect"`` (``target`` an address) or ``"exec"`` (``target`` a command), as the options
+    ``--controller-connect`` and ``--controller-exec`` say."""
+
+    how: str
+    target: str
+    timeout: float = DEFAULT_TIMEOUT
+
+    def __post_init__(self):
+        if self.how not in ("connect", "exec"):
+            raise ValueError(f"a controller in another process is reached by connect or exec (got {self.how!r})")
+        _check_timeout(self.timeout)
+        if self.how == "connect":
+            parse_address(self.target)
+        elif not str(self.target).strip():
+            raise ValueError("the controller command is empty")
+
+    @property
+    def option(self) -> str:
+        return f"--controller-{self.how}"
+
+    def open(self, timing: Timing = Timing()) -> WirePort:
+        """A port to the controller: connected to, or its process started (``ConnectionError`` or
+        ``ControllerError``, one line, if it cannot be reached)."""
+        if self.how == "connect":
+            return connect(self.target, self.timeout, timing)
+        return launch(self.target, self.timeout, timing)
+
+
 def _check_timeout(timeout: float) -> None:
     if not (isinstance(timeout, (int, float)) and math.isfinite(timeout) and 0 < timeout <= 3600):
         raise ValueError(f"the controller timeout must be a time in (0, 3600] s (got {timeout!r})")
@@ -176,13 +227,15 @@ class WirePort:
     """The port (``vcyto.control``) to a controller across a socket: ``start`` shakes hands, ``post`` sends an
     event, ``replies`` gives the answers that came, ``close`` says goodbye and stops a launched process."""
 
-    drives = False                 # this version of the protocol: decisions only (the loop times the pulses)
-
     def __init__(self, sock: socket.socket, address: str, timeout: float, timing: Timing = Timing(),
                  process=None, directory: str | None = None, label: str | None = None):
         self.address, self.timeout, self.timing = address, timeout, timing
         self.name = f"wire controller at {address}"
         self.capabilities: tuple[str, ...] = ()
+        self.drives = False            # whether the controller sets the drive itself (the ``drive`` capability)
+        self._level = 0.0              # the drive level it last set
+        self._periods: dict[float, float] = {}        # period start -> wall time its ``period`` was sent
+        self._held: list[Reply] = []                  # answers that came while the loop waited for a drive
         self._label = label or address
         self._sock, self._process, self._directory = sock, process, directory
         self._sock.settimeout(timeout)
@@ -194,13 +247,30 @@ class WirePort:
         self._closed = False
         self._failure: BaseException | None = None     # why the connection can no longer be used
         self._reader: threading.Thread | None = None
+        self._stamped = timing.realtime and self._kernel_stamps()
         if timing.realtime:
             self._listen_in_background()
 
+    def _kernel_stamps(self) -> bool:
+        """Ask the kernel to stamp what it receives (TCP on Linux); False where it cannot."""
+        if SO_TIMESTAMPNS is None or self._sock.family not in (socket.AF_INET, socket.AF_INET6):
+            return False
+        try:
+            self._sock.setsockopt(socket.SOL_SOCKET, SO_TIMESTAMPNS, 1)
+        except OSError:
+            return False
+        return True
+
+    def _now(self) -> float:
+        """The wall clock replies are judged by: the kernel's (CLOCK_REALTIME) when it stamps them, else
+        ``perf_counter``."""
+        return time.time_ns() * 1e-9 if self._stamped else time.perf_counter()
+
     def _listen_in_background(self) -> None:
         """Read on a thread from now on, which stamps each message with the wall time it came: paced real time
-        judges a reply by that time, not by when the loop looks (lock-step reads inline: one thread hop less)."""
-        if self._reader is None:
+        judges a reply by that time, not by when the loop looks (lock-step reads inline: one thread hop less).
+        Where the kernel stamps messages, no thread is needed: the loop reads them when it looks."""
+        if self._reader is None and not self._stamped:
             self._reader = threading.Thread(target=self._read, name="vcyto-wire-reader", daemon=True)
             self._reader.start()
 
@@ -211,12 +281,13 @@ class WirePort:
         self._send(messages.hello(facts, self.timing))
         message, _ = self._next(self.timeout, "welcome")
         name, software, self.capabilities = messages.check_welcome(message)
+        self.drives = messages.DRIVE in self.capabilities
         self.name = f"{name}{' ' + software if software else ''} (wire, {self._label})"
 
     def post(self, event, clock: float) -> None:
         if self._facts is None:
             raise ControllerError("an event posted before the handshake (start) ran")
-        self._posted[event.event_id] = time.perf_counter()
+        self._posted[event.event_id] = self._now()
         self._send(messages.event(event, self._facts.deadline(event), clock))
 
     def replies(self, wait: float = 0.0) -> list[Reply]:
@@ -224,20 +295,43 @@ class WirePort:
         ``ControllerError``: a controller that never answers stops the run)."""
         if not math.isinf(wait):            # a caller that polls (paced real time) needs arrivals stamped
             self._listen_in_background()
+        replies, self._held = self._held, []
+        if replies:
+            wait = 0.0
         bounded = self.timeout if math.isinf(wait) else max(0.0, wait)
-        first = self._next(bounded, "answer" if math.isinf(wait) else None)
-        if first is None:
-            return []
-        replies = [self._reply(*first)]
+        end = time.perf_counter() + bounded
+        while not replies:                  # drive answers are taken on the way; a decision ends the wait
+            first = self._next(max(0.0, end - time.perf_counter()), "answer" if math.isinf(wait) else None)
+            if first is None:
+                return []
+            if (reply := self._reply(*first)) is not None:
+                replies.append(reply)
         while True:
             try:
                 item = self._inbox.get_nowait()
             except queue.Empty:
                 return replies
-            replies.append(self._reply(*self._checked(item)))
+            if (reply := self._reply(*self._checked(item))) is not None:
+                replies.append(reply)
 
     def drive(self, clock: float) -> float | None:
-        return None
+        """The drive for the control period from ``clock`` (None if the controller does not set it). Lock-step:
+        its answer to ``period``, waited for. Paced real time: the level it last set by now (an answer applies
+        from the first period that starts after it came)."""
+        if not self.drives:
+            return None
+        self._send(messages.period(clock))
+        self._periods[clock] = self._now()
+        if not self.timing.realtime:
+            while clock in self._periods:
+                message = self._next(self.timeout, "drive")
+                if (reply := self._reply(*message)) is not None:
+                    self._held.append(reply)
+        else:
+            while (item := self._next(0.0, None)) is not None:
+                if (reply := self._reply(*item)) is not None:
+                    self._held.append(reply)
+        return self._level
 
     def close(self) -> None:
         """Say goodbye (``end``; the controller answers ``bye``), close the socket and stop a launched process;
@@ -317,8 +411,16 @@ class WirePort:
             raise item
         return item
 
-    def _reply(self, message: dict, received: float) -> Reply:
+    def _reply(self, message: dict, received: float) -> Reply | None:
+        """The answer in ``message``; None for a drive answer (which sets the level)."""
         kind = message["type"]
+        if kind == "drive" and self.drives:
+            clock, level = messages.drive(message)
+            if self._periods.pop(clock, None) is None:
+                raise WireError(f"a drive for the period at {clock!r} s, which was not asked about or was answered "
+                                "before")
+            self._level = level
+            return None
         if kind == "decisions":
             event_id, decisions = messages.decisions(message)
             posted = self._posted.pop(event_id, None)
@@ -353,31 +455,47 @@ class WirePort:
         """Read what the socket has (waiting up to ``wait`` s; None: the socket's timeout) into the inbox, each
         message stamped with the wall time it came; False once the connection has ended (the inbox says why)."""
         try:
-            if wait is not None:
-                self._sock.settimeout(max(wait, 1e-6))
+            if wait is not None and not _readable(self._sock, wait):
+                return True
             try:
-                data = self._sock.recv(RECEIVE_CHUNK)
+                data, received = self._receive()
             except (socket.timeout, TimeoutError):
                 return True
-            finally:
-                if wait is not None:
-                    self._sock.settimeout(self.timeout)
-            received = time.perf_counter()
             if not data:
                 if not self._closing.is_set():
                     cut = f" in the middle of a message ({self._frames.partial} bytes)" if self._frames.partial else ""
                     self._fail(ConnectionError(self._lost(f"the controller closed the connection{cut}")))
                 return False
-            self._frames.feed(data)
-            while (message := self._frames.pop()) is not None:
-                self._inbox.put((message, received))
-            return True
+            while True:
+                self._frames.feed(data)
+                while (message := self._frames.pop()) is not None:
+                    self._inbox.put((message, received))
+                if not (self._stamped and self._frames.partial):
+                    return True
+                if not _readable(self._sock, 0.0):
+                    return True
+                data, received = self._receive()   # the rest of a message begun: stamped by its last bytes
+                if not data:
+                    return True    # closed: the next read says so
         except WireError as error:
             self._fail(error)
         except OSError as error:
             if not self._closing.is_set():
                 self._fail(ConnectionError(self._lost(_reason(error))))
         return False
+
+    def _receive(self) -> tuple[bytes, float]:
+        """Bytes off the socket and the wall time they came. Kernel-stamped: at most the rest of the message
+        begun, so that each message carries the time of its own bytes, not of a later one's."""
+        if not self._stamped:
+            data = self._sock.recv(RECEIVE_CHUNK)
+            return data, time.perf_counter()
+        data, ancillary, _, _ = self._sock.recvmsg(self._frames.wanted(), socket.CMSG_SPACE(TIMESPEC.size))
+        for level, kind, payload in ancillary:
+            if level == socket.SOL_SOCKET and kind == SO_TIMESTAMPNS and len(payload) >= TIMESPEC.size:
+                seconds, nanoseconds = TIMESPEC.unpack_from(payload)
+                return data, seconds + nanoseconds * 1e-9
+        return data, self._now()
 
     def _fail(self, error: BaseException) -> None:
         self._inbox.put(error)

@@ -1,6 +1,7 @@
 """A Python controller served over the wire protocol: ``python -m vcyto.wire.serve --listen ADDRESS``.
 
-The controller end of ``WirePort`` for any object implementing ``controller.protocol.Controller``: by default
+The controller end of ``WirePort`` for any object implementing ``controller.protocol.Controller`` (and
+``Drives``: it then offers the ``drive`` capability and answers each ``period``): by default
 the built-in ``SortController``, its settings taken from the device facts of the hello (``--mode``: purity
 unless told), or a controller of one's own (``--controller FILE.py:NAME``, as ``vcyto stream --controller-from``).
 It lets a Python controller run in a process, or on a machine, of its own; ``vcyto bench wire`` times the loop
@@ -16,11 +17,11 @@ import socket
 import sys
 
 from controller.events import DetectorEvent
-from controller.protocol import DeviceFacts, Starts
+from controller.protocol import DeviceFacts, Drives, Starts
 from controller.sorter import MODES, ControllerSettings, SortController
 
 from .framing import Frames, WireError, encode
-from .messages import CAPABILITIES, PROTOCOL, VERSION
+from .messages import DRIVE, PROTOCOL, REQUIRED, VERSION
 from .port import ENV_ADDRESS, parse_address
 
 EVENT_FIELDS = ("event_id", "time", "fluorescence", "scatter", "velocity", "classification", "key")
@@ -70,14 +71,18 @@ def serve_connection(sock: socket.socket, make) -> None:
             controller = make(facts)
             if isinstance(controller, Starts):
                 controller.start(facts)
+            offers = [REQUIRED, DRIVE] if isinstance(controller, Drives) else [REQUIRED]
             sock.sendall(encode({"type": "welcome", "protocol": PROTOCOL, "version": VERSION,
                                  "name": getattr(controller, "name", type(controller).__name__),
-                                 "software": "vcyto.wire.serve", "capabilities": list(CAPABILITIES)}))
+                                 "software": "vcyto.wire.serve", "capabilities": offers}))
         elif kind == "event" and controller is not None:
             event = DetectorEvent(*(message[name] for name in EVENT_FIELDS))
             answer = controller.on_event(event, message["clock"]) or ()
             sock.sendall(encode({"type": "decisions", "event_id": event.event_id,
                                  "decisions": [_decision(decision) for decision in answer]}))
+        elif kind == "period" and isinstance(controller, Drives):
+            clock = message["clock"]
+            sock.sendall(encode({"type": "drive", "clock": clock, "level": float(controller.drive(clock))}))
         elif kind == "end":
             sock.sendall(encode({"type": "bye"}))
             return

@@ -120,6 +120,7 @@ class _Departures:
     sink (the sort report among them), until the environment takes them for its rewards."""
 
     paced = False
+    needs_state = False           # reads the cells' truth only
 
     def __init__(self):
         self.cells: list = []

@@ -70,6 +70,7 @@ class SortLedger:
     (None: all; by default ``KEEP_CELLS``). ``summary`` adds the cells still in the channel and those never injected."""
 
     paced = False
+    needs_state = False           # the time, the cells' truth, events and decisions are all it reads
 
     def __init__(self, sample, scenario, settings, predicted_arrival, table=None, keep: int | None | str = "default"):
         from .celltable import CellTable

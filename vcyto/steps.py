@@ -39,6 +39,21 @@ class StepRecord:
         return self.observation.time
 
 
+@dataclass(frozen=True)
+class Moment:
+    """The observation a record carries when no sink looks at the plant's state (``needs_state``): its time."""
+
+    time: float
+    cells: tuple = ()
+
+
+def needs_state(sink) -> bool:
+    """Whether ``sink`` reads the plant's observation and diagnostics (recordings, progress), or only the time,
+    the cells' truth, events and decisions (``needs_state = False``: the sort report), so that the loop can skip
+    looking at the plant for it."""
+    return getattr(sink, "needs_state", True)
+
+
 def is_paced(sink) -> bool:
     """Whether ``sink`` wants the state every record interval (recordings) or only the loop's own steps."""
     return getattr(sink, "paced", True)

@@ -31,7 +31,7 @@ from sim.scenario import Scenario
 from . import sortreport
 from .control import Control, InProcess, Timing, describe
 from .sortreport import report_lines, statistics_of, true_class  # noqa: F401  (the loop's public names)
-from .steps import ProgressSink, StepRecord, is_paced
+from .steps import Moment, ProgressSink, StepRecord, is_paced, needs_state
 
 MODELS = plants.MODELS
 STATUSES = ("complete", "truncated", "interrupted", "failed")
@@ -242,7 +242,10 @@ class Loop:
         # one step a call (the FE-IB plant with a tolerance): every call is shown, none stopped for the records
         self.single = self.grouped and getattr(plant, "one_step_per_call", False)
         self.truth_updates = plant.truth_update if isinstance(plant, contract.ReportsTruthUpdates) else None
-        self.diagnostics = plant.diagnostics if isinstance(plant, contract.HasDiagnostics) else None
+        # the plant's observation and diagnostics only where a sink reads them (the sort report does not)
+        self.state_wanted = any(needs_state(sink) for sink in self.sinks)
+        self.diagnostics = plant.diagnostics if isinstance(plant, contract.HasDiagnostics) and self.state_wanted \
+            else None
         self.pending, self.shown = [], 0.0          # events not yet shown to the sinks; when they last saw a step
         self.observation = plant.reset(sample.admitted)
         self.setup = time.perf_counter() - started
@@ -320,7 +323,7 @@ class Loop:
     def _look(self) -> tuple:
         """The plant at this stop as the sinks see it: its observation, the cells' truth, its diagnostics."""
         if self.grouped:
-            self.observation = self.plant.observe()
+            self.observation = self.plant.observe() if self.state_wanted else Moment(self.plant.time)
         return (self.observation, self.truth_update(), self.diagnostics() if self.diagnostics is not None else None)
 
     def _show(self, look=None):

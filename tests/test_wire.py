@@ -89,7 +89,8 @@ def test_a_message_vcyto_would_send_beyond_the_limit_or_with_nan_is_refused():
 
 def test_the_hello_carries_the_protocol_version_capabilities_and_facts_in_si():
     hello = messages.hello(FACTS, Timing(realtime=True, factor=0.5))
-    assert (hello["protocol"], hello["version"], hello["capabilities"]) == ("vcyto-controller", 1, ["decisions", "drive"])
+    assert (hello["protocol"], hello["version"]) == ("vcyto-controller", 1)
+    assert hello["capabilities"] == ["decisions", "drive"]
     assert hello["facts"]["sort_delay"] == 0.553e-3 and hello["facts"]["envelope"] == [-0.21e-3, 0.2025e-3]
     assert hello["timing"] == {"mode": "realtime", "factor": 0.5}
     assert framing.decode(framing.encode(hello)[4:]) == hello

@@ -77,6 +77,21 @@ class CellTable:
         if len(self._rows) >= self.rows_per_group:
             self._write()
 
+    def append_columns(self, columns: dict):
+        """Rows given as columns of per-cell records (each a sequence, all of one length), after the rows appended
+        so far."""
+        if self.failed:
+            return
+        self._write()
+        count = len(columns["key"])
+        split = {name: values for name, values in columns.items() if name not in PAIRS}
+        for pair, (low, high) in PAIRS.items():
+            values = columns.get(pair) or [None] * count
+            split[low], split[high] = ([v[0] if v else None for v in values], [v[1] if v else None for v in values])
+        table = pa.Table.from_pydict({name: split[name] for name in SCHEMA.names}, schema=SCHEMA)
+        self._guarded(self._writer.write_table, table, row_group_size=self.rows_per_group)
+        self.written += table.num_rows
+
     def _write(self):
         if self._rows and not self.failed:
             self._guarded(self._writer.write_table, pa.Table.from_pylist(self._rows, schema=SCHEMA))

@@ -58,22 +58,21 @@ def event_table(result: dict) -> np.ndarray:
 
 def _table_events(path) -> np.ndarray:
     """``event_table`` read column by column from a per-cell table (memory: a few arrays of the events)."""
-    import pyarrow.compute as pc
-
     from .celltable import read_table
     table = read_table(path, columns=["detection_time_ms", "fluorescence", "scatter", "velocity_mm_s",
                                       "detected_class", "decision", "outlet"])
-    table = table.filter(pc.is_valid(table["detected_class"]))
+    column = {name: table[name].to_numpy(zero_copy_only=False) for name in table.column_names}
+    # the detected cells, by a numpy mask (pyarrow's filter imports pyarrow.compute: 0.08 s of a run's exit)
+    detected = column["detected_class"] != None                                     # noqa: E711
 
     def coded(name, codes, missing):
-        values = table[name].to_numpy(zero_copy_only=False)
-        return np.array([codes.get(value, missing) for value in values.tolist()], dtype=float) if len(values) \
-            else np.zeros(0)
-    columns = [np.round(table["detection_time_ms"].to_numpy() * 1e-3 / TIMESTEP),
-               *(table[name].to_numpy() for name in ("fluorescence", "scatter", "velocity_mm_s")),
+        values = column[name][detected]
+        return np.array([codes.get(value, missing) for value in values.tolist()], dtype=float)
+    columns = [np.round(column["detection_time_ms"][detected].astype(float) * 1e-3 / TIMESTEP),
+               *(column[name][detected].astype(float) for name in ("fluorescence", "scatter", "velocity_mm_s")),
                coded("detected_class", CLASS_CODES, 0), coded("decision", DECISION_CODES, -1),
                coded("outlet", OUTLET_CODES, 3)]
-    events = np.column_stack(columns).astype(float) if len(table) else np.zeros((0, len(CHANNELS)))
+    events = np.column_stack(columns) if detected.any() else np.zeros((0, len(CHANNELS)))
     return events[np.argsort(events[:, 0], kind="stable")]
 
 

@@ -151,6 +151,22 @@ class SortLedger:
         if self.keep is None or len(self.sample.admitted) <= self.keep:
             self.kept.append(record)
 
+    def _record_not_due(self, keys: np.ndarray):
+        """The cells of a partial run not yet due when it stopped, recorded at once: their rows (``cell_record`` of
+        a cell never injected, one per key) go to the table as columns; they are not counted, nor kept (a run longer
+        than ``keep``). A run stopped early has most of its sample here: one row each would hold up its exit."""
+        self._recorded[keys] = True
+        self._not_due += len(keys)
+        if not len(keys):
+            return
+        names = [self.sample.admitted[key][1] for key in keys.tolist()]
+        classes = {name: true_class(self.scenario.cell_type(name)) for name in set(names)}
+        template = cell_record(0, 0.0, names[0], None, None, None, None, self.scenario)
+        columns = {name: [value] * len(keys) for name, value in template.items()}
+        columns.update(key=keys, type=names, true_class=[classes[name] for name in names],
+                       arrival_ms=np.array([self.sample.admitted[key][0] for key in keys.tolist()]) * 1e3)
+        self.table.append_columns(columns)
+
     def _covered(self, mine_ms) -> bool:
         """Whether a sort in effect had its predicted arrival within the widened window of ``mine_ms``."""
         if mine_ms is None:
@@ -175,7 +191,13 @@ class SortLedger:
         for key in sorted(self._inside):
             self._record(key, self._inside[key], partial)
         self._inside = {}
-        for key in np.flatnonzero(~self._recorded).tolist():
+        never = np.flatnonzero(~self._recorded)
+        if partial and self.table is not None and self.keep is not None and len(self.sample.admitted) > self.keep:
+            arrivals = np.fromiter((at for at, _ in self.sample.admitted), float, len(self.sample.admitted))
+            later = arrivals[never] > time
+            self._record_not_due(never[later])
+            never = never[~later]
+        for key in never.tolist():
             self._record(key, None, partial)
         self.close()
         settings, scenario = self.settings, self.scenario

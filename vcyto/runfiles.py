@@ -249,7 +249,18 @@ class signals_as_interrupt(_SignalHandlers):
 
     def handle(self, signum, frame):
         self.seen["last"] = signal.Signals(signum).name
+        if in_import_system(frame):
+            # raised here it could leave the import system's lock held (its code takes locks outside ``try``, and
+            # its weakref callbacks swallow exceptions): the sinks' thread then waits on an import for ever and
+            # the loop on the sinks. The signal is raised again, handled at the next instruction, until it is out.
+            signal.raise_signal(signum)
+            return
         raise KeyboardInterrupt
+
+
+def in_import_system(frame) -> bool:
+    """Whether ``frame`` is the import system's own code (importlib's frozen bootstrap)."""
+    return frame is not None and frame.f_code.co_filename.startswith("<frozen importlib")
 
 
 class interrupts_deferred(_SignalHandlers):

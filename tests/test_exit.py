@@ -13,6 +13,7 @@ import textwrap
 import time
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 SCRIPT = textwrap.dedent("""
@@ -380,3 +381,51 @@ def test_sigterm_ends_a_100000_cell_stream_within_the_bound(tmp_path, moment):
     assert process.returncode == 143, err
     assert took < 3.0, (took, err)
     assert json.loads(summary.read_text())["status"] == "interrupted"
+
+
+# --- a run killed outright leaves its summary and events readable up to its last checkpoint ---------------------
+
+KILLED_STREAM = ["stream", "--model", "rom", "--count", "8000", "--mix", "RBC:0.9,melanoma:0.1", "--rate", "2000",
+                 "--no-viewer", "--name", "run", "--quiet"]
+
+
+def test_a_run_killed_with_sigkill_leaves_its_summary_and_events_readable_up_to_its_last_checkpoint(tmp_path):
+    """SIGKILL once a checkpoint holds events: the summary parses, says "running" and partial and how far the run
+    got (never complete); the FCS file reads with flowio, says "running" and holds the first events of the whole
+    run (the same seed run to its end), in time order; the gate is written."""
+    from vcyto.fcs import read_fcs
+    killed, whole = tmp_path / "killed", tmp_path / "whole"
+    killed.mkdir()
+    process = subprocess.Popen([sys.executable, "-m", "vcyto", *KILLED_STREAM, "--output", str(killed)],
+                               stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    try:
+        deadline, summary = time.monotonic() + 180, {}
+        while time.monotonic() < deadline and process.poll() is None and \
+                not summary.get("checkpoint", {}).get("fcs_events"):
+            time.sleep(0.05)
+            try:
+                summary = json.loads((killed / "run.json").read_text())
+            except (OSError, ValueError):              # not yet reserved (a checkpoint replaces the file whole)
+                pass
+        assert process.poll() is None, "the run ended before it could be killed mid-way"
+        process.kill()
+        process.wait(timeout=30)
+    finally:
+        process.kill()
+    summary = json.loads((killed / "run.json").read_text())
+    assert summary["status"] == "running" and summary["partial"] is True and "killed" in summary["reason"]
+    got = summary["checkpoint"]
+    assert 0 < got["simulated_time_ms"] == summary["simulated_time_ms"] < 4000.0       # 8000 cells at 2000/s: 4 s
+    assert summary["statistics"]["cells"] == got["cells_left"] > 0
+    names, events, keywords = read_fcs(killed / "run.fcs")
+    assert keywords["vcyto_status"] == "running" and len(events) >= got["fcs_events"] > 0
+    assert (np.diff(events[:, 0]) >= 0).all()
+    assert (killed / "run.gating.xml").stat().st_size > 0
+    whole.mkdir()
+    done = subprocess.run([sys.executable, "-m", "vcyto", *KILLED_STREAM, "--output", str(whole)],
+                          capture_output=True, text=True, timeout=600)
+    assert done.returncode == 0, done.stderr
+    names_whole, events_whole, keywords_whole = read_fcs(whole / "run.fcs")
+    assert names == names_whole and keywords_whole["vcyto_status"] == "complete"
+    assert len(events) < len(events_whole)
+    np.testing.assert_array_equal(events, events_whole[:len(events)])

@@ -71,9 +71,11 @@ class SortLedger:
 
     paced = False
 
-    def __init__(self, sample, scenario, settings, predicted_arrival, table=None, keep: int | None | str = "default"):
+    def __init__(self, sample, scenario, settings, predicted_arrival, table=None, keep: int | None | str = "default",
+                 checkpoint=None):
         from .celltable import CellTable
         self.sample, self.scenario, self.settings = sample, scenario, settings
+        self.checkpoint = checkpoint          # the summary and events written as the run goes (vcyto.checkpoint)
         self.predicted_arrival = predicted_arrival
         self.table = CellTable(table) if table is not None else None
         self.keep = KEEP_CELLS if keep == "default" else keep
@@ -100,6 +102,12 @@ class SortLedger:
             self.decision(decision)
         for cell in record.truth.cells:
             self.cell(cell)
+        if self.checkpoint is not None and self.checkpoint.due():
+            self.checkpoint.write(self)
+
+    def earliest_open_event(self) -> float:
+        """When the earliest detector event whose cell has not left yet happened (s; infinity: none)."""
+        return min((event.time for event in self._events.values()), default=math.inf)
 
     def event(self, event):
         self._events[event.key] = event
@@ -148,6 +156,8 @@ class SortLedger:
             self._not_due += 1
         if self.table is not None:
             self.table.append(record)
+        if self.checkpoint is not None:
+            self.checkpoint.add(record)
         if self.keep is None or len(self.sample.admitted) <= self.keep:
             self.kept.append(record)
 

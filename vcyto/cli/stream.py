@@ -229,6 +229,7 @@ def _run_with_sinks(args, scenario, settings, view, files, background, interrupt
                     raise KeyboardInterrupt
                 result = stream.run_stream(scenario, settings, progress, sinks=[background] if background else [],
                                            table=files.path("cells.parquet") if files is not None else None,
+                                           checkpoint=files.checkpoint(settings, scenario) if files else None,
                                            **loop)
             except stream.StreamStopped as error:
                 stopped, result = error, error.result

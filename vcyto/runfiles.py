@@ -29,6 +29,7 @@ class View:
     url: str = ""                     # connect: the viewer's URL
     path: Path | None = None          # save: the .rrd (None: the run's own NAME.rrd, reserved with its files)
     notes: list = field(default_factory=list)
+    frames: dict | None = None        # connect: the frames of the live view, handed to it and dropped
 
     def target(self, run_path=None):
         """The ``RerunLogger`` target tuple."""

@@ -169,13 +169,14 @@ class SortLedger:
         self._not_due += len(keys)
         if not len(keys):
             return
-        names = [self.sample.admitted[key][1] for key in keys.tolist()]
+        from .celltable import flat
+        admitted = [self.sample.admitted[key] for key in keys.tolist()]
+        names = [name for _, name in admitted]
         classes = {name: true_class(self.scenario.cell_type(name)) for name in set(names)}
-        template = cell_record(0, 0.0, names[0], None, None, None, None, self.scenario)
-        columns = {name: [value] * len(keys) for name, value in template.items()}
+        columns = flat(cell_record(0, 0.0, names[0], None, None, None, None, self.scenario))   # the same in each
         columns.update(key=keys, type=names, true_class=[classes[name] for name in names],
-                       arrival_ms=np.array([self.sample.admitted[key][0] for key in keys.tolist()]) * 1e3)
-        self.table.append_columns(columns)
+                       arrival_ms=np.array([at for at, _ in admitted]) * 1e3)
+        self.table.append_columns(columns, len(keys))
 
     def _covered(self, mine_ms) -> bool:
         """Whether a sort in effect had its predicted arrival within the widened window of ``mine_ms``."""

@@ -361,6 +361,7 @@ LONG_STREAM = ["stream", "--model", "rom", "--count", "100000", "--mix", "RBC:0.
 def test_sigterm_ends_a_100000_cell_stream_within_the_bound(tmp_path, moment):
     """SIGTERM to a 100,000-cell rom stream (MCAP and .rrd) while it sets up or mid-run: exit 143 within 3 s on a
     loaded machine (measured on a shared 2-core host: 0.3-0.9 s), its summary "interrupted"."""
+    from guard import terminated_within
     env = {key: value for key, value in os.environ.items() if key not in ("DISPLAY", "WAYLAND_DISPLAY")}
     process = subprocess.Popen([sys.executable, "-m", "vcyto", *LONG_STREAM, "--output", str(tmp_path)], env=env,
                                stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
@@ -371,15 +372,9 @@ def test_sigterm_ends_a_100000_cell_stream_within_the_bound(tmp_path, moment):
                 moment == "setting up" or (recording.exists() and recording.stat().st_size > 100_000))):
             time.sleep(0.05)
         time.sleep(0.3 if moment == "setting up" else 1.0)
-        assert process.poll() is None, process.communicate()
-        process.send_signal(signal.SIGTERM)
-        sent = time.monotonic()
-        _, err = process.communicate(timeout=60)
-        took = time.monotonic() - sent
+        terminated_within(process, 3.0)
     finally:
         process.kill()
-    assert process.returncode == 143, err
-    assert took < 3.0, (took, err)
     assert json.loads(summary.read_text())["status"] == "interrupted"
 
 

@@ -27,7 +27,7 @@ import numpy as np
 from . import fcs, gatingml, outputs
 
 CHECKPOINT_SECONDS = 1.0       # wall time between checkpoints
-SPACING = 20                   # ... at least this many times what the last one cost
+SPACING = 50                   # ... at least this many times what the last one cost
 
 
 class Checkpoint:

@@ -360,7 +360,8 @@ LONG_STREAM = ["stream", "--model", "rom", "--count", "100000", "--mix", "RBC:0.
 @pytest.mark.parametrize("moment", ["setting up", "mid-run"])
 def test_sigterm_ends_a_100000_cell_stream_within_the_bound(tmp_path, moment):
     """SIGTERM to a 100,000-cell rom stream (MCAP and .rrd) while it sets up or mid-run: exit 143 within 3 s on a
-    loaded machine (measured on a shared 2-core host: 0.3-0.9 s), its summary "interrupted"."""
+    loaded machine (measured 0.1-2.0 s on a shared 2-core host with a load average of 10-16), its summary
+    "interrupted"."""
     from guard import terminated_within
     env = {key: value for key, value in os.environ.items() if key not in ("DISPLAY", "WAYLAND_DISPLAY")}
     process = subprocess.Popen([sys.executable, "-m", "vcyto", *LONG_STREAM, "--output", str(tmp_path)], env=env,

@@ -80,3 +80,21 @@ def assert_one_line_refusal(status, stderr, allowed=(1, 2)):
     assert lines[0].startswith("vcyto: error: "), stderr
     assert names_what_is_wrong(lines[0]), stderr
     assert "Traceback" not in stderr and "internal error" not in stderr
+
+
+def terminated_within(process, bound: float = 3.0) -> str:
+    """SIGTERM ``process`` (a ``vcyto stream`` started with stderr piped): it ends with exit 143 within ``bound``
+    seconds; its stderr."""
+    import signal
+    import time
+    assert process.poll() is None, process.communicate()
+    process.send_signal(signal.SIGTERM)
+    sent = time.monotonic()
+    try:
+        _, err = process.communicate(timeout=60)
+    finally:
+        process.kill()
+    took = time.monotonic() - sent
+    assert process.returncode == 143, err
+    assert took < bound, (took, err)
+    return err

@@ -178,9 +178,15 @@ def test_a_json_message_nested_100000_deep_is_one_line(sandbox):
     deep = b"[" * 100_000 + b"]" * 100_000
     _recording(sandbox / "deep.mcap", {}, [("/loop/step", b'{"time": 0.0, "step": 0, "idt": 0.0}'),
                                           ("/loop/step", deep)])
-    status, out, err = vcyto_inline(["replay", "deep.mcap", "--save", str(sandbox / "deep.rrd")])
-    assert status in (None, 0, 1, 2) and "Traceback" not in err and "internal error" not in err, err
-    assert status in (1, 2) or "damaged" in out, (status, out, err)
+    stderr = refused_in_time(["replay", "deep.mcap", "--save", str(sandbox / "deep.rrd")])
+    assert "/loop/step message nests its JSON" in stderr and "more than 1,024 levels deep (the limit" in stderr
+    assert not (sandbox / "deep.rrd").exists()                     # refused, not replayed as "damaged"
+
+
+def test_a_json_message_at_the_depth_limit_is_read():
+    from vcyto.replay import MAX_JSON_DEPTH, _decode
+    depth = MAX_JSON_DEPTH
+    assert _decode("/loop/step", b"[" * depth + b"]" * depth) is not None
 
 
 def _one_chunk_recording(path, data: bytes, claimed: int):

@@ -351,3 +351,17 @@ def test_foxglove_scene_is_in_metres_with_lifetimes(sort):
     temporary = [e for e in entities if e.id.startswith(("event/", "path/"))]
     assert temporary and all(e.lifetime.ToNanoseconds() > 0 for e in temporary)
     assert not outline.HasField("lifetime")
+
+
+def test_the_per_cell_table_of_the_command_does_not_import_pandas(tmp_path):
+    """The per-cell table's writer makes pyarrow's first conversion of a run without a view (its first row group,
+    or a short run's exit: 0.26 s measured): in the command's process pandas stays unimported there too."""
+    script = ("import sys\nfrom vcyto import viewer\nif sys.argv[2] == 'command': viewer.spare_pandas_import()\n"
+              "from vcyto.celltable import CellTable\n"
+              "table = CellTable(sys.argv[1])\ntable.append_columns({'key': [1], 'outlet': 'lower'}, 1)\n"
+              "table.close()\n"
+              "print('pandas' in sys.modules)")
+    imported = [subprocess.run([sys.executable, "-c", script, str(tmp_path / f"{process}.parquet"), process],
+                               capture_output=True, text=True, timeout=120).stdout.strip()
+                for process in ("command", "library")]
+    assert imported == ["False", "True"]

@@ -120,3 +120,31 @@ def test_the_fcs_of_a_long_run_is_read_from_its_table(long_run):
     records = sorted(celltable.records(table), key=lambda r: r["key"])
     assert np.array_equal(event_table(result), event_table({"cells": records}))
     assert len(event_table(result)) == result["statistics"]["events"]
+
+
+def test_the_cells_not_yet_due_when_a_long_run_stops_have_the_rows_one_by_one_would_give(rom_plant, tmp_path):
+    """A run stopped early has most of its sample not yet due: their rows are written together (a long run's
+    exit would wait on a row each), and are the rows the per-record path writes."""
+    arrivals = Arrivals(count=1500, mix=(("RBC", 0.7), ("melanoma", 0.3)), rate=2000.0)
+    settings = StreamSettings(arrivals, model="rom", seed=3, max_time=40e-3)
+    keep, tables = sortreport.KEEP_CELLS, {}
+    try:
+        for kept in (1000, None):              # 1000: fewer than the sample (rows together); None: one by one
+            sortreport.KEEP_CELLS = kept
+            tables[kept] = tmp_path / f"{kept}.cells.parquet"
+            result = run_stream(Scenario(), settings, plant=rom_plant, table=tables[kept])
+            assert result["status"] == "truncated" and result["statistics"]["not_yet_due"] > 1000
+    finally:
+        sortreport.KEEP_CELLS = keep
+    together, one_by_one = (sorted(celltable.read_table(tables[k]).to_pylist(), key=lambda row: row["key"])
+                            for k in (1000, None))
+    assert len(together) == 1500 and together == one_by_one
+
+
+def test_the_fcs_events_of_a_long_run_read_from_its_table_are_those_of_its_cells(long_run):
+    from vcyto import fcs
+    result, table, _ = long_run
+    cells = list(celltable.records(table))
+    from_table = fcs.event_table(result)
+    assert "cells" not in result and len(from_table) == result["statistics"]["events"] > 1000
+    np.testing.assert_array_equal(from_table, fcs.event_table({"cells": cells}))

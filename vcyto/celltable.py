@@ -52,6 +52,8 @@ class CellTable:
     """Rows appended as cells leave, written a row group at a time to ``path`` (created or truncated)."""
 
     def __init__(self, path: Path, rows_per_group: int = ROWS_PER_GROUP):
+        from .viewer import ready_pyarrow
+        ready_pyarrow()                        # in the vcyto command's process: without importing pandas
         self.path = Path(path)
         self.failed = False
         self._writer = None
@@ -76,6 +78,25 @@ class CellTable:
         self._rows.append(flat(record))
         if len(self._rows) >= self.rows_per_group:
             self._write()
+
+    def append_columns(self, columns: dict, count: int):
+        """``count`` rows given as columns (table rows' names: a sequence, or one value for every row; a name not
+        given is null), after the rows appended so far."""
+        if self.failed:
+            return
+        self._write()
+        arrays = []
+        for column in SCHEMA:
+            value = columns.get(column.name)
+            if value is None:
+                arrays.append(pa.nulls(count, column.type))
+            elif isinstance(value, (str, int, float)):
+                arrays.append(pa.repeat(pa.scalar(value, column.type), count))
+            else:
+                arrays.append(pa.array(value, column.type))
+        table = pa.Table.from_arrays(arrays, schema=SCHEMA)
+        self._guarded(self._writer.write_table, table, row_group_size=self.rows_per_group)
+        self.written += count
 
     def _write(self):
         if self._rows and not self.failed:

@@ -79,6 +79,12 @@ class CellClasses:
             del self._event_keys[event_id]
         return outcome_class(summary)
 
+    def keep_only(self, keys):
+        """Forget every cell but ``keys`` (those in the channel): cells whose leaving a sink was not shown."""
+        self._detected = {key: name for key, name in self._detected.items() if key in keys}
+        self._action = {key: action for key, action in self._action.items() if key in keys}
+        self._event_keys = {event: key for event, key in self._event_keys.items() if key in keys}
+
     def forget_pulses(self, now: float):
         """Drop the pulses that are over (bounded state)."""
         for event_id in [e for e, (_, off) in self.pulses.items() if off < now]:

@@ -15,6 +15,7 @@ import struct
 from pathlib import Path
 
 import numpy as np
+import orjson
 import zstandard
 from mcap.data_stream import ReadDataStream
 from mcap.exceptions import McapError
@@ -35,6 +36,7 @@ MEMBRANES = "/foxglove/membranes"
 MAX_RECORD_BYTES = 64 << 20          # one record as stored (a chunk: compressed); vcyto's chunks are ~1 MB
 MAX_CHUNK_BYTES = 256 << 20          # one chunk decompressed, refused before it is decompressed further
 MAX_MESSAGE_BYTES = 32 << 20         # one message's payload
+MAX_JSON_DEPTH = 1024                # arrays and objects nested in one JSON message (orjson's bound; vcyto's: 3)
 VCYTO_TOPICS = ("/loop/step", "/cells", "/loop/steps", "/cells/rows",
                 "/detector/event", "/controller/decision", "/outcome", "/flow/velocity",
                 MEMBRANES)
@@ -45,6 +47,10 @@ MAX_FIELD_PIXELS = 16_000_000      # the flow image at 1 um pixels (the paper's 
 
 class ReplayError(ValueError):
     """The file is not a vcyto recording at all."""
+
+
+class TooDeep(ReplayError):
+    """A JSON message nested beyond ``MAX_JSON_DEPTH``: no vcyto wrote it, so the file is refused, not replayed."""
 
 
 class Damaged(Exception):
@@ -59,9 +65,12 @@ def _decode(topic: str, data: bytes):
         cloud = foxglove.PointCloud.FromString(data)
         return cloud.timestamp.seconds * 1_000_000_000 + cloud.timestamp.nanos, foxglove.membrane_points(cloud)
     try:
-        return json.loads(data)
-    except RecursionError:
-        raise ValueError(f"a {topic} message nests its JSON too deeply") from None
+        return orjson.loads(data)
+    except orjson.JSONDecodeError as error:
+        if any(word in str(error).lower() for word in ("depth", "recursion")):     # orjson's words for its bound
+            raise TooDeep(f"a {topic} message nests its JSON arrays and objects more than {MAX_JSON_DEPTH:,} levels "
+                          f"deep (the limit; vcyto writes at most 3): not a recording vcyto wrote") from None
+        raise
 
 
 _DAMAGE = (McapError, ValueError, EOFError, struct.error, zstandard.ZstdError, RuntimeError, Damaged)
@@ -147,6 +156,8 @@ def messages(path: Path, channels: dict):
                 if isinstance(record, Message) and record.channel_id in channels:
                     topic = channels[record.channel_id]
                     yield topic, _decode(topic, record.data)
+        except TooDeep as error:
+            raise TooDeep(f"{path}: {error}") from None
         except _DAMAGE as error:
             raise Damaged(_problem(error)) from None
 

@@ -466,5 +466,14 @@ class RerunSink:
         if fields is not None and self.field_every and step % self.field_every == 0:
             logger.field(fields())
 
+    def after_gap(self, record):
+        """Steps were not shown before ``record`` (a live view that fell behind: ``vcyto.sinks.LiveView``): forget
+        the cells that left meanwhile (their paths, classes and positions), so that what is kept stays bounded."""
+        inside = {cell.key for cell in record.truth.cells if cell.fate == "in_channel"}
+        logger = self.logger
+        logger.paths = {key: path for key, path in logger.paths.items() if key in inside}
+        logger.positions = {key: at for key, at in logger.positions.items() if key in inside}
+        self.classes.keep_only(inside)
+
     def close(self):
         self.logger.close()

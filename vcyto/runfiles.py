@@ -29,6 +29,7 @@ class View:
     url: str = ""                     # connect: the viewer's URL
     path: Path | None = None          # save: the .rrd (None: the run's own NAME.rrd, reserved with its files)
     notes: list = field(default_factory=list)
+    frames: dict | None = None        # connect: the frames of the live view, handed to it and dropped
 
     def target(self, run_path=None):
         """The ``RerunLogger`` target tuple."""
@@ -151,9 +152,7 @@ class StreamFiles:
         (complete or partial) into the reserved files."""
         from . import fcs, gatingml
         fcs_path, summary_path = self.path("fcs"), self.path("json")
-        # an FCS keyword value must not begin or end with the delimiter "/" (a path would): the command as typed
-        command = " ".join(["vcyto", *sys.argv[1:]]).rstrip("/ ") or "vcyto"
-        fcs.write_fcs(fcs_path, result, {"VCYTO_COMMAND": command, "VCYTO_STATUS": result.get("status", "complete"),
+        fcs.write_fcs(fcs_path, result, {"VCYTO_COMMAND": _command(), "VCYTO_STATUS": result.get("status", "complete"),
                                          "VCYTO_RUN_ID": self.run_id}, settings=settings, scenario=scenario)
         if settings is not None:
             gatingml.write_gatingml(self.path("gating.xml"), settings.detector.gate)
@@ -165,9 +164,8 @@ class StreamFiles:
         written if it can be, the others are left out (their reservations removed: no placeholder claims a run);
         (the files kept, including the recording and the view as far as they were flushed; the files lost)."""
         from . import fcs, gatingml
-        command = " ".join(["vcyto", *sys.argv[1:]]).rstrip("/ ") or "vcyto"
         writers = {"fcs": lambda path: fcs.write_fcs(path, result, {
-                       "VCYTO_COMMAND": command, "VCYTO_STATUS": result.get("status", "failed"),
+                       "VCYTO_COMMAND": _command(), "VCYTO_STATUS": result.get("status", "failed"),
                        "VCYTO_RUN_ID": self.run_id}, settings=settings, scenario=scenario),
                    "json": lambda path: outputs.write_into(path, outputs.strict_json(result) + "\n")}
         if settings is not None:
@@ -189,12 +187,24 @@ class StreamFiles:
                 lost.append(str(path))
         return kept, lost
 
+    def checkpoint(self, settings, scenario):
+        """The ``vcyto.checkpoint.Checkpoint`` that writes this run's summary, FCS events and gate as it goes."""
+        from .checkpoint import Checkpoint
+        return Checkpoint(self.path("json"), self.path("fcs"), self.path("gating.xml"), self.run_id, settings,
+                          scenario, {"VCYTO_COMMAND": _command(), "VCYTO_RUN_ID": self.run_id})
+
     def discard_unwritten(self) -> None:
         """Remove the reserved summary and events that were never written (a run that failed before it ran)."""
         for suffix in ("fcs", "gating.xml", "cells.parquet", "json"):
             path = self.path(suffix)
             if path is not None and path.exists() and (path.stat().st_size == 0 or _is_placeholder(path)):
                 path.unlink()
+
+
+def _command() -> str:
+    """The command as typed, for the FCS keyword VCYTO_COMMAND (whose value must not begin or end with the
+    delimiter "/", as a path would)."""
+    return " ".join(["vcyto", *sys.argv[1:]]).rstrip("/ ") or "vcyto"
 
 
 def _is_placeholder(path: Path) -> bool:
@@ -249,7 +259,18 @@ class signals_as_interrupt(_SignalHandlers):
 
     def handle(self, signum, frame):
         self.seen["last"] = signal.Signals(signum).name
+        if in_import_system(frame):
+            # raised here it could leave the import system's lock held (its code takes locks outside ``try``, and
+            # its weakref callbacks swallow exceptions): the sinks' thread then waits on an import for ever and
+            # the loop on the sinks. The signal is raised again, handled at the next instruction, until it is out.
+            signal.raise_signal(signum)
+            return
         raise KeyboardInterrupt
+
+
+def in_import_system(frame) -> bool:
+    """Whether ``frame`` is the import system's own code (importlib's frozen bootstrap)."""
+    return frame is not None and frame.f_code.co_filename.startswith("<frozen importlib")
 
 
 class interrupts_deferred(_SignalHandlers):

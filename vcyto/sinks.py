@@ -21,6 +21,10 @@ message, as with the sinks called inline; what changes is that their cost overla
   on normal exit, Ctrl-C and SIGTERM, as for a single sink).
 - Deferred: a ``Deferred`` sink is built on the worker thread as it starts, before any step, so building it
   (importing Rerun and opening its recording: ~0.7-0.9 s) overlaps the plant's set-up instead of preceding it.
+- Live: a ``LiveView`` (the view streamed to a viewer) is fed from the worker through its own bounded queue on
+  its own thread, and never waits: a batch that finds the queue full is dropped, its steps counted as dropped
+  frames, which the run's end (``on_end``: the MCAP's ``run_end``) and the summary report. A recording (the
+  MCAP, an ``.rrd``) is complete instead: the loop waits for it.
 """
 
 from __future__ import annotations
@@ -81,9 +85,13 @@ class BackgroundSinks:
                 if item is _STOP:
                     return
                 if not self._failed and isinstance(item, tuple) and item[0] is _END:
+                    ending = dict(item[1])
+                    for sink in self.sinks:             # a live view's frames, settled before the end is written
+                        if hasattr(sink, "settle"):
+                            ending.update(sink.settle())
                     for sink in self.sinks:
                         if hasattr(sink, "on_end"):
-                            sink.on_end(item[1])
+                            sink.on_end(ending)
                 elif not self._failed:
                     for sink in self.sinks:
                         steps_of(sink)(item)
@@ -162,3 +170,89 @@ def steps_of(sink):
         for record in records:
             sink.on_step(record)
     return each
+
+
+LIVE_DEPTH = 2                # batches waiting for a live view; more are dropped
+SETTLE_SECONDS = 0.25         # how long the run's end waits for the live view's step in progress
+
+
+class LiveView:
+    """``sink`` (a live view) on its own thread behind a bounded queue that never blocks the one feeding it: a batch
+    of steps that finds ``depth`` batches waiting is dropped and its steps counted (``dropped``; ``frames``: every
+    step handed over). After a gap the sink's ``after_gap(record)``, if it has one, is called with the first step
+    shown again (it forgets the cells that left meanwhile). ``settle`` ends the showing: the waiting batches are
+    dropped and the step in progress is given ``SETTLE_SECONDS``; ``close`` then closes the sink, unless it is
+    still busy (``ConnectionError``: the view is left as it is). A failure of the sink is raised to the feeder at
+    its next batch, as a sink's of ``BackgroundSinks``."""
+
+    def __init__(self, sink, depth: int = LIVE_DEPTH):
+        self.sink, self.field_every = sink, getattr(sink, "field_every", 0)
+        self.frames = self.dropped = 0
+        self._queue: queue.Queue = queue.Queue(maxsize=depth)
+        self._gap = self._settling = self._failed = False
+        self._failure: BaseException | None = None
+        self._counting = threading.Lock()          # the feeder and the view's thread both count dropped frames
+        self._thread = threading.Thread(target=self._work, name="vcyto-live-view", daemon=True)
+        self._thread.start()
+
+    def on_steps(self, records):
+        if self._failure is not None:
+            failure, self._failure = self._failure, None
+            raise failure
+        self.frames += len(records)
+        if self._settling or self._failed:
+            self._drop(len(records))
+            return
+        try:
+            self._queue.put_nowait((records, self._gap))
+            self._gap = False
+        except queue.Full:
+            self._drop(len(records))
+            self._gap = True
+
+    def _drop(self, count: int):
+        with self._counting:
+            self.dropped += count
+
+    def _work(self):
+        while True:
+            item = self._queue.get()
+            if item is _STOP:
+                return
+            records, gap = item
+            try:
+                if gap and hasattr(self.sink, "after_gap") and records and not self._failed:
+                    self.sink.after_gap(records[0])
+                for shown, record in enumerate(records):
+                    if self._settling or self._failed:
+                        self._drop(len(records) - shown)
+                        break
+                    self.sink.on_step(record)
+            except BaseException as error:
+                self._failure, self._failed = error, True
+
+    def settle(self) -> dict:
+        """Stop showing: drop what waits, give the step in progress ``SETTLE_SECONDS``; the frames shown and
+        dropped."""
+        if not self._settling:
+            self._settling = True
+            while True:
+                try:
+                    records, _ = self._queue.get_nowait()
+                except queue.Empty:
+                    break
+                self._drop(len(records))
+            self._queue.put(_STOP)
+            self._thread.join(SETTLE_SECONDS)
+        return {"view_frames": self.frames, "view_frames_dropped": self.dropped}
+
+    def close(self):
+        self.settle()
+        if self._thread.is_alive():
+            raise ConnectionError(f"the view was still drawing a step {SETTLE_SECONDS:g} s after the run ended")
+        failure, self._failure = self._failure, None
+        try:
+            self.sink.close()
+        finally:
+            if failure is not None:
+                raise failure

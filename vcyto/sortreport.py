@@ -72,9 +72,11 @@ class SortLedger:
     paced = False
     needs_state = False           # the time, the cells' truth, events and decisions are all it reads
 
-    def __init__(self, sample, scenario, settings, predicted_arrival, table=None, keep: int | None | str = "default"):
+    def __init__(self, sample, scenario, settings, predicted_arrival, table=None, keep: int | None | str = "default",
+                 checkpoint=None):
         from .celltable import CellTable
         self.sample, self.scenario, self.settings = sample, scenario, settings
+        self.checkpoint = checkpoint          # the summary and events written as the run goes (vcyto.checkpoint)
         self.predicted_arrival = predicted_arrival
         self.table = CellTable(table) if table is not None else None
         self.keep = KEEP_CELLS if keep == "default" else keep
@@ -101,6 +103,12 @@ class SortLedger:
             self.decision(decision)
         for cell in record.truth.cells:
             self.cell(cell)
+        if self.checkpoint is not None and self.checkpoint.due():
+            self.checkpoint.write(self)
+
+    def earliest_open_event(self) -> float:
+        """When the earliest detector event whose cell has not left yet happened (s; infinity: none)."""
+        return min((event.time for event in self._events.values()), default=math.inf)
 
     def event(self, event):
         self._events[event.key] = event
@@ -149,8 +157,27 @@ class SortLedger:
             self._not_due += 1
         if self.table is not None:
             self.table.append(record)
+        if self.checkpoint is not None:
+            self.checkpoint.add(record)
         if self.keep is None or len(self.sample.admitted) <= self.keep:
             self.kept.append(record)
+
+    def _record_not_due(self, keys: np.ndarray):
+        """The cells of a partial run not yet due when it stopped, recorded at once: their rows (``cell_record`` of
+        a cell never injected, one per key) go to the table as columns; they are not counted, nor kept (a run longer
+        than ``keep``). A run stopped early has most of its sample here: one row each would hold up its exit."""
+        self._recorded[keys] = True
+        self._not_due += len(keys)
+        if not len(keys):
+            return
+        from .celltable import flat
+        admitted = [self.sample.admitted[key] for key in keys.tolist()]
+        names = [name for _, name in admitted]
+        classes = {name: true_class(self.scenario.cell_type(name)) for name in set(names)}
+        columns = flat(cell_record(0, 0.0, names[0], None, None, None, None, self.scenario))   # the same in each
+        columns.update(key=keys, type=names, true_class=[classes[name] for name in names],
+                       arrival_ms=np.array([at for at, _ in admitted]) * 1e3)
+        self.table.append_columns(columns, len(keys))
 
     def _covered(self, mine_ms) -> bool:
         """Whether a sort in effect had its predicted arrival within the widened window of ``mine_ms``."""
@@ -176,7 +203,13 @@ class SortLedger:
         for key in sorted(self._inside):
             self._record(key, self._inside[key], partial)
         self._inside = {}
-        for key in np.flatnonzero(~self._recorded).tolist():
+        never = np.flatnonzero(~self._recorded)
+        if partial and self.table is not None and self.keep is not None and len(self.sample.admitted) > self.keep:
+            arrivals = np.fromiter((at for at, _ in self.sample.admitted), float, len(self.sample.admitted))
+            later = arrivals[never] > time
+            self._record_not_due(never[later])
+            never = never[~later]
+        for key in never.tolist():
             self._record(key, None, partial)
         self.close()
         settings, scenario = self.settings, self.scenario

@@ -106,7 +106,7 @@ def settings_controller(settings: StreamSettings):
 
 
 def run_stream(scenario: Scenario, settings: StreamSettings, progress=None, plant=None, sinks=(), controller=None,
-               timing: Timing = Timing(), table=None) -> dict:
+               timing: Timing = Timing(), table=None, checkpoint=None) -> dict:
     """Run the loop until every admitted cell has left (or a cap); a JSON-ready summary (``sortreport``).
 
     ``controller``: any object implementing ``controller.protocol.Controller`` (default: ``settings``'s,
@@ -126,13 +126,14 @@ def run_stream(scenario: Scenario, settings: StreamSettings, progress=None, plan
     events, so the outcome is the same as stepping period by period (tested), at a fraction of the cost.
 
     The sort report is built as cells leave (``sortreport.SortLedger``, memory bounded by the cells in the
-    channel); ``table``: the path of the per-cell table it writes (Parquet, ``vcyto.celltable``), or None.
+    channel); ``table``: the path of the per-cell table it writes (Parquet, ``vcyto.celltable``), or None;
+    ``checkpoint``: a ``vcyto.checkpoint.Checkpoint`` that writes the summary and events as the run goes, or None.
     """
     port = None
     if controller is None and settings.controller_wire is not None:     # opened here, closed when the run ends
         controller = port = settings.controller_wire.open(timing)
     try:
-        return _run(Loop(scenario, settings, progress, plant, sinks, controller, timing, table))
+        return _run(Loop(scenario, settings, progress, plant, sinks, controller, timing, table, checkpoint))
     finally:
         if port is not None:
             port.close()
@@ -211,7 +212,7 @@ class Loop:
     """
 
     def __init__(self, scenario: Scenario, settings: StreamSettings, progress=None, plant=None, sinks=(),
-                 controller=None, timing: Timing = Timing(), table=None):
+                 controller=None, timing: Timing = Timing(), table=None, checkpoint=None):
         started = self.started = time.perf_counter()
         self.scenario, self.settings, self.sinks_given = scenario, settings, tuple(sinks)
         rng = np.random.default_rng(settings.seed)
@@ -229,7 +230,7 @@ class Loop:
         self.detector, self.control = Detector(settings.detector, detector_rng), Control(self.port, facts, timing)
         # the sort report, built as cells leave (not paced: it sees the steps the loop shows anyway)
         self.report = sortreport.SortLedger(sample, scenario, settings, self.control.ledger.predicted_arrival,
-                                            table=table)
+                                            table=table, checkpoint=checkpoint)
         observers = list(sinks) + [self.report] + ([ProgressSink(progress, len(sample.admitted))]
                                                    if progress is not None else [])
         self.sinks = tuple(observers)

@@ -261,6 +261,15 @@ def import_rerun():
     called; until one of them is, a pandas object given to ``pyarrow.array`` would convert as a plain sequence,
     and nothing in that process gives it one. A Python user's process (vcyto imported as a library) is left
     alone: there pyarrow imports pandas as it always does. A process that imported pandas already keeps it."""
+    ready_pyarrow()
+    import rerun
+    return rerun
+
+
+@functools.lru_cache(maxsize=None)
+def ready_pyarrow():
+    """The ``pyarrow`` module, its first conversion made as ``import_rerun`` says (the per-cell table's writer makes
+    one too: a run's first row group, or a short run's exit)."""
     import pyarrow
     if _spare_pandas and "pandas" not in sys.modules:
         finder = _NoPandasNow()
@@ -269,8 +278,7 @@ def import_rerun():
             pyarrow.array([""])
         finally:
             sys.meta_path.remove(finder)
-    import rerun
-    return rerun
+    return pyarrow
 
 
 def blueprint():

@@ -215,6 +215,7 @@ def _run_with_sinks(args, scenario, settings, view, files, background, interrupt
                     raise KeyboardInterrupt
                 result = stream.run_stream(scenario, settings, progress, sinks=[background] if background else [],
                                            table=files.path("cells.parquet") if files is not None else None,
+                                           checkpoint=files.checkpoint(settings, scenario) if files else None,
                                            **loop)
             except stream.StreamStopped as error:
                 stopped, result = error, error.result
@@ -241,6 +242,7 @@ def _run_with_sinks(args, scenario, settings, view, files, background, interrupt
     finally:                                               # the sinks are closed once, whatever happened
         notes, closing = _close_run(progress, background, files, failed)
         view.notes += notes
+        view.frames = _frames(background)
     if unwritten is None and closing is not None and files is not None:
         unwritten = closing
     elif unwritten is None and closing is not None:
@@ -249,6 +251,13 @@ def _run_with_sinks(args, scenario, settings, view, files, background, interrupt
         result.update(status="failed", reason=f"cannot write {unwritten.filename or 'a file'}: "
                                               f"{unwritten.strerror or unwritten}")
     return result, stopped, unwritten
+
+
+def _frames(background) -> dict | None:
+    """The frames of the live view (``vcyto.sinks.LiveView``): handed to it and dropped; None without one."""
+    from ..sinks import LiveView
+    live = [sink for sink in (background.sinks if background is not None else ()) if isinstance(sink, LiveView)]
+    return {"frames": live[0].frames, "frames_dropped": live[0].dropped} if live else None
 
 
 def _close_run(progress, background, files, failed: bool) -> tuple[list[str], OSError | None]:
@@ -274,9 +283,11 @@ def _rerun_sink(args, scenario, settings, view, files) -> list:
     file it cannot create), one line says so and the view goes to a new .rrd, else there is none."""
     from .. import runfiles
     from ..rerunlog import POINT_LIKE, RerunSink
+    from ..sinks import LiveView
     try:
-        return [RerunSink(scenario, settings.detector.window, view.target(files and files.path("rrd")),
-                          field_every=args.field_every, membranes=settings.model not in POINT_LIKE)]
+        sink = RerunSink(scenario, settings.detector.window, view.target(files and files.path("rrd")),
+                         field_every=args.field_every, membranes=settings.model not in POINT_LIKE)
+        return [LiveView(sink) if view.kind == "connect" else sink]      # a viewer never holds the loop
     except (RuntimeError, OSError) as problem:
         reason = " ".join(str(problem).split())[:160]
         if view.kind == "connect" and files is not None:
@@ -322,6 +333,9 @@ def _report_stream(args, result, stopped, view, files, settings, scenario):
         rrd = files.path("rrd") if files is not None else None
         result["files"]["rerun"] = view.url if view.kind == "connect" else str(view.path or rrd)
         lines.append(f"Rerun: {view.describe(rrd)}")
+        if view.frames is not None:
+            result["view"] = view.frames
+            lines[-1] += _dropped_words(view.frames)
     if files is not None:
         result["run_id"] = files.run_id
         result["files"].update({"fcs": str(files.path("fcs")), "gatingml": str(files.path("gating.xml")),
@@ -346,6 +360,14 @@ def _report_stream(args, result, stopped, view, files, settings, scenario):
     runfiles.say(f"interrupted by {signal_name} at t = {result.get('simulated_time_ms', 0):.3f} ms{kept} "
                  "(the summary's status is \"interrupted\")")
     raise RunStopped(EXIT_SIGTERM if signal_name == "SIGTERM" else EXIT_SIGINT)
+
+
+def _dropped_words(frames: dict) -> str:
+    """What the live view missed, said after where it went."""
+    if not frames["frames_dropped"]:
+        return f"; every one of its {frames['frames']:,} frames shown"
+    return (f"; {frames['frames_dropped']:,} of its {frames['frames']:,} frames dropped (the view did not keep up; "
+            "the run never waits for it)")
 
 
 def _partial_status(args, result) -> int:

@@ -56,6 +56,7 @@ STREAMING_VISCOUS_DELAY = 82e-6
 # 9 cells at 10 us, 8 at 20 us, 25 at 50 us and 40 at 100 us; each period is one midpoint substep.
 CONTROL_PERIOD = 20e-6
 _NO_LINES = np.zeros(0)
+TRACE_ROWS = 4096              # rows of the trace buffer to start with (it grows when a traced period needs more)
 FATES = {kernels.WALL: "wall", kernels.LOST: "lost", kernels.IN_CHANNEL: "in_channel"}
 
 
@@ -275,14 +276,18 @@ class RomPlant:
         self._log_step = np.zeros(2 * n + 64, dtype=np.int64)
         self._log_key = np.zeros(2 * n + 64, dtype=np.int64)
         self._log_positions = np.zeros((2 * n + 64, 4))
-        self._counters = np.zeros(7, dtype=np.int64)
+        self._counters = np.zeros(9, dtype=np.int64)
+        self._trace_step = np.zeros(TRACE_ROWS, dtype=np.int64)
+        self._trace_key = np.zeros(TRACE_ROWS, dtype=np.int64)
+        self._trace_positions = np.zeros((TRACE_ROWS, 2))
         self._level = np.zeros(len(self.lags))
         self._unreported, self._reported = 0, set()        # truth_update's position: keys below are all reported
         self._arrays = (self.flows.cells, self._params, self._segments, self._dividers, self._outlets,
                         self._semi_axes, self._start, self._kind, self._arrival, self._born, self._position,
                         self._fate, self._exit_time, self._exit_y, self._stalled, self._counters, self._level,
                         self._lags, self._before, self._touched, self._log_step, self._log_key,
-                        self._log_positions)   # the kernel's arguments, in order
+                        self._log_positions, self._trace_step, self._trace_key,
+                        self._trace_positions)   # the kernel's arguments, in order
         kernels.inject(self._start, self._kind, self._arrival, self._born, self._position, self._fate,
                        self._counters, 0.0, 0.5 * self.control_period, self._before)
         return self.observe()
@@ -305,7 +310,32 @@ class RomPlant:
         if lines != self._lines[0]:
             self._lines = (lines, *(np.asarray(group, dtype=float).reshape(-1) for group in lines))
         periods, _ = self._advance(actuation, until, max_periods, *self._lines[1:])
+        while periods == 0 and until > self.time and not self.done and self._counters[kernels.TRACE_EVERY]:
+            # the trace has no room for one more traced period's rows (never taken, or a crowd of cells): more room
+            self._grow_trace()
+            periods, _ = self._advance(actuation, until, max_periods, *self._lines[1:])
         return periods, self._crossings()
+
+    # ------------------------------------------------------------------ the trace (recordings)
+    def trace(self, interval: float) -> int:
+        """Trace the cells in the channel every ``interval`` of simulated time from now on (rounded up to whole
+        control periods, at period indices that are multiples of it): ``take_trace`` hands the rows over. Returns
+        the cadence in periods."""
+        every = max(1, math.ceil(interval / self.control_period - 1e-9))
+        self._counters[kernels.TRACE_EVERY] = every         # until the next reset
+        return every
+
+    def take_trace(self):
+        """(period index, key, (x, y)) rows traced since the last call, as arrays (copies), in time order."""
+        rows = int(self._counters[kernels.TRACED])
+        self._counters[kernels.TRACED] = 0
+        return self._trace_step[:rows].copy(), self._trace_key[:rows].copy(), self._trace_positions[:rows].copy()
+
+    def _grow_trace(self):
+        rows = 2 * len(self._trace_key)
+        self._trace_step, self._trace_key = np.zeros(rows, dtype=np.int64), np.zeros(rows, dtype=np.int64)
+        self._trace_positions = np.zeros((rows, 2))
+        self._arrays = (*self._arrays[:-3], self._trace_step, self._trace_key, self._trace_positions)
 
     def _crossings(self) -> list[Observation]:
         """The partial observations of the cells whose crossings the last ``step_until`` logged."""

@@ -31,6 +31,7 @@ from . import sortreport
 from .control import Control, InProcess, Timing, describe
 from .sortreport import report_lines, statistics_of, true_class  # noqa: F401  (the loop's public names)
 from .steps import ProgressSink, StepRecord, is_paced
+from .trace import TRACE_BATCH, Tracer
 
 MODELS = plants.MODELS
 STATUSES = ("complete", "truncated", "interrupted", "failed")
@@ -230,6 +231,10 @@ class Loop:
         self.diagnostics = plant.diagnostics if isinstance(plant, contract.HasDiagnostics) else None
         self.pending, self.shown = [], 0.0          # events not yet shown to the sinks; when they last saw a step
         self.observation = plant.reset(sample.admitted)
+        # an event-driven plant that traces its cells: recorded steps without stopping the plant (vcyto.trace)
+        self.tracer = (Tracer(plant, settings.record_interval) if self.paced and self.grouped and not self.single
+                       and isinstance(plant, contract.Traces) else None)
+        self.decided = []                           # decisions not yet shown (tracing: gathered every step)
         self.setup = time.perf_counter() - started
         self.rss_setup = _peak_rss_mb()
         last_arrival = sample.admitted[-1][0] if sample.admitted else 0.0
@@ -265,12 +270,14 @@ class Loop:
             started = self.now
             until = min(control.next_change(self.clock), cap)
             if self.paced and not self.single:
-                until = min(until, self.shown + self.settings.record_interval)
+                until = min(until, self.shown + self.settings.record_interval * (TRACE_BATCH if self.tracer else 1))
             window_start, window_end = self.settings.detector.window
             periods, seen = plant.step_until(self.actuation, until, stop_lines=(window_end,),
                                              record_lines=(window_start,))
             now = self.now
             self.idt_time += self.actuation * (now - started)
+            if self.tracer is not None:
+                self.tracer.take(self.steps + periods, self.actuation)
         else:
             self.observation, periods = plant.step(self.actuation), 1
             seen = [self.observation]
@@ -288,17 +295,27 @@ class Loop:
         control.settle(now)
         self.actuation = control.actuation(self.plant.clock if self.single else now)
         self.pending.extend(new_events)
+        if self.tracer is not None:
+            # a tracing plant is shown when a recorded step has passed, and with every event and decision (so that
+            # each recorded step sees the classes it would have seen had the loop stopped there)
+            self.decided += self.control.ledger.take_changes()
+            if self.sinks and (self.tracer.due or self.pending or self.decided or self.plant.done):
+                self._show(final=self.plant.done)
         # an event-driven plant shows its state every record_interval (events and decisions wait for it)
-        if self.sinks and (not self.grouped or self.single or now >= self.shown + self.settings.record_interval - 1e-12
-                           or self.plant.done):
+        elif self.sinks and (not self.grouped or self.single
+                             or now >= self.shown + self.settings.record_interval - 1e-12 or self.plant.done):
             self._show()
 
-    def _show(self):
+    def _show(self, final: bool = False):
         if self.grouped:
             self.observation = self.plant.observe()
+        trace = None
+        if self.tracer is not None:
+            trace = self.tracer.batch(self.actuation, (self.steps, self.observation) if final else None)
+        decisions, self.decided = tuple(self.decided + self.control.ledger.take_changes()), []
         record = StepRecord(self.steps, self.observation, self.truth_update(), self.actuation, tuple(self.pending),
-                            tuple(self.control.ledger.take_changes()), self.fields,
-                            self.diagnostics() if self.diagnostics is not None else None)
+                            decisions, self.fields, self.diagnostics() if self.diagnostics is not None else None,
+                            trace)
         for sink in self.sinks:
             sink.on_step(record)
         self.pending, self.shown = [], self.now
@@ -314,8 +331,8 @@ class Loop:
 
     def finish(self):
         """Show the sinks what they have not seen yet (the last step, events and cells that left since)."""
-        if self.sinks and self.grouped and (self.pending or self.now > self.shown):
-            self._show()
+        if self.sinks and self.grouped and (self.pending or self.decided or self.now > self.shown):
+            self._show(final=True)
         self.rss_loop = _peak_rss_mb()
 
     def summary(self, status: str = "complete", reason: str = "") -> dict:

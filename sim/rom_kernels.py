@@ -282,7 +282,7 @@ def advance(fields, params, segments, dividers, outlets, semi_axes, start, kind,
     every = counters[TRACE_EVERY]
     while periods < max_periods:
         first = counters[FIRST]
-        if watching and capacity - counters[LOGGED] < arrival.shape[0] - first:
+        if watching and capacity - counters[LOGGED] < _due(arrival, counters, params[PERIOD]) - first:
             return periods, LIMIT           # no room to log a crossing of every cell that may be in the channel
         if every > 0 and (counters[STEP] + 1) % every == 0 and \
                 trace_key.shape[0] - counters[TRACED] < _due(arrival, counters, params[PERIOD]) - first:

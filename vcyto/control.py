@@ -37,6 +37,7 @@ from controller.protocol import (
 
 LATENCY_SAMPLES = 100_000          # the latest latencies kept (bounded memory over long runs)
 LAG_SAMPLES = 100_000
+KNOWN_EVENTS = 1 << 16             # the latest events (and their decisions) a controller's answer may refer to
 
 
 @dataclass(frozen=True)
@@ -120,7 +121,7 @@ class Ledger(DecisionLog):
     """The decisions of a run as they stand, the controller's latencies and the missed decisions."""
 
     def __init__(self, facts: DeviceFacts):
-        super().__init__()
+        super().__init__(keep=KNOWN_EVENTS)
         self.facts = facts
         self.latencies: deque = deque(maxlen=LATENCY_SAMPLES)
         self.missed = self.refused_aborts = 0
@@ -196,6 +197,9 @@ class Control:
         """Tell the controller of ``events`` (detected by ``clock``); lock-step: take each answer before going on."""
         for event in events:
             self.events[event.event_id] = event
+            if len(self.events) > 2 * KNOWN_EVENTS:         # bounded memory: the latest events
+                self.events = {e: v for e, v in self.events.items()
+                               if e > event.event_id - KNOWN_EVENTS or e in self.outstanding}
             self.outstanding[event.event_id] = (event, time.perf_counter())
             self.port.post(event, event.time)
             if not self.timing.realtime:

@@ -313,7 +313,9 @@ class Loop:
         if self.tracer is not None:
             trace = self.tracer.batch(self.actuation, (self.steps, self.observation) if final else None)
         decisions, self.decided = tuple(self.decided + self.control.ledger.take_changes()), []
-        record = StepRecord(self.steps, self.observation, self.truth_update(), self.actuation, tuple(self.pending),
+        truth = self.truth_update()
+        self.detector.forget([cell.key for cell in truth.cells if cell.fate != "in_channel"])    # bounded memory
+        record = StepRecord(self.steps, self.observation, truth, self.actuation, tuple(self.pending),
                             decisions, self.fields, self.diagnostics() if self.diagnostics is not None else None,
                             trace)
         for sink in self.sinks:

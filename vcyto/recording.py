@@ -228,11 +228,13 @@ class McapRecorder:
         step, observation, truth, actuation = record.step, record.observation, record.truth, record.actuation
         events, decisions, fields, diagnostics = record.events, record.decisions, record.fields, record.diagnostics
         now = observation.time
-        before = class_snapshot(record.trace, self._classes) if record.trace is not None else None
+        # the classes before this record's events and decisions (the recorded steps before its time had them)
+        before = class_snapshot(record.trace, self._classes) if record.trace and (events or decisions) else None
         self._classes.observe(events, decisions)
         in_channel = [cell for cell in truth.cells if cell.fate == "in_channel"]
         if record.trace is not None:            # an event-driven plant's recorded steps, as columns
-            self._traced(record, row_classes(record.trace, now, before, class_snapshot(record.trace, self._classes)))
+            after = class_snapshot(record.trace, self._classes)
+            self._traced(record, row_classes(record.trace, now, before or after, after))
         else:
             _append(self._steps, (now, step, actuation, len(observation.cells), time.time(), diagnostics or {},
                                   len(in_channel)))

@@ -464,11 +464,12 @@ class RerunSink:
         logger, classes, figures = self.logger, self.classes, self.logger.figures
         revised = {d.event_id: classes.pulses.get(d.event_id) for d in decisions if d.action == "abort"}
         trace = record.trace
-        before = class_snapshot(trace, classes) if trace is not None else None
+        before = class_snapshot(trace, classes) if trace and (events or decisions) else None
         classes.observe(events, decisions)
         logger.time(observation.time, step)
         if trace is not None:                 # an event-driven plant's recorded steps, as columns
-            logger.traced(trace, row_classes(trace, observation.time, before, class_snapshot(trace, classes)))
+            after = class_snapshot(trace, classes)
+            logger.traced(trace, row_classes(trace, observation.time, before or after, after))
         else:
             logger.cells([_cell_view(cell, classes.provisional(cell.key)) for cell in truth.cells
                           if cell.fate == "in_channel"])

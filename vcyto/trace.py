@@ -16,6 +16,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+from .classes import CLASS_IDS
+
 TRACE_BATCH = 32               # record intervals a stretch may span before the loop shows it (the live view's lag)
 
 
@@ -101,13 +103,14 @@ class Tracer:
 def class_snapshot(trace: Trace, classes) -> dict:
     """The class id (``vcyto.classes.CLASS_IDS``) of each key in ``trace`` by ``classes`` (a
     ``vcyto.classes.CellClasses``) as it stands."""
-    from .classes import CLASS_IDS
     return {key: CLASS_IDS[classes.provisional(key)] for key in set(trace.keys)}
 
 
 def row_classes(trace: Trace, now: float, before: dict, after: dict) -> list:
     """Each row's class id: ``after`` (the classes with the record's events and decisions) at the record's own time
     ``now``, ``before`` at the earlier steps, as a loop that stopped at each recorded step would have shown."""
+    if before is after:
+        return [after[key] for key in trace.keys]
     late = now - 1e-12
     return [after[key] if time >= late else before[key] for key, time in zip(trace.keys, trace.row_times())]
 

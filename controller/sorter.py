@@ -32,7 +32,7 @@ from .protocol import DecisionLog
 
 MODES = ("purity", "enrichment", "yield", "single")
 REORDER_SLACK = 1e-3           # s: predicted arrivals may come out of detection order by up to this
-RECENT_DECISIONS = 1 << 16     # decisions of the latest events kept (coincidences reach a few events back)
+RECENT_DECISIONS = 1 << 12     # decisions of the latest events kept (coincidences reach a few events back)
 
 
 @dataclass(frozen=True)

@@ -37,7 +37,7 @@ from controller.protocol import (
 
 LATENCY_SAMPLES = 100_000          # the latest latencies kept (bounded memory over long runs)
 LAG_SAMPLES = 100_000
-KNOWN_EVENTS = 1 << 16             # the latest events (and their decisions) a controller's answer may refer to
+KNOWN_EVENTS = 1 << 12             # the latest events (and their decisions) a controller's answer may refer to
 
 
 @dataclass(frozen=True)

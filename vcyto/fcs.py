@@ -58,6 +58,7 @@ def event_table(result: dict) -> np.ndarray:
 
 def _table_events(path) -> np.ndarray:
     """``event_table`` read column by column from a per-cell table (memory: a few arrays of the events)."""
+    import pyarrow as pa
     import pyarrow.compute as pc
 
     from .celltable import read_table
@@ -65,10 +66,11 @@ def _table_events(path) -> np.ndarray:
                                       "detected_class", "decision", "outlet"])
     table = table.filter(pc.is_valid(table["detected_class"]))
 
-    def coded(name, codes, missing):
-        values = table[name].to_numpy(zero_copy_only=False)
-        return np.array([codes.get(value, missing) for value in values.tolist()], dtype=float) if len(values) \
-            else np.zeros(0)
+    def coded(name, codes, missing):           # looked up by pyarrow: no Python string per event
+        names = list(codes)
+        found = pc.index_in(table[name], value_set=pa.array(names, type=table[name].type))
+        index = found.fill_null(len(names)).to_numpy(zero_copy_only=False)
+        return np.array([codes[key] for key in names] + [missing], dtype=float)[index]
     columns = [np.round(table["detection_time_ms"].to_numpy() * 1e-3 / TIMESTEP),
                *(table[name].to_numpy() for name in ("fluorescence", "scatter", "velocity_mm_s")),
                coded("detected_class", CLASS_CODES, 0), coded("decision", DECISION_CODES, -1),
@@ -80,23 +82,30 @@ def _table_events(path) -> np.ndarray:
 def fcs_bytes(events: np.ndarray, keywords: dict) -> bytes:
     """An FCS 3.1 file of ``events`` (rows of float64, little-endian, list mode) with ``keywords`` (the channels'
     $PnN, $PnS, $PnR and any others; the segment offsets and data layout are added)."""
+    head, data = fcs_segments(events, keywords)
+    return head + data.tobytes()
+
+
+def fcs_segments(events: np.ndarray, keywords: dict) -> tuple[bytes, np.ndarray]:
+    """``fcs_bytes`` as (HEADER and TEXT, the DATA segment's array): written one after the other, without a copy
+    of the events."""
     events = np.ascontiguousarray(events, dtype="<f8")
     count, channels = events.shape
     fixed = {"$BEGINANALYSIS": "0", "$ENDANALYSIS": "0", "$BEGINSTEXT": "0", "$ENDSTEXT": "0",
              "$BYTEORD": "1,2,3,4", "$DATATYPE": "D", "$MODE": "L", "$NEXTDATA": "0", "$PAR": str(channels),
              "$TOT": str(count), **{f"$P{i}{key}": value for i in range(1, channels + 1)
                                     for key, value in (("B", "64"), ("E", "0,0"))}}
-    data, begin = events.tobytes(), 0
+    data, begin = events.reshape(-1), 0
     while True:                         # the offsets are in the TEXT whose length they set: until they hold
-        end = begin + len(data) - 1 if data else 0
-        text = _text({**fixed, **keywords, "$BEGINDATA": str(begin if data else 0), "$ENDDATA": str(end)})
+        end = begin + data.nbytes - 1 if data.nbytes else 0
+        text = _text({**fixed, **keywords, "$BEGINDATA": str(begin if data.nbytes else 0), "$ENDDATA": str(end)})
         start = _TEXT_START + len(text)
-        if begin == start or not data:
+        if begin == start or not data.nbytes:
             break
         begin = start
-    offsets = [_TEXT_START, _TEXT_START + len(text) - 1, begin if data else 0, end, 0, 0]
+    offsets = [_TEXT_START, _TEXT_START + len(text) - 1, begin if data.nbytes else 0, end, 0, 0]
     header = "FCS3.1    " + "".join(f"{value if value <= 99_999_999 else 0:>8}" for value in offsets)
-    return header.encode("ascii") + text + data
+    return header.encode("ascii") + text, data
 
 
 def _text(keywords: dict) -> bytes:
@@ -160,11 +169,12 @@ def write_fcs(path: Path, result: dict, metadata: dict | None = None, settings=N
         keywords.update({f"$P{index}N": name, f"$P{index}S": short, f"$P{index}R": channel_range(table[:, index - 1]),
                          f"VCYTO_P{index}_DESCRIPTION": description})
     keywords.update({key: str(value) for key, value in (metadata or {}).items()})
-    data = fcs_bytes(table, keywords)
+    head, data = fcs_segments(table, keywords)
 
     def write(temporary):
         with open(temporary, "wb") as handle:
-            handle.write(data)
+            handle.write(head)
+            handle.write(memoryview(data).cast("B"))
     outputs.write_whole(path, write)
     return path
 

@@ -68,6 +68,13 @@ class Detector:
             self._previous[sighting.key] = (time, sighting.x)
         return events
 
+    def forget(self, keys):
+        """Drop what is kept of the cells ``keys`` (cells that have left the channel: memory bounded by the cells
+        in it)."""
+        for key in keys:
+            self._passages.pop(key, None)
+            self._previous.pop(key, None)
+
     def _enter(self, time, sighting, before, start):
         settings = self.settings
         noise = self.rng.lognormal(-0.5 * math.log1p(settings.noise_cv**2), math.sqrt(math.log1p(settings.noise_cv**2)))

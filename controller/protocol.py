@@ -137,10 +137,14 @@ def check_answer(answer, known: set[int] | dict, event_id: int) -> list[Decision
 
 
 class DecisionLog:
-    """Decisions by event, the latest of each, in event order (what a controller or the loop has decided)."""
+    """Decisions by event, the latest of each, in event order (what a controller or the loop has decided).
 
-    def __init__(self):
+    ``keep``: remember the decisions of about the latest ``keep`` events only (between ``keep`` and twice that;
+    None: all), so that a long run's memory does not grow with its events."""
+
+    def __init__(self, keep: int | None = None):
         self._decisions: dict[int, Decision] = {}
+        self._keep = keep
 
     @property
     def decisions(self) -> list[Decision]:
@@ -151,6 +155,9 @@ class DecisionLog:
 
     def record(self, decision: Decision) -> None:
         self._decisions[decision.event_id] = decision
+        if self._keep is not None and len(self._decisions) > 2 * self._keep:
+            newest = max(self._decisions)
+            self._decisions = {e: d for e, d in self._decisions.items() if e > newest - self._keep}
 
 
 class PulseSchedule:

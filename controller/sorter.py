@@ -32,6 +32,7 @@ from .protocol import DecisionLog
 
 MODES = ("purity", "enrichment", "yield", "single")
 REORDER_SLACK = 1e-3           # s: predicted arrivals may come out of detection order by up to this
+RECENT_DECISIONS = 1 << 12     # decisions of the latest events kept (coincidences reach a few events back)
 
 
 @dataclass(frozen=True)
@@ -96,7 +97,7 @@ class SortController(DecisionLog):
     name = "built-in"
 
     def __init__(self, settings: ControllerSettings):
-        super().__init__()
+        super().__init__(keep=RECENT_DECISIONS)
         self.settings = settings
         self._recent: list = []        # _Pending entries still able to coincide
         self._answer: list = []        # the decisions of the event being answered

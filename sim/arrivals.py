@@ -17,6 +17,7 @@ Types are drawn from ``mix`` independently of the times (a thinned Poisson proce
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -58,12 +59,45 @@ class Arrivals:
                              "e.g. RBC:0.9,melanoma:0.1")
 
 
+class Cells(Sequence):
+    """Cells (time in s, type name) in time order, kept as arrays (9 bytes a cell, not ~130 as a list of tuples):
+    ``times``, ``kinds`` (indices into ``names``). Reads as a sequence of (time, name) pairs."""
+
+    __hash__ = None
+
+    def __init__(self, times, kinds, names):
+        self.times = np.asarray(times, dtype=float)
+        self.kinds = np.asarray(kinds, dtype=np.uint8 if len(names) <= 256 else np.int64)
+        self.names = tuple(str(name) for name in names)
+
+    def __len__(self) -> int:
+        return len(self.times)
+
+    def __getitem__(self, index):
+        if isinstance(index, slice):
+            return list(zip(self.times[index].tolist(), [self.names[k] for k in self.kinds[index].tolist()]))
+        return float(self.times[index]), self.names[self.kinds[index]]
+
+    def __iter__(self):
+        for start in range(0, len(self), 65536):            # a chunk at a time: no list of every cell at once
+            yield from self[start:start + 65536]
+
+    def __eq__(self, other) -> bool:
+        return isinstance(other, Sequence) and len(self) == len(other) and all(a == b for a, b in zip(self, other))
+
+    def __add__(self, other) -> list:
+        return list(self) + list(other)
+
+    def __repr__(self) -> str:
+        return f"Cells({len(self)} cells of {', '.join(self.names) or 'no type'})"
+
+
 @dataclass(frozen=True)
 class Offer:
-    """The sample as it reached the inlet: the admitted cells (time, type) and the rejected ones."""
+    """The sample as it reached the inlet: the admitted cells (time, type) and the rejected ones (``Cells``)."""
 
-    admitted: list[tuple[float, str]]
-    rejected: list[tuple[float, str]]
+    admitted: Cells
+    rejected: Cells
 
 
 def dead_time_acceptance(rate: float, dead_time: float) -> float:
@@ -73,36 +107,42 @@ def dead_time_acceptance(rate: float, dead_time: float) -> float:
 
 def offer(arrivals: Arrivals, rng: np.random.Generator) -> Offer:
     """Draw the sample's types and times and apply the inlet's dead time."""
-    names = list(arrivals.cells) if arrivals.cells else _draw_types(arrivals, rng)
+    kinds, names = _kinds(arrivals, rng)
     if arrivals.process == "regular":
-        times = arrivals.first + np.arange(len(names)) / arrivals.rate
-        return Offer([(float(t), str(n)) for t, n in zip(times, names)], [])
-    gaps = rng.exponential(1 / arrivals.rate, size=len(names))
+        times = arrivals.first + np.arange(len(kinds)) / arrivals.rate
+        return Offer(Cells(times, kinds, names), Cells((), (), names))
+    gaps = rng.exponential(1 / arrivals.rate, size=len(kinds))
     gaps[0] = 0.0
     times = arrivals.first + np.cumsum(gaps)
+    del gaps
     keep = _admitted(times, arrivals.min_spacing)
-    admitted = [(float(t), str(n)) for t, n, k in zip(times, names, keep) if k]
-    rejected = [(float(t), str(n)) for t, n, k in zip(times, names, keep) if not k]
-    return Offer(admitted, rejected)
+    return Offer(Cells(times[keep], kinds[keep], names), Cells(times[~keep], kinds[~keep], names))
 
 
-def schedule(arrivals: Arrivals, rng: np.random.Generator) -> list[tuple[float, str]]:
+def schedule(arrivals: Arrivals, rng: np.random.Generator) -> Cells:
     """The cells that enter the channel, in arrival order."""
     return offer(arrivals, rng).admitted
 
 
-def _draw_types(arrivals: Arrivals, rng: np.random.Generator) -> list[str]:
-    types = [name for name, _ in arrivals.mix]
+def _kinds(arrivals: Arrivals, rng: np.random.Generator) -> tuple[np.ndarray, tuple[str, ...]]:
+    """The sample's types as indices into the names: the explicit list's, or drawn from the mix (the same draws
+    as drawing the names themselves: ``Generator.choice`` picks indices either way)."""
+    if arrivals.cells:
+        names = tuple(dict.fromkeys(arrivals.cells))
+        index = {name: k for k, name in enumerate(names)}
+        return np.array([index[name] for name in arrivals.cells], dtype=np.int64), names
+    names = tuple(name for name, _ in arrivals.mix)
     weights = np.array([weight for _, weight in arrivals.mix], dtype=float)
-    return list(rng.choice(types, size=arrivals.count, p=weights / weights.sum()))
+    return rng.choice(len(names), size=arrivals.count, p=weights / weights.sum()), names
 
 
-def _admitted(times: np.ndarray, dead_time: float) -> np.ndarray:
+def _admitted(times: np.ndarray, dead_time: float, chunk: int = 65536) -> np.ndarray:
     """Which of the sorted ``times`` a non-paralysable dead time after each admitted one lets through."""
     keep = np.zeros(len(times), dtype=bool)
     free = -math.inf
-    for index, t in enumerate(times.tolist()):
-        if t >= free:
-            keep[index] = True
-            free = t + dead_time
+    for start in range(0, len(times), chunk):               # a chunk at a time: no list of every time at once
+        for index, t in enumerate(times[start:start + chunk].tolist(), start):
+            if t >= free:
+                keep[index] = True
+                free = t + dead_time
     return keep

@@ -120,6 +120,18 @@ class StepsUntil(Protocol):
 
 
 @runtime_checkable
+class Traces(Protocol):
+    """A plant that steps many periods a call (``StepsUntil``) and records its cells for recordings itself:
+    ``trace(interval)`` asks for the cells in the channel at every period index that is a multiple of the
+    cadence it returns (``interval`` rounded up to whole periods); ``take_trace()`` hands over the rows since its
+    last call as arrays (period index, key, (x, y)), in time order."""
+
+    def trace(self, interval: float) -> int: ...
+
+    def take_trace(self) -> tuple: ...
+
+
+@runtime_checkable
 class ReportsTruthUpdates(Protocol):
     """Reports the truth of the cells in the channel and of those settled since the last call, each once."""
 

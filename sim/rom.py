@@ -38,6 +38,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from . import rom_kernels as kernels
+from .arrivals import Cells
 from .drive import lag_decay
 from .fluid import NavierStokes
 from .geometry import clip_to_channel, injection_point
@@ -56,6 +57,8 @@ STREAMING_VISCOUS_DELAY = 82e-6
 # 9 cells at 10 us, 8 at 20 us, 25 at 50 us and 40 at 100 us; each period is one midpoint substep.
 CONTROL_PERIOD = 20e-6
 _NO_LINES = np.zeros(0)
+TRACE_ROWS = 4096              # rows of the trace buffer to start with (it grows when a traced period needs more)
+LOG_ROWS = 4096                # rows of the crossing log to start with (likewise)
 FATES = {kernels.WALL: "wall", kernels.LOST: "lost", kernels.IN_CHANNEL: "in_channel"}
 
 
@@ -255,13 +258,8 @@ class RomPlant:
 
     # ------------------------------------------------------------------ the contract
     def reset(self, arrivals) -> Observation:
-        items = sorted(arrivals)
-        n = len(items)
-        index = {name: k for k, name in enumerate(self._names)}
-        for _, name in items:
-            self.scenario.cell_type(name)              # unknown names fail here, as in the other plants
-        self._arrival = np.array([t for t, _ in items], dtype=float)
-        self._kind = np.array([index[name] for _, name in items], dtype=np.int64)
+        self._arrival, self._kind = self._schedule(arrivals)
+        n = len(self._arrival)
         self._area_of = [self._area[kind] for kind in self._kind.tolist()]              # by key
         self._brightness_of = [self._brightness[kind] for kind in self._kind.tolist()]
         self._born = np.full(n, np.nan)
@@ -272,20 +270,39 @@ class RomPlant:
         self._stalled = np.zeros(n)
         self._before = np.zeros((n, 2))
         self._touched = np.zeros(n, dtype=np.bool_)
-        self._log_step = np.zeros(2 * n + 64, dtype=np.int64)
-        self._log_key = np.zeros(2 * n + 64, dtype=np.int64)
-        self._log_positions = np.zeros((2 * n + 64, 4))
-        self._counters = np.zeros(7, dtype=np.int64)
+        self._log_step = np.zeros(LOG_ROWS, dtype=np.int64)
+        self._log_key = np.zeros(LOG_ROWS, dtype=np.int64)
+        self._log_positions = np.zeros((LOG_ROWS, 4))
+        self._counters = np.zeros(9, dtype=np.int64)
+        self._trace_step = np.zeros(TRACE_ROWS, dtype=np.int64)
+        self._trace_key = np.zeros(TRACE_ROWS, dtype=np.int64)
+        self._trace_positions = np.zeros((TRACE_ROWS, 2))
         self._level = np.zeros(len(self.lags))
         self._unreported, self._reported = 0, set()        # truth_update's position: keys below are all reported
         self._arrays = (self.flows.cells, self._params, self._segments, self._dividers, self._outlets,
                         self._semi_axes, self._start, self._kind, self._arrival, self._born, self._position,
                         self._fate, self._exit_time, self._exit_y, self._stalled, self._counters, self._level,
                         self._lags, self._before, self._touched, self._log_step, self._log_key,
-                        self._log_positions)   # the kernel's arguments, in order
+                        self._log_positions, self._trace_step, self._trace_key,
+                        self._trace_positions)   # the kernel's arguments, in order
         kernels.inject(self._start, self._kind, self._arrival, self._born, self._position, self._fate,
                        self._counters, 0.0, 0.5 * self.control_period, self._before)
         return self.observe()
+
+    def _schedule(self, arrivals):
+        """Arrival times and type indices in time order: read from the arrays of ``sim.arrivals.Cells`` (in time
+        order, no ties), else sorted from (time, name) pairs. Unknown names fail here, as in the other plants."""
+        index = {name: k for k, name in enumerate(self._names)}
+        if isinstance(arrivals, Cells) and not np.any(np.diff(arrivals.times) <= 0):
+            for name in arrivals.names:
+                self.scenario.cell_type(name)
+            table = np.array([index.get(name, -1) for name in arrivals.names], dtype=np.int64)
+            return arrivals.times.copy(), table[arrivals.kinds] if len(table) else np.zeros(0, np.int64)
+        items = sorted(arrivals)
+        for _, name in items:
+            self.scenario.cell_type(name)
+        return (np.array([t for t, _ in items], dtype=float),
+                np.array([index[name] for _, name in items], dtype=np.int64))
 
     def step(self, actuation: float) -> Observation:
         """One control period at the drive ``actuation``."""
@@ -305,7 +322,38 @@ class RomPlant:
         if lines != self._lines[0]:
             self._lines = (lines, *(np.asarray(group, dtype=float).reshape(-1) for group in lines))
         periods, _ = self._advance(actuation, until, max_periods, *self._lines[1:])
+        while periods == 0 and max_periods > 0 and not self.done:
+            # the log or the trace has no room for one more period's rows (a crowd of cells; a trace not taken)
+            self._grow()
+            periods, _ = self._advance(actuation, until, max_periods, *self._lines[1:])
         return periods, self._crossings()
+
+    # ------------------------------------------------------------------ the trace (recordings)
+    def trace(self, interval: float) -> int:
+        """Trace the cells in the channel every ``interval`` of simulated time from now on (rounded up to whole
+        control periods, at period indices that are multiples of it): ``take_trace`` hands the rows over. Returns
+        the cadence in periods."""
+        every = max(1, math.ceil(interval / self.control_period - 1e-9))
+        self._counters[kernels.TRACE_EVERY] = every         # until the next reset
+        return every
+
+    def take_trace(self):
+        """(period index, key, (x, y)) rows traced since the last call, as arrays (copies), in time order."""
+        rows = int(self._counters[kernels.TRACED])
+        self._counters[kernels.TRACED] = 0
+        return self._trace_step[:rows].copy(), self._trace_key[:rows].copy(), self._trace_positions[:rows].copy()
+
+    def _grow(self):
+        """Twice the room in the crossing log and the trace (their rows are handed over after each call)."""
+        log, trace = 2 * len(self._log_key), 2 * len(self._trace_key)
+        self._log_step, self._log_key = np.zeros(log, dtype=np.int64), np.zeros(log, dtype=np.int64)
+        self._log_positions = np.zeros((log, 4))
+        traced = int(self._counters[kernels.TRACED])          # rows not yet taken are kept
+        self._trace_step = np.concatenate([self._trace_step[:traced], np.zeros(trace - traced, dtype=np.int64)])
+        self._trace_key = np.concatenate([self._trace_key[:traced], np.zeros(trace - traced, dtype=np.int64)])
+        self._trace_positions = np.concatenate([self._trace_positions[:traced], np.zeros((trace - traced, 2))])
+        self._arrays = (*self._arrays[:-6], self._log_step, self._log_key, self._log_positions, self._trace_step,
+                        self._trace_key, self._trace_positions)
 
     def _crossings(self) -> list[Observation]:
         """The partial observations of the cells whose crossings the last ``step_until`` logged."""

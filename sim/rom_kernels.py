@@ -33,8 +33,9 @@ WALL = 1
 LOST = 2
 OUTLET = 3                     # fate OUTLET + k: left through outlet k
 
-# counters: int64 array of the plant's integer state
-STEP, NEXT, FIRST, ACTIVE, PHYSICS_STEPS, CONTACTS, LOGGED = range(7)
+# counters: int64 array of the plant's integer state (TRACED: rows in the trace, TRACE_EVERY: its cadence in
+# periods, 0 = no trace)
+STEP, NEXT, FIRST, ACTIVE, PHYSICS_STEPS, CONTACTS, LOGGED, TRACED, TRACE_EVERY = range(9)
 # params: float64 array of the plant's constants
 PERIOD, SUBSTEPS, LENGTH, HEIGHT, SPACING_X, SPACING_Y, STALL_SPEED, STALL_TIME = range(8)
 # lags: float64 array (M, 4): each mode's decay over a substep and over half a substep, then two scratch columns
@@ -238,6 +239,16 @@ def inject(start, kind, arrival, born, position, fate, counters, now, tolerance,
 
 
 @njit(cache=True, error_model="numpy", inline="always")
+def _due(arrival, counters, period):
+    """The index past the last cell that can be in the channel at the end of the next period."""
+    due = counters[NEXT]
+    horizon = (counters[STEP] + 1.5) * period
+    while due < arrival.shape[0] and arrival[due] <= horizon:
+        due += 1
+    return due
+
+
+@njit(cache=True, error_model="numpy", inline="always")
 def _crosses(x_before, x_after, lines):
     """Whether x went forwards across one of the lines x = lines[k]."""
     for k in range(lines.shape[0]):
@@ -246,10 +257,10 @@ def _crosses(x_before, x_after, lines):
     return False
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", nogil=True)
 def advance(fields, params, segments, dividers, outlets, semi_axes, start, kind, arrival, born, position, fate,
             exit_time, exit_y, stalled, counters, level_state, lags, before, touched, log_step, log_key, log_positions,
-            actuation, until, max_periods, stop_lines, record_lines):
+            trace_step, trace_key, trace_positions, actuation, until, max_periods, stop_lines, record_lines):
     """Step up to ``max_periods`` control periods at a constant ``actuation``; (periods done, reason).
 
     Stops after the period that reaches time ``until`` (UNTIL), after which every cell has settled (DONE),
@@ -258,18 +269,36 @@ def advance(fields, params, segments, dividers, outlets, semi_axes, start, kind,
     is logged: log_step[m] (the period's index), log_key[m], log_positions[m] = (x, y) one period before
     (x = -inf for a cell injected then) and after; counters[LOGGED] entries. The call also returns
     (LIMIT) before a period for which the log might have no room.
+
+    The trace (``counters[TRACE_EVERY]`` > 0): at the end of every period whose index is a multiple of it, each
+    cell in the channel is appended: trace_step[m] (the period's index), trace_key[m], trace_positions[m] = (x, y);
+    counters[TRACED] entries, kept across calls until the caller resets the count. The call returns (LIMIT) before
+    a period whose rows might not fit. It releases the GIL: the plant's arrays are its own.
     """
     periods = 0
     counters[LOGGED] = 0
     capacity = log_key.shape[0]
     watching = stop_lines.shape[0] + record_lines.shape[0] > 0
+    every = counters[TRACE_EVERY]
     while periods < max_periods:
         first = counters[FIRST]
-        if watching and capacity - counters[LOGGED] < arrival.shape[0] - first:
+        if watching and capacity - counters[LOGGED] < _due(arrival, counters, params[PERIOD]) - first:
             return periods, LIMIT           # no room to log a crossing of every cell that may be in the channel
+        if every > 0 and (counters[STEP] + 1) % every == 0 and \
+                trace_key.shape[0] - counters[TRACED] < _due(arrival, counters, params[PERIOD]) - first:
+            return periods, LIMIT           # no room to trace every cell that may be in the channel then
         _period(fields, params, segments, dividers, outlets, semi_axes, start, kind, arrival, born, position, fate,
                 exit_time, exit_y, stalled, counters, level_state, lags, actuation, before, touched)
         periods += 1
+        if every > 0 and counters[STEP] % every == 0:
+            for i in range(counters[FIRST], counters[NEXT]):
+                if fate[i] == IN_CHANNEL:
+                    m = counters[TRACED]
+                    trace_step[m] = counters[STEP]
+                    trace_key[m] = i
+                    trace_positions[m, 0] = position[i, 0]
+                    trace_positions[m, 1] = position[i, 1]
+                    counters[TRACED] += 1
         stop = False
         if watching:
             for i in range(first, counters[NEXT]):

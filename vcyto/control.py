@@ -39,6 +39,7 @@ LATENCY_SAMPLES = 100_000          # the latest latencies kept (bounded memory o
 LAG_SAMPLES = 100_000
 SPIN = 0.3e-3                      # s: the end of a pace is waited for in a loop, not a sleep (which overshoots
                                    # by 0.1-2 ms on a shared host: the plant would lag the wall clock by that)
+KNOWN_EVENTS = 1 << 12             # the latest events (and their decisions) a controller's answer may refer to
 
 
 @dataclass(frozen=True)
@@ -122,7 +123,7 @@ class Ledger(DecisionLog):
     """The decisions of a run as they stand, the controller's latencies and the missed decisions."""
 
     def __init__(self, facts: DeviceFacts):
-        super().__init__()
+        super().__init__(keep=KNOWN_EVENTS)
         self.facts = facts
         self.latencies: deque = deque(maxlen=LATENCY_SAMPLES)
         self.missed = self.refused_aborts = 0
@@ -210,6 +211,9 @@ class Control:
         taking each answer at once; over the wire that work overlaps the controller's."""
         for event in events:
             self.events[event.event_id] = event
+            if len(self.events) > 2 * KNOWN_EVENTS:         # bounded memory: the latest events
+                self.events = {e: v for e, v in self.events.items()
+                               if e > event.event_id - KNOWN_EVENTS or e in self.outstanding}
             self.outstanding[event.event_id] = (event, time.perf_counter())
             self.port.post(event, event.time)
 

@@ -31,6 +31,8 @@ from foxglove_schemas_protobuf.Vector3_pb2 import Vector3
 from google.protobuf.duration_pb2 import Duration
 from google.protobuf.timestamp_pb2 import Timestamp
 
+from .classes import CLASS_COLOURS, CLASS_NAMES
+
 FRAME = "channel"
 TOPICS = {"/foxglove/scene": SceneUpdate, "/foxglove/membranes": PointCloud, "/foxglove/speed": RawImage,
           "/foxglove/log": Log}
@@ -44,6 +46,7 @@ SPEED_PIXEL_UM = 2.0
 METRE = 1e-6                                     # metres per micrometre: what the functions write
 MARKER_LIFETIME = Duration(nanos=2_000_000)      # 2 ms of simulated time
 PATH_LIFETIME = Duration(nanos=10_000_000)       # 10 ms
+_CLASS_RGB = np.array([CLASS_COLOURS[name] for name in CLASS_NAMES], dtype=np.uint8).reshape(-1, 3)
 LEVELS = {"INFO": Log.INFO, "WARN": Log.WARNING, "WARNING": Log.WARNING, "ERROR": Log.ERROR}
 
 
@@ -80,8 +83,23 @@ class Membranes:
                                  fields=POINT_FIELDS).SerializeToString()
 
     def message(self, unix_ns: int, cells) -> bytes:
+        return self.packed(unix_ns, _points(cells))
+
+    def packed(self, unix_ns: int, data: bytes) -> bytes:
+        """The message of points already packed as ``POINT`` rows (``centroids``)."""
         return (PointCloud(timestamp=stamp(unix_ns)).SerializeToString() + self._fixed
-                + PointCloud(data=_points(cells)).SerializeToString())
+                + PointCloud(data=data).SerializeToString())
+
+
+def centroids(x_um, y_um, keys, class_ids) -> np.ndarray:
+    """Point-like cells as ``POINT`` rows, the rows ``membranes`` writes for them, built as arrays (for many steps'
+    cells at once: slices of the result are each step's points)."""
+    colours = _CLASS_RGB[np.asarray(class_ids, dtype=np.intp)]
+    data = np.zeros(len(keys), dtype=POINT)
+    data["x"], data["y"] = _binary(x_um), _binary(y_um)
+    data["red"], data["green"], data["blue"], data["alpha"] = colours[:, 0], colours[:, 1], colours[:, 2], 255
+    data["key"], data["class"] = keys, class_ids
+    return data
 
 
 def _points(cells) -> bytes:

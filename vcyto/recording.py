@@ -42,6 +42,7 @@ import base64
 import collections
 import dataclasses
 import errno
+import itertools
 import json
 import logging
 import math
@@ -60,10 +61,11 @@ from mcap_protobuf.schema import build_file_descriptor_set
 from sim.scenario import UM, Scenario
 
 from . import foxglove
-from .classes import CLASS_COLOURS, CLASS_IDS, CellClasses
+from .classes import CLASS_COLOURS, CLASS_IDS, CLASS_NAMES, CellClasses
 from .outputs import plain
 from .schemas import SCHEMAS
 from .sortreport import EVENT_NAMES, name_cells
+from .trace import class_snapshot, extend_paths, row_classes
 
 PER_STEP = ("/loop/steps", "/cells/rows")
 # 1: JSON channels only, membranes in /cells; 2: Foxglove channels beside them (um); 3: the per-step channels as
@@ -226,13 +228,19 @@ class McapRecorder:
         step, observation, truth, actuation = record.step, record.observation, record.truth, record.actuation
         events, decisions, fields, diagnostics = record.events, record.decisions, record.fields, record.diagnostics
         now = observation.time
+        # the classes before this record's events and decisions (the recorded steps before its time had them)
+        before = class_snapshot(record.trace, self._classes) if record.trace and (events or decisions) else None
         self._classes.observe(events, decisions)
         in_channel = [cell for cell in truth.cells if cell.fate == "in_channel"]
-        _append(self._steps, (now, step, actuation, len(observation.cells), time.time(), diagnostics or {},
-                              len(in_channel)))
-        self._membranes(now, in_channel)
-        for cell in in_channel:
-            self._cell(now, cell)
+        if record.trace is not None:            # an event-driven plant's recorded steps, as columns
+            after = class_snapshot(record.trace, self._classes)
+            self._traced(record, row_classes(record.trace, now, before or after, after))
+        else:
+            _append(self._steps, (now, step, actuation, len(observation.cells), time.time(), diagnostics or {},
+                                  len(in_channel)))
+            self._membranes(now, in_channel)
+            for cell in in_channel:
+                self._cell(now, cell)
         positions = {cell.key: cell for cell in in_channel}
         for event in events:
             self._event(event, positions.get(event.key))
@@ -272,6 +280,30 @@ class McapRecorder:
         left = [cell for cell in truth.cells if cell.fate != "in_channel" and cell.key not in self._reported]
         self._reported.update(cell.key for cell in left)
         return left
+
+    def _traced(self, record, class_ids):
+        """The recorded steps of ``record.trace`` (``vcyto.trace``): their rows, a point cloud per step, the paths;
+        the plant's diagnostics on the last step (as of the record)."""
+        trace, steps, rows = record.trace, self._steps, self._rows
+        count, keys = len(trace), trace.keys
+        cells = {cell.key: cell for cell in record.truth.cells}
+        x_um, y_um = [round(x * 1e6, 4) for x in trace.x], [round(y * 1e6, 4) for y in trace.y]
+        for name, values in (("time", trace.times), ("step", trace.steps), ("idt", trace.drive),
+                             ("cells_in_channel", trace.counts), ("wall_time", [time.time()] * count),
+                             ("diagnostics", [{}] * (count - 1) + [record.diagnostics or {}]), ("rows", trace.counts)):
+            steps[name].extend(values)
+        nothing = [None] * len(keys)
+        for name, values in (("key", keys), ("type", [cells[key].type for key in keys]),
+                             ("class", [CLASS_NAMES[i] for i in class_ids]), ("x_um", x_um), ("y_um", y_um),
+                             ("area_ratio", [round(cells[key].area_ratio, 6) for key in keys]),
+                             ("perimeter_um", nothing), ("spacing_min_h", nothing), ("spacing_max_h", nothing)):
+            rows[name].extend(values)
+        points, start, size = foxglove.centroids(x_um, y_um, keys, class_ids).tobytes(), 0, foxglove.POINT.itemsize
+        for time_s, end in zip(trace.times, itertools.accumulate(trace.counts)):
+            data = points[start * size:end * size]
+            self._write_proto("/foxglove/membranes", time_s, self._cloud.packed(self._stamp(time_s), data))
+            start = end
+        extend_paths(self._paths, trace, x_um, y_um)
 
     def _membranes(self, now: float, cells):
         rows = []

@@ -49,6 +49,7 @@ from sim.scenario import UM, Scenario
 
 from .classes import CLASS_COLOURS, CLASS_IDS, CLASS_NAMES, CellClasses
 from .foxglove import speed_grid
+from .trace import class_snapshot, extend_paths, row_classes
 from .viewer import finish_stream, import_rerun, speed_scale_mm_s
 
 POINT_LIKE = ("rom", "streamline")     # plants whose cells have no membrane (their view has no area panel)
@@ -184,6 +185,7 @@ class RerunLogger:
         self.recent_events: collections.deque = collections.deque(maxlen=RECENT_EVENTS)
         self.batch_rows, self.batch_seconds = batch_rows, batch_seconds
         self._pending: dict[str, _Rows] = collections.defaultdict(_Rows)
+        self._traced: dict = {}                        # recorded steps of an event-driven plant, as columns
         self._rows, self._sent_at = 0, time.monotonic()
         self._now = (0.0, None)
         self._membranes = False
@@ -306,6 +308,29 @@ class RerunLogger:
         if self._membranes:                             # once a model has shown membranes, every step says which
             self._add("device/membranes", membranes)
 
+    def traced(self, trace, class_ids):
+        """The recorded steps of an event-driven plant (``vcyto.trace.Trace``) with each row's class id: the cells
+        at each step, sent as columns."""
+        x_um, y_um = [x / UM for x in trace.x], [y / UM for y in trace.y]
+        self.positions.update(extend_paths(self.paths, trace, x_um, y_um))
+        columns = self._traced
+        for name, values in (("times", trace.times), ("steps", trace.steps), ("counts", trace.counts),
+                             ("keys", trace.keys), ("x", x_um), ("y", y_um), ("class_ids", class_ids)):
+            columns.setdefault(name, []).extend(values)
+        self._rows += len(trace.keys) + len(trace)
+
+    def _send_traced(self):
+        rr, columns = self.rr, self._traced
+        rows = _Rows()
+        rows.times, rows.steps = columns["times"], columns["steps"]
+        keys = columns["keys"]
+        cells = rr.Points2D.columns(positions=np.column_stack([columns["x"], columns["y"]]).astype(np.float32),
+                                    class_ids=np.array(columns["class_ids"], dtype=np.uint16),
+                                    labels=[str(key) for key in keys], radii=np.full(len(keys), 2.0, np.float32))
+        self.stream.send_columns("device/cells", indexes=self._indexes(rows),
+                                 columns=cells.partition(columns["counts"]))
+        self._traced = {}
+
     def outcome(self, key: int, class_name: str, text: str):
         """A cell has left: its path appears in its slot, in the colour of its outcome class."""
         path = self.paths.pop(key, None)
@@ -357,6 +382,8 @@ class RerunLogger:
 
     # --- sending -------------------------------------------------------------------------------------------
     def send_pending(self):
+        if self._traced:
+            self._send_traced()
         for entity, rows in self._pending.items():
             if rows.times:
                 self.stream.send_columns(entity, indexes=self._indexes(rows), columns=self._columns(entity, rows))
@@ -436,10 +463,16 @@ class RerunSink:
         events, decisions, fields = record.events, record.decisions, record.fields
         logger, classes, figures = self.logger, self.classes, self.logger.figures
         revised = {d.event_id: classes.pulses.get(d.event_id) for d in decisions if d.action == "abort"}
+        trace = record.trace
+        before = class_snapshot(trace, classes) if trace and (events or decisions) else None
         classes.observe(events, decisions)
         logger.time(observation.time, step)
-        logger.cells([_cell_view(cell, classes.provisional(cell.key)) for cell in truth.cells
-                      if cell.fate == "in_channel"])
+        if trace is not None:                 # an event-driven plant's recorded steps, as columns
+            after = class_snapshot(trace, classes)
+            logger.traced(trace, row_classes(trace, observation.time, before or after, after))
+        else:
+            logger.cells([_cell_view(cell, classes.provisional(cell.key)) for cell in truth.cells
+                          if cell.fate == "in_channel"])
         for event in events:
             figures.event(event.classification)
             logger.event(event.time, event.key, classes.provisional(event.key), event_text(event))

@@ -23,7 +23,9 @@ class StepRecord:
     ``truth`` holds the cells in the channel and those that left since the previous record (each once);
     ``events`` and ``decisions`` are the detector events and the controller's decisions (made or revised) since
     the previous record; ``fields`` computes the flow field payload of this step (plants with a flow field;
-    only called where a sink asks for it); ``diagnostics`` is the plant's (``Plant.diagnostics``), if any."""
+    only called where a sink asks for it); ``diagnostics`` is the plant's (``Plant.diagnostics``), if any;
+    ``trace``: an event-driven plant's recorded steps since the previous record, as columns (``vcyto.trace.Trace``;
+    None for plants whose every record is a recorded step)."""
 
     step: int
     observation: Any
@@ -33,6 +35,7 @@ class StepRecord:
     decisions: tuple = ()
     fields: Callable[[], dict] | None = None
     diagnostics: dict | None = None
+    trace: Any = None
 
     @property
     def time(self) -> float:

@@ -32,6 +32,7 @@ from . import sortreport
 from .control import Control, InProcess, Timing, describe
 from .sortreport import report_lines, statistics_of, true_class  # noqa: F401  (the loop's public names)
 from .steps import Moment, ProgressSink, StepRecord, is_paced, needs_state
+from .trace import TRACE_BATCH, Tracer
 
 MODELS = plants.MODELS
 STATUSES = ("complete", "truncated", "interrupted", "failed")
@@ -121,7 +122,9 @@ def run_stream(scenario: Scenario, settings: StreamSettings, progress=None, plan
     they get holds the cells in the channel and those that left since the previous step. A plant that can group
     periods (``step_until``, the rom plant) is stepped up to the next moment the loop must look: a cell crossing
     the end of the detection window, the next pulse edge, an unanswered event's deadline (real time), the cap,
-    and with sinks every ``record_interval``; the detector is fed the cells that crossed an edge of its window,
+    and with recording sinks every ``record_interval`` unless the plant traces its cells at that cadence itself
+    (``sim.contract.Traces``: the recorded steps reach the sinks as columns, ``vcyto.trace``, the plant runs on
+    between the loop's own stops); the detector is fed the cells that crossed an edge of its window,
     one period before and at the crossing. It reacts to nothing else and the controller to nothing but its
     events, so the outcome is the same as stepping period by period (tested), at a fraction of the cost.
 
@@ -249,6 +252,10 @@ class Loop:
             else None
         self.pending, self.shown = [], 0.0          # events not yet shown to the sinks; when they last saw a step
         self.observation = plant.reset(sample.admitted)
+        # an event-driven plant that traces its cells: recorded steps without stopping the plant (vcyto.trace)
+        self.tracer = (Tracer(plant, settings.record_interval) if self.paced and self.grouped and not self.single
+                       and isinstance(plant, contract.Traces) else None)
+        self.decided = []                           # decisions not yet shown (tracing: gathered every step)
         self.setup = time.perf_counter() - started
         self.rss_setup = _peak_rss_mb()
         last_arrival = sample.admitted[-1][0] if sample.admitted else 0.0
@@ -276,7 +283,7 @@ class Loop:
         self.control.post(events)
         # what the sinks are shown of the plant does not depend on the answers: looked at while the controller
         # thinks (over the wire, in another process), then the answers are collected (lock-step)
-        look = self._look() if self._show_due() else None
+        look = self._look() if self._show_due(events) else None
         self.control.collect()
         self.conclude(events, look)
 
@@ -288,12 +295,14 @@ class Loop:
             started = self.now
             until = min(control.next_change(self.clock), cap)
             if self.paced and not self.single:
-                until = min(until, self.shown + self.settings.record_interval)
+                until = min(until, self.shown + self.settings.record_interval * (TRACE_BATCH if self.tracer else 1))
             window_start, window_end = self.settings.detector.window
             periods, seen = plant.step_until(self.actuation, until, stop_lines=(window_end,),
                                              record_lines=(window_start,))
             now = self.now
             self.idt_time += self.actuation * (now - started)
+            if self.tracer is not None:
+                self.tracer.take(self.steps + periods, self.actuation)
         else:
             self.observation, periods = plant.step(self.actuation), 1
             seen = [self.observation]
@@ -312,14 +321,25 @@ class Loop:
         control.settle(now)
         self.actuation = control.actuation(self.plant.clock if self.single else now)
         self.pending.extend(new_events)
-        if look is not None or self._show_due():
+        if self.tracer is not None:
+            # a tracing plant is shown when a recorded step has passed, and with every event and decision (so that
+            # each recorded step sees the classes it would have seen had the loop stopped there)
+            self.decided += self.control.ledger.take_changes()
+            if self.sinks and (look is not None or self.tracer.due or self.pending or self.decided or self.plant.done):
+                self._show(look, final=self.plant.done)
+        elif look is not None or self._show_due():
             self._show(look)
 
-    def _show_due(self) -> bool:
-        """Whether the sinks see this stop: every step, or an event-driven plant's state every record_interval
-        (events and decisions wait for it), and its last."""
-        return bool(self.sinks) and (not self.grouped or self.single or self.plant.done
-                                     or self.now >= self.shown + self.settings.record_interval - 1e-12)
+    def _show_due(self, events=()) -> bool:
+        """Whether the sinks see this stop (``events``: those just posted, not yet in ``pending``): every step, or
+        an event-driven plant's state every record_interval (events and decisions wait for it), and its last; a
+        tracing plant's when a recorded step has passed or with an event (or a decision: known only later)."""
+        if not self.sinks:
+            return False
+        if self.tracer is not None:
+            return bool(self.tracer.due or self.pending or events or self.plant.done)
+        return (not self.grouped or self.single or self.plant.done
+                or self.now >= self.shown + self.settings.record_interval - 1e-12)
 
     def _look(self) -> tuple:
         """The plant at this stop as the sinks see it: its observation, the cells' truth, its diagnostics."""
@@ -327,10 +347,15 @@ class Loop:
             self.observation = self.plant.observe() if self.state_wanted else Moment(self.plant.time)
         return (self.observation, self.truth_update(), self.diagnostics() if self.diagnostics is not None else None)
 
-    def _show(self, look=None):
+    def _show(self, look=None, final: bool = False):
         observation, truth, diagnostics = look if look is not None else self._look()
-        record = StepRecord(self.steps, observation, truth, self.actuation, tuple(self.pending),
-                            tuple(self.control.ledger.take_changes()), self.fields, diagnostics)
+        trace = None
+        if self.tracer is not None:
+            trace = self.tracer.batch(self.actuation, (self.steps, observation) if final else None)
+        decisions, self.decided = tuple(self.decided + self.control.ledger.take_changes()), []
+        self.detector.forget([cell.key for cell in truth.cells if cell.fate != "in_channel"])    # bounded memory
+        record = StepRecord(self.steps, observation, truth, self.actuation, tuple(self.pending), decisions,
+                            self.fields, diagnostics, trace)
         for sink in self.sinks:
             sink.on_step(record)
         self.pending, self.shown = [], self.now
@@ -346,8 +371,8 @@ class Loop:
 
     def finish(self):
         """Show the sinks what they have not seen yet (the last step, events and cells that left since)."""
-        if self.sinks and self.grouped and (self.pending or self.now > self.shown):
-            self._show()
+        if self.sinks and self.grouped and (self.pending or self.decided or self.now > self.shown):
+            self._show(final=True)
         self.rss_loop = _peak_rss_mb()
 
     def summary(self, status: str = "complete", reason: str = "") -> dict:

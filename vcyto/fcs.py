@@ -162,7 +162,7 @@ def write_fcs(path: Path, result: dict, metadata: dict | None = None, settings=N
     def write(temporary):
         with open(temporary, "wb") as handle:
             handle.write(head)
-            handle.write(memoryview(data).cast("B"))
+            data.tofile(handle)
     outputs.write_whole(path, write)
     return path
 

@@ -119,6 +119,10 @@ class ImmersedBoundary:
         self.limits = HealthLimits.of(scenario)
         self.timings = Timings()
         self.adaptive = None
+        self.coupling = None
+        if scenario.numerics.membrane_coupling == "implicit":      # the force at the new positions (``sim.coupling``)
+            from .coupling import ImplicitCoupling
+            self.coupling = ImplicitCoupling(self)
         if scenario.numerics.tolerance > 0:     # dt chosen per step from levels by an error estimate
             from .adaptive import AdaptiveSteps
             self.adaptive = AdaptiveSteps(self)
@@ -158,15 +162,26 @@ class ImmersedBoundary:
               for cell, old in zip(active, before)]
         load, located = self.membrane_load(active, at)
         fluid_started = clock.perf_counter()
-        flow = fluid.step(state.flow, actuation, load if active else None, ahead=ahead)
+        implicit = self.coupling is not None and active
+        flow = fluid.step(state.flow, actuation, load if active else None, ahead=False if implicit else ahead)
         membrane_started = clock.perf_counter()
-        moved = {}
+        news = []
         for cell, old, (elements, reference) in zip(active, before, located):
             velocity = self.locator.interpolate_located(flow.velocity, elements, reference)
             points = cell.membrane.points
-            new = points + dt * velocity if old is None else (4 * points - old) / 3 + (2 * dt / 3) * velocity
+            news.append(points + dt * velocity if old is None else (4 * points - old) / 3 + (2 * dt / 3) * velocity)
+        if implicit:        # the force at the new points: each cell's small system and one more back-solve
+            news, flow = self.coupling.correct(fluid, flow, [cell.membrane for cell in active], at, news, located,
+                                               [p[:, 0] < self.scenario.channel.length for p in at],
+                                               [dt if old is None else 2 * dt / 3 for old in before])
+            if ahead is True:
+                fluid.prefetch(flow)
+            elif ahead:
+                ahead.prefetch(flow)
+        moved = {}
+        for cell, new in zip(active, news):
             moved[cell.id] = settle(cell, new, flow.time, self.scenario, dt,
-                                    ((points,) + cell.history[:1]) if bdf2 else ())
+                                    ((cell.membrane.points,) + cell.history[:1]) if bdf2 else ())
         cells = tuple(moved.get(cell.id, cell) for cell in state.cells)
         health_started = clock.perf_counter()
         check_cells([moved[cell.id] for cell in active], self.limits, state.step + 1, flow.time)

@@ -1,0 +1,102 @@
+"""The implicit membrane coupling (sim.coupling): the coupled system it solves, its agreement with the explicit step
+at small steps, and its stability where the explicit one fails."""
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from sim.coupling import Mobility, force_operator
+from sim.feib import ImmersedBoundary, State
+from sim.fluid import NavierStokes
+from sim.scenario import UM, Scenario, ScenarioError
+
+COARSE = 20 * UM / 3
+
+
+def _plants(scenario):
+    """An explicit and an implicit plant sharing one fluid solver."""
+    fluid = NavierStokes(scenario)
+    explicit = ImmersedBoundary(scenario.with_numerics(membrane_coupling="explicit"), fluid)
+    implicit = ImmersedBoundary(scenario.with_numerics(membrane_coupling="implicit"), fluid)
+    return explicit, implicit
+
+
+def _stiff(scenario, factor=16.0):
+    """``scenario`` with the melanoma ``factor`` times stiffer (its explicit limit on the 6.67 um mesh: 24 us at 16x)."""
+    melanoma = scenario.cell_type("melanoma")
+    return replace(scenario, cell_types=(replace(melanoma, kappa_e=factor * melanoma.kappa_e,
+                                                 kappa_b=factor * melanoma.kappa_b),))
+
+
+def _start(plant, scenario, centre=(150 * UM, 110 * UM), stretch=1.3):
+    """A melanoma stretched along x (so its membrane force is far from zero) in the steady IDT-on flow."""
+    cell = plant.new_cell(scenario.cell_type("melanoma"), 0, 0.0, centre)
+    middle = cell.membrane.points.mean(axis=0)
+    points = middle + (cell.membrane.points - middle) * np.array([stretch, 1 / stretch])
+    cell = replace(cell, membrane=cell.membrane.with_points(points))
+    return State(plant.fluid.steady(1.0), (cell,))
+
+
+@pytest.mark.parametrize("method", ["paper", "conserving"])
+def test_the_step_solves_the_coupled_system_built_with_the_exact_mobility(method):
+    """Iterated, the step's new points are those of (I + dt M L) D = X^E - X^m with M = J A^-1 S assembled column by
+    column (one back-solve a column) and L the membrane force's operator: the force taken at the new points."""
+    scenario = _stiff(Scenario().with_membrane(method).with_numerics(
+        mesh_h=COARSE, dt=50e-6, redistribute=False, area_constraint="pressure" if method != "paper" else "none"))
+    explicit, implicit = _plants(scenario)
+    implicit.coupling.iterations = 30
+    state = _start(explicit, scenario)
+    points = state.cells[0].membrane.points
+    moved_explicitly = explicit.fixed_step(state, 1.0, ahead=False).cells[0].membrane.points
+    moved = implicit.fixed_step(state, 1.0, ahead=False).cells[0].membrane.points
+
+    elements, reference = implicit.locator.locate(points)
+    columns = []
+    for column in range(2 * len(points)):
+        force = np.zeros((len(points), 2))
+        force.flat[column] = 1.0
+        load = np.zeros((2, implicit.fluid.space.N))
+        implicit.locator.spread_located(force, elements, reference, load)
+        response = implicit.fluid.load_response(load)[0]
+        columns.append(implicit.locator.interpolate_located(response, elements, reference).ravel())
+    mobility = np.array(columns).T
+    operator = force_operator(state.cells[0].membrane, scenario.numerics, np.ones(len(points), bool))
+    dt = scenario.numerics.dt
+    move = np.linalg.solve(np.eye(2 * len(points)) + dt * mobility @ operator, (moved_explicitly - points).ravel())
+    expected = points + move.reshape(-1, 2)
+    assert np.abs(moved - expected).max() < 1e-4 * np.abs(move).max()
+    # and the step is not the explicit one: the force at the new points moves the stretched cell differently
+    shape_change = (moved_explicitly - points) - (moved_explicitly - points).mean(axis=0)
+    assert np.abs(moved - moved_explicitly).max() > 0.5 * np.abs(shape_change).max()
+    # the approximate mobility is close to the exact one where it matters: on the membrane's force modes
+    approximate = Mobility(implicit.fluid, implicit.locator).matrix(points)
+    force_modes = operator @ np.random.default_rng(1).standard_normal((2 * len(points), 8))
+    ratio = np.linalg.norm(approximate @ force_modes) / np.linalg.norm(mobility @ force_modes)
+    assert 0.7 < ratio < 1.5
+
+
+def test_at_small_steps_the_implicit_step_approaches_the_explicit_one_at_first_order():
+    """Over a fixed time the two couplings differ by O(dt): halving dt halves the gap."""
+    gaps = []
+    for dt in (2e-6, 1e-6):
+        scenario = Scenario().with_membrane("paper").with_numerics(mesh_h=COARSE, dt=dt)
+        explicit, implicit = _plants(scenario)
+        start = _start(explicit, scenario)
+        ends = []
+        for plant in (explicit, implicit):
+            state = start
+            for _ in range(round(40e-6 / dt)):
+                state = plant.fixed_step(state, 1.0, ahead=False)
+            ends.append(state.cells[0].membrane.points)
+        travelled = np.abs(ends[0] - start.cells[0].membrane.points).max()
+        gaps.append(np.abs(ends[1] - ends[0]).max())
+        assert gaps[-1] < 0.05 * travelled
+    assert 1.6 < gaps[0] / gaps[1] < 2.5
+
+
+def test_the_implicit_coupling_needs_a_linear_fluid_step():
+    with pytest.raises(ScenarioError, match="membrane_coupling"):
+        Scenario().with_numerics(membrane_coupling="implicit", convection="oseen")
+    with pytest.raises(ScenarioError, match="membrane_coupling"):
+        Scenario().with_numerics(membrane_coupling="semi")

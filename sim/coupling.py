@@ -38,7 +38,7 @@ import scipy.linalg as sla
 from .fluid import Flow, NavierStokes
 
 SUBDIVISIONS = 3            # the sources of M~: a SUBDIVISIONS^2 grid of positions in one mesh square
-SAFETY = 1.0                # M~ scaled by this: above 1 it errs high, where the step stays stable
+SAFETY = 2.0                # M~ scaled by this: it errs high, where the step stays stable (module docstring)
 
 
 class Mobility:

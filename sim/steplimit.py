@@ -41,7 +41,8 @@ LARGEST_TRIED = 100e-6  # s: the largest step the bisections try; the law claims
 @dataclass(frozen=True)
 class Measured:
     """One bisection: the largest stable and the first unstable dt (inf: none up to the largest step tried) of
-    a cell with tension modulus ``kappa_e`` on the mesh ``h`` in ``scheme`` with the ``membrane`` method."""
+    a cell with tension modulus ``kappa_e`` on the mesh ``h`` in ``scheme`` with the ``membrane`` method and the
+    membrane ``coupling``."""
 
     cell: str
     h: float
@@ -50,6 +51,7 @@ class Measured:
     membrane: str
     stable: float
     unstable: float
+    coupling: str = "explicit"
 
     @property
     def reached(self) -> bool:
@@ -100,7 +102,7 @@ class Law:
     @classmethod
     def fit(cls, measured=MEASURED) -> "Law":
         from scipy.optimize import least_squares
-        reached = [m for m in measured if m.reached]
+        reached = [m for m in measured if m.reached and m.coupling == "explicit"]
         kinds = sorted(({m.scheme for m in reached} - {"euler"}) | ({m.membrane for m in reached} - {"conserving"}))
 
         def law(x):
@@ -137,7 +139,7 @@ LAW = Law.fit()
 def measured_stable(kappa_e: float, h: float, scheme: str, membrane: str) -> float | None:
     """The largest dt measured stable for a cell of tension modulus ``kappa_e`` on the mesh ``h`` in ``scheme`` with
     ``membrane`` (None if no such measurement)."""
-    found = [m.stable for m in MEASURED if math.isclose(m.kappa_e, kappa_e, rel_tol=1e-9)
+    found = [m.stable for m in MEASURED if math.isclose(m.kappa_e, kappa_e, rel_tol=1e-9) and m.coupling == "explicit"
              and math.isclose(m.h, h, rel_tol=1e-6) and m.scheme == scheme and m.membrane == membrane]
     return max(found) if found else None
 
@@ -146,7 +148,16 @@ def limit_of(cell_type, scenario) -> float:
     """The largest stable dt of ``cell_type`` in ``scenario`` (its mesh, time scheme, membrane method and
     viscosity): the law's, or the dt measured stable for such a cell on this mesh where the law lies below that."""
     numerics = scenario.numerics
+    if numerics.membrane_coupling == "implicit":
+        return implicit_limit()
     method = scenario.membrane_method()
     law = LAW.limit(numerics.mesh_h, cell_type.kappa_e, numerics.scheme, method, scenario.fluid.viscosity)
     measured = measured_stable(cell_type.kappa_e, numerics.mesh_h, numerics.scheme, method)
     return law if measured is None or scenario.fluid.viscosity != ETA0 else max(law, measured)
+
+
+def implicit_limit(measured=MEASURED) -> float:
+    """The largest stable dt of any cell with the implicit coupling (``sim.coupling``): the smallest stable dt of the
+    implicit bisections that reached a limit, else ``LARGEST_TRIED`` (every implicit bisection was stable there)."""
+    reached = [m.stable for m in measured if m.coupling == "implicit" and m.reached]
+    return min(reached + [LARGEST_TRIED])

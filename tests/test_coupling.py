@@ -100,3 +100,35 @@ def test_the_implicit_coupling_needs_a_linear_fluid_step():
         Scenario().with_numerics(membrane_coupling="implicit", convection="oseen")
     with pytest.raises(ScenarioError, match="membrane_coupling"):
         Scenario().with_numerics(membrane_coupling="semi")
+
+
+def test_a_stiff_cell_is_stable_implicitly_at_a_step_the_explicit_coupling_does_not_survive():
+    """The 16x stiffer melanoma on the 6.67 um mesh in its scenario's flow (``sim.stability``'s trial over 1 ms against
+    a 4 us reference): explicitly unstable at 50 us (its measured limit is 24 us), implicitly stable at 100 us."""
+    from sim.stability import actuation_for, reference_energy, trial
+    scenario = _stiff(Scenario().with_numerics(mesh_h=COARSE))
+    melanoma = scenario.cell_type("melanoma")
+    start = NavierStokes(scenario).steady(actuation_for(melanoma))
+    reference = reference_energy(scenario, melanoma, start, 1e-3, 4e-6)
+    explicit = trial(scenario.with_numerics(dt=50e-6), melanoma, 50e-6, start, 1e-3, reference)
+    implicit = trial(scenario.with_numerics(membrane_coupling="implicit"), melanoma, 100e-6, start, 1e-3, reference)
+    assert not explicit[0]
+    assert implicit == (True, "")
+
+
+@pytest.mark.slow
+def test_scenario_two_on_the_fine_mesh_at_a_step_the_explicit_coupling_does_not_survive():
+    """The melanoma on the 1.67 um mesh (the paper's method, as `vcyto paper 2`): implicitly at 25 us (the explicit
+    coupling's limit there is ~6 us: at 25 us it fails) to the upper outlet, its path within 1 um of the explicit
+    2.5 us run's at the same abscissa, and its exit ordinate too."""
+    from sim.fluid import NumericalBlowUp
+    from vcyto.bench.coupling import lateral_distance
+    from vcyto.paper import run_paper
+    base = Scenario().with_membrane("paper").with_numerics(mesh_h=5 * UM / 3)
+    reference = run_paper(2, base.with_numerics(dt=2.5e-6))
+    implicit = run_paper(2, base.with_numerics(dt=25e-6, membrane_coupling="implicit"))
+    assert reference["cells"][0]["outlet"] == implicit["cells"][0]["outlet"] == "upper"
+    assert lateral_distance(implicit["_path"], reference["_path"]).max() < 1 * UM
+    assert abs(implicit["cells"][0]["exit_y_um"] - reference["cells"][0]["exit_y_um"]) < 1
+    with pytest.raises(NumericalBlowUp):
+        run_paper(2, base.with_numerics(dt=25e-6))

@@ -51,8 +51,8 @@ class Mobility:
         i = int(np.searchsorted(grid_x, channel.length / 2)) - 1
         j = int(np.searchsorted(grid_y, channel.height / 2)) - 1
         fractions = (np.arange(subdivisions) + 0.5) / subdivisions
-        self.sources = np.array([(grid_x[i] + a * (grid_x[i + 1] - grid_x[i]), grid_y[j] + b * (grid_y[j + 1] - grid_y[j]))
-                                 for a in fractions for b in fractions])
+        width, height = grid_x[i + 1] - grid_x[i], grid_y[j + 1] - grid_y[j]
+        self.sources = np.array([(grid_x[i] + a * width, grid_y[j] + b * height) for a in fractions for b in fractions])
         self.locator = locator
         self.safety = safety
         self.mesh_h = h

@@ -267,9 +267,9 @@ class Numerics:
     ``auto`` (the default: ``bdf2`` with a ``tolerance``, ``euler`` with fixed steps; ``bdf2`` needs the
     convection treatment imex or stokes).
 
-    ``membrane_coupling`` is how the membrane force enters the step: ``explicit`` (the paper's: the force of the old positions;
-    each cell has a largest stable dt, ``sim.steplimit``) or ``implicit`` (the force of the new positions, through a
-    small system per cell and one more back-solve a step: stable at far larger steps; ``sim.coupling``,
+    ``membrane_coupling`` is how the membrane force enters the step: ``explicit`` (the paper's: the force of the old
+    positions; each cell has a largest stable dt, ``sim.steplimit``) or ``implicit`` (the force of the new positions,
+    through a small system per cell and one more back-solve a step: stable at far larger steps; ``sim.coupling``,
     docs/numerics.md "The membrane coupling"); implicit needs the convection treatment imex or stokes.
 
     ``max_stretch`` is the operational meaning of the paper's Remark 2.4 ("membranes torn apart"): a
@@ -324,8 +324,9 @@ class Numerics:
         _choice(self, "time_scheme", TIME_SCHEMES)
         _choice(self, "membrane_coupling", COUPLINGS)
         if self.membrane_coupling == "implicit" and self.convection not in ("imex", "stokes"):
-            raise ScenarioError("membrane_coupling", f"implicit needs the convection treatment imex or stokes (got convection "
-                                            f"{self.convection!r}); use membrane_coupling = \"explicit\" with it")
+            raise ScenarioError("membrane_coupling", f"implicit needs the convection treatment imex or stokes (got "
+                                                     f"convection {self.convection!r}); use membrane_coupling = "
+                                                     f"\"explicit\" with it")
         if self.scheme == "bdf2" and self.convection not in ("imex", "stokes"):
             raise ScenarioError("time_scheme", f"bdf2 needs the convection treatment imex or stokes (got convection "
                                                f"{self.convection!r}); use time_scheme = \"euler\" with it")

@@ -23,7 +23,7 @@ def _plants(scenario):
 
 
 def _stiff(scenario, factor=16.0):
-    """``scenario`` with the melanoma ``factor`` times stiffer (its explicit limit on the 6.67 um mesh: 24 us at 16x)."""
+    """``scenario`` with the melanoma ``factor`` times stiffer (its explicit limit on the 6.67 um mesh: 24 us, 16x)."""
     melanoma = scenario.cell_type("melanoma")
     return replace(scenario, cell_types=(replace(melanoma, kappa_e=factor * melanoma.kappa_e,
                                                  kappa_b=factor * melanoma.kappa_b),))

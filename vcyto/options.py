@@ -15,7 +15,15 @@ from pathlib import Path
 
 from controller.sorter import MODES, ControllerSettings
 from sim import plants
-from sim.scenario import CONVECTIONS, COUPLINGS, LINEAR_SOLVERS, MEMBRANE_METHODS, SAW_MODELS, TIME_SCHEMES, ScenarioError
+from sim.scenario import (
+    CONVECTIONS,
+    COUPLINGS,
+    LINEAR_SOLVERS,
+    MEMBRANE_METHODS,
+    SAW_MODELS,
+    TIME_SCHEMES,
+    ScenarioError,
+)
 
 from . import arguments as limits
 from . import units
@@ -74,7 +82,8 @@ def scenario_from(args, membrane: str | None = None):
         raise UsageError(f"--time-scheme: sets the time scheme of the feib step only; drop it or use --model feib "
                          f"or auto (got --model {args.model})")
     for option, field in (("mesh_h", "numerics.mesh_h"), ("dt", "numerics.dt"), ("convection", "numerics.convection"),
-                          ("time_scheme", "numerics.time_scheme"), ("membrane_coupling", "numerics.membrane_coupling"), ("saw_model", "saw.model"),
+                          ("time_scheme", "numerics.time_scheme"),
+                          ("membrane_coupling", "numerics.membrane_coupling"), ("saw_model", "saw.model"),
                           ("solver", "numerics.linear_solver")):
         value = getattr(args, option, None)
         if value is not None:

@@ -31,8 +31,8 @@ def lateral_distance(path, reference_path) -> np.ndarray:
 
 def bench_coupling(base: Scenario, steps=(5e-6, 10e-6, 25e-6, 50e-6, 100e-6), repeats: int = 3,
                    cost_steps: int = 20, progress=lambda message: None) -> dict:
-    from sim.health import HealthError
     from sim.fluid import NumericalBlowUp
+    from sim.health import HealthError
 
     from ..paper import paper_scenario, run_paper
     base = base.with_numerics(tolerance=0.0, time_scheme="euler")
@@ -103,8 +103,9 @@ def coupling_lines(result: dict) -> list[str]:
                      f"{row['exit_y_error_um']:.2f} | {row['lateral_error_um']:.2f} | "
                      f"{row['distance_at_times_um']:.2f} | {row['steps']} | {row['stepping_s']:.1f} |")
     largest = result["largest_reaching_outlet_us"]
-    lines.append(f"cost per step at {result['reference_dt_us']:g} us (median of {len(result['per_step_runs_ms']['explicit'])}"
-                 f" interleaved runs): explicit {per_step['explicit']:.1f} ms, implicit {per_step['implicit']:.1f} ms "
+    runs = len(result["per_step_runs_ms"]["explicit"])
+    lines.append(f"cost per step at {result['reference_dt_us']:g} us (median of {runs} interleaved runs): explicit "
+                 f"{per_step['explicit']:.1f} ms, implicit {per_step['implicit']:.1f} ms "
                  f"({per_step['implicit'] / per_step['explicit']:.2f}x)")
     lines.append("largest step of the ladder reaching an outlet: " + ", ".join(
         f"{coupling} {value:g} us" if value else f"{coupling} none" for coupling, value in largest.items()))

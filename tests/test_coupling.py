@@ -134,3 +134,16 @@ def test_scenario_two_on_the_fine_mesh_at_a_step_the_explicit_coupling_does_not_
     assert abs(implicit["cells"][0]["exit_y_um"] - reference["cells"][0]["exit_y_um"]) < 1
     with pytest.raises(NumericalBlowUp):
         run_paper(2, base.with_numerics(dt=25e-6))
+
+
+def test_the_coupling_is_named_where_it_runs_and_caps_the_tolerances_steps_at_its_own_limit():
+    from sim.steplimit import LARGEST_TRIED, implicit_limit, limit_of
+    from vcyto.tradeoff import LADDER, resolved_ladder
+    scenario = Scenario().with_numerics(mesh_h=5 * UM / 3)
+    melanoma = scenario.cell_type("melanoma")
+    assert limit_of(melanoma, scenario) < 10e-6
+    assert limit_of(melanoma, scenario.with_numerics(membrane_coupling="implicit")) == implicit_limit() <= LARGEST_TRIED
+    labels = [level.label for level in resolved_ladder(Scenario(), LADDER)]
+    assert "feib h=3.33um dt=100us implicit coupling" in labels and "feib h=3.33um dt=2.5us" in labels
+    every = [level.label for level in resolved_ladder(Scenario().with_numerics(membrane_coupling="implicit"), LADDER)]
+    assert "feib h=3.33um dt=2.5us implicit coupling" in every

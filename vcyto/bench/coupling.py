@@ -51,12 +51,7 @@ def bench_coupling(base: Scenario, steps=(5e-6, 10e-6, 25e-6, 50e-6, 100e-6), re
                              "failure": str(error).split(";")[0]})
                 continue
             rows.append(_row(coupling, dt, run, reference))
-    costs = {coupling: [] for coupling in ("explicit", "implicit")}
-    for repeat in range(repeats):
-        for coupling in costs:
-            progress(f"cost per step: {coupling}, {cost_steps} steps of {reference_dt * 1e6:g} us "
-                     f"({repeat + 1}/{repeats})")
-            costs[coupling].append(_per_step(base.with_numerics(membrane_coupling=coupling), cost_steps))
+    costs = per_step_costs(base, repeats, cost_steps, progress)
     largest = {coupling: max((row["dt_us"] for row in rows if row["coupling"] == coupling
                               and row["outlet"] not in ("failed", "lost")), default=None) for coupling in costs}
     return {"mesh_h_um": base.numerics.mesh_h / UM, "membrane_method": base.membrane_method(),
@@ -75,17 +70,26 @@ def _row(coupling, dt, run, reference) -> dict:
             "steps": run["steps"], "stepping_s": run["wall_time_s"]["stepping"]}
 
 
-def _per_step(scenario: Scenario, steps: int) -> float:
-    """Wall time per step (ms) of ``steps`` steps of Scenario II's melanoma from its start (after one step)."""
+def per_step_costs(scenario: Scenario, repeats: int, steps: int, progress=lambda message: None) -> dict:
+    """{coupling: [wall time per step (ms), one per repeat]}: interleaved runs of ``steps`` steps of Scenario II's
+    melanoma from its start (after one step, which builds what the coupling needs once), one fluid solver shared."""
     from sim.feib import ImmersedBoundary
+    from sim.fluid import NavierStokes
     from sim.openloop import with_cells
-    plant = ImmersedBoundary(scenario)
-    state = with_cells(plant, plant.start(1.0).flow, [(scenario.cell_type("melanoma"), None)])
-    state = plant.step(state, 1.0)          # the first step builds what the coupling needs once
-    started = time.perf_counter()
-    for _ in range(steps):
-        state = plant.step(state, 1.0)
-    return 1e3 * (time.perf_counter() - started) / steps
+    fluid = NavierStokes(scenario)
+    start = fluid.steady(1.0)
+    costs = {"explicit": [], "implicit": []}
+    for repeat in range(repeats):
+        for coupling, runs in costs.items():
+            progress(f"cost per step: {coupling}, {steps} steps of {scenario.numerics.dt * 1e6:g} us "
+                     f"({repeat + 1}/{repeats})")
+            plant = ImmersedBoundary(scenario.with_numerics(membrane_coupling=coupling), fluid)
+            state = plant.step(with_cells(plant, start, [(scenario.cell_type("melanoma"), None)]), 1.0)
+            started = time.perf_counter()
+            for _ in range(steps):
+                state = plant.step(state, 1.0)
+            runs.append(1e3 * (time.perf_counter() - started) / steps)
+    return costs
 
 
 def coupling_lines(result: dict) -> list[str]:

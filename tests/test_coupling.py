@@ -147,3 +147,22 @@ def test_the_coupling_is_named_where_it_runs_and_caps_the_tolerances_steps_at_it
     assert "feib h=3.33um dt=100us implicit coupling" in labels and "feib h=3.33um dt=2.5us" in labels
     every = [level.label for level in resolved_ladder(Scenario().with_numerics(membrane_coupling="implicit"), LADDER)]
     assert "feib h=3.33um dt=2.5us implicit coupling" in every
+
+
+def test_the_paper_run_says_which_coupling_ran_and_a_bad_one_is_a_usage_error(tmp_path):
+    import json
+    import subprocess
+    import sys
+    command = [sys.executable, "-m", "vcyto.cli", "paper", "2", "--no-png", "--quiet", "--mesh-h", "10um", "--dt",
+               "50us", "--membrane", "conserving"]
+    result = subprocess.run(command + ["--json", "--membrane-coupling", "implicit"],
+                            capture_output=True, text=True, cwd=tmp_path)
+    assert result.returncode == 0, result.stderr
+    run = json.loads(result.stdout)
+    assert run["membrane_coupling"] == "implicit" and run["cells"][0]["outlet"] == "upper"
+    text = subprocess.run(command + ["--membrane-coupling", "implicit"], capture_output=True, text=True, cwd=tmp_path)
+    assert "implicit coupling" in text.stdout
+    bad = subprocess.run(command + ["--set", "numerics.membrane_coupling=semi"], capture_output=True, text=True,
+                         cwd=tmp_path)
+    assert bad.returncode == 2 and bad.stderr.startswith("vcyto: error: numerics.membrane_coupling:")
+    assert "Traceback" not in bad.stderr

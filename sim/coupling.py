@@ -27,7 +27,9 @@ averaged over the positions of the source within a mesh square and taken as a fu
 points: M~(x, y) = mean_s G_s(y_s + x - y), G_s the velocity at a point of a unit force at y_s (A^{-1} S, two
 back-solves a source, once per fluid matrix). It has the discretisation's response at the mesh scale, where the stiff
 modes live, and the fluid's inertia at the step's dt; it omits the walls (which lower the mobility: M~ errs high,
-the safe way) and the dependence on where in its mesh square a point lies (the average errs both ways).
+the safe way) and the dependence on where in its mesh square a point lies (the average errs both ways: for a melanoma
+on the 1.67 um mesh m~ / m spans 0.22-2.9 over its modes, and the frozen one-step amplification at 100 us is 1.02-1.5
+with M~ as it is, 1.000 with it doubled: ``SAFETY``).
 """
 
 from __future__ import annotations

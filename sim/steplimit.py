@@ -18,7 +18,7 @@ on the same mesh, time scheme and membrane method, its measured stable dt is its
 (``limit_of``): the law is conservative for the soft RBC, whose limit was not reached at 100 us on any mesh.
 
 With the implicit membrane coupling (``sim.coupling``) the limit is not the explicit membrane's: it is that
-coupling's own measured limit, the smallest reached by its measurements (``implicit_limit``).
+coupling's own measured limit, the smallest its measurements of the membrane method reached (``implicit_limit``).
 
 This is the one statement of a cell's limit that the tolerance's step cap (``sim.adaptive``), the failure hints
 (``sim.health``) and ``vcyto stability`` use. The bending modulus is not a variable (the cells measured have the
@@ -89,10 +89,11 @@ MEASURED = (
     Measured("melanoma", 20e-6 / 3, 16 * MELANOMA, "bdf2", "conserving", 11.49 * US, 13.28 * US),
     Measured("melanoma", 20e-6 / 3, 25 * MELANOMA, "euler", "conserving", 13.71 * US, 16.18 * US),
     Measured("melanoma", 20e-6 / 3, 100 * MELANOMA, "euler", "conserving", 2.85 * US, 3.44 * US),
-    # the implicit coupling (``sim.coupling``), Scenario II from entry to exit on the 1.67 um mesh, where the explicit
-    # coupling fails at 7 us (docs/numerics.md "The membrane coupling"): the paper's method reaches the outlet at 50 us
-    # and its membrane intersects itself at 100 us (its points bunch up: no redistribution); the conserving one
-    # reaches the outlet at 100 us
+    # the implicit coupling (``sim.coupling``) on the 1.67 um mesh, where the explicit coupling fails at 7 us
+    # (docs/numerics.md "The membrane coupling"): the conserving method stable at 100 us by the bisection's criterion
+    # (`vcyto stability --cells melanoma --mesh-sizes 1.6667um --membrane-coupling implicit`) and through Scenario II
+    # from entry to exit; the paper's method (Scenario II from entry to exit) reaches the outlet at 50 us, and at
+    # 100 us its membrane intersects itself (its points bunch up: no redistribution)
     Measured("melanoma", 5e-6 / 3, MELANOMA, "euler", "paper", 50 * US, 100 * US, "implicit"),
     Measured("melanoma", 5e-6 / 3, MELANOMA, "euler", "conserving", 100 * US, math.inf, "implicit"),
 )
@@ -157,16 +158,18 @@ def limit_of(cell_type, scenario) -> float:
     """The largest stable dt of ``cell_type`` in ``scenario`` (its mesh, time scheme, membrane method and
     viscosity): the law's, or the dt measured stable for such a cell on this mesh where the law lies below that."""
     numerics = scenario.numerics
-    if numerics.membrane_coupling == "implicit":
-        return implicit_limit()
     method = scenario.membrane_method()
+    if numerics.membrane_coupling == "implicit":
+        return implicit_limit(method)
     law = LAW.limit(numerics.mesh_h, cell_type.kappa_e, numerics.scheme, method, scenario.fluid.viscosity)
     measured = measured_stable(cell_type.kappa_e, numerics.mesh_h, numerics.scheme, method)
     return law if measured is None or scenario.fluid.viscosity != ETA0 else max(law, measured)
 
 
-def implicit_limit(measured=MEASURED) -> float:
-    """The largest stable dt of any cell with the implicit coupling (``sim.coupling``): the smallest stable dt of the
-    implicit bisections that reached a limit, else ``LARGEST_TRIED`` (every implicit bisection was stable there)."""
-    reached = [m.stable for m in measured if m.coupling == "implicit" and m.reached]
-    return min(reached + [LARGEST_TRIED])
+def implicit_limit(membrane: str = "conserving", measured=MEASURED) -> float:
+    """The largest stable dt of a cell with the implicit coupling (``sim.coupling``) and the ``membrane`` method: the
+    smallest stable dt of that method's implicit measurements that reached a limit (of every method's, when that
+    method was not measured), else ``LARGEST_TRIED`` (stable there)."""
+    rows = [m for m in measured if m.coupling == "implicit"]
+    rows = [m for m in rows if m.membrane == membrane] or rows
+    return min([m.stable for m in rows if m.reached] + [LARGEST_TRIED])

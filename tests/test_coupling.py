@@ -142,7 +142,9 @@ def test_the_coupling_is_named_where_it_runs_and_caps_the_tolerances_steps_at_it
     scenario = Scenario().with_numerics(mesh_h=5 * UM / 3)
     melanoma = scenario.cell_type("melanoma")
     assert limit_of(melanoma, scenario) < 10e-6
-    assert limit_of(melanoma, scenario.with_numerics(membrane_coupling="implicit")) == implicit_limit() <= LARGEST_TRIED
+    implicit = scenario.with_numerics(membrane_coupling="implicit")
+    assert limit_of(melanoma, implicit) == implicit_limit("conserving") == LARGEST_TRIED        # measured stable there
+    assert limit_of(melanoma, implicit.with_membrane("paper")) == implicit_limit("paper") == pytest.approx(50e-6)
     labels = [level.label for level in resolved_ladder(Scenario(), LADDER)]
     assert "feib h=3.33um dt=100us implicit coupling" in labels and "feib h=3.33um dt=2.5us" in labels
     every = [level.label for level in resolved_ladder(Scenario().with_numerics(membrane_coupling="implicit"), LADDER)]

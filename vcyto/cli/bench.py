@@ -240,6 +240,8 @@ def _coupling(args, scenario, progress):
     from ..bench import coupling
     steps = positive_list(args.steps, "--steps", "5us,25us,100us",
                           lambda part: units.parse_quantity(part, "time", "s", "--steps"))
+    if max(steps) > 1e-3:
+        raise UsageError(f"--steps: takes steps of at most 1 ms, e.g. 5us,25us,100us (got {args.steps})")
     result = coupling.bench_coupling(scenario, steps, args.repeats, progress=progress)
     return result, coupling.coupling_lines(result)
 

@@ -119,6 +119,10 @@ class ImmersedBoundary:
         self.limits = HealthLimits.of(scenario)
         self.timings = Timings()
         self.adaptive = None
+        self.coupling = None
+        if scenario.numerics.membrane_coupling == "implicit":      # the force at the new positions (``sim.coupling``)
+            from .coupling import ImplicitCoupling
+            self.coupling = ImplicitCoupling(self)
         if scenario.numerics.tolerance > 0:     # dt chosen per step from levels by an error estimate
             from .adaptive import AdaptiveSteps
             self.adaptive = AdaptiveSteps(self)
@@ -146,7 +150,9 @@ class ImmersedBoundary:
         euler (the paper's): the force at X^m, X^{m+1} = X^m + dt v^{m+1}(X^m). bdf2: the force at
         X* = 2 X^m - X^{m-1}, X^{m+1} = (4 X^m - X^{m-1}) / 3 + 2 dt / 3 v^{m+1}(X*), X^{m-1} the points at
         t - dt from the cell's history (``sim.fluid.value_back``; a redistribution carries the history to the new
-        points' spline parameters); a new cell takes X* = X^m and the Euler update. ``ahead``: the fluid starts the
+        points' spline parameters); a new cell takes X* = X^m and the Euler update. With ``numerics.membrane_coupling``
+        implicit the force is that of the new points (``sim.coupling``: X^{m+1} from a small system per cell, the
+        flow corrected by one more back-solve). ``ahead``: the fluid starts the
         next step's momentum integrals (``NavierStokes.prefetch``) while the membranes move."""
         fluid = fluid or self.fluid
         dt = fluid.scenario.numerics.dt
@@ -158,21 +164,34 @@ class ImmersedBoundary:
               for cell, old in zip(active, before)]
         load, located = self.membrane_load(active, at)
         fluid_started = clock.perf_counter()
-        flow = fluid.step(state.flow, actuation, load if active else None, ahead=ahead)
+        implicit = self.coupling is not None and bool(active)
+        flow = fluid.step(state.flow, actuation, load if active else None, ahead=False if implicit else ahead)
         membrane_started = clock.perf_counter()
-        moved = {}
+        news = []
         for cell, old, (elements, reference) in zip(active, before, located):
             velocity = self.locator.interpolate_located(flow.velocity, elements, reference)
             points = cell.membrane.points
-            new = points + dt * velocity if old is None else (4 * points - old) / 3 + (2 * dt / 3) * velocity
+            news.append(points + dt * velocity if old is None else (4 * points - old) / 3 + (2 * dt / 3) * velocity)
+        solved = fluid.timings.solve
+        if implicit:        # the force at the new points: each cell's small system and one more back-solve
+            news, flow = self.coupling.correct(fluid, flow, [cell.membrane for cell in active], at, news, located,
+                                               [p[:, 0] < self.scenario.channel.length for p in at],
+                                               [dt if old is None else 2 * dt / 3 for old in before])
+            if ahead is True:
+                fluid.prefetch(flow)
+            elif ahead:
+                ahead.prefetch(flow)
+        moved = {}
+        for cell, new in zip(active, news):
             moved[cell.id] = settle(cell, new, flow.time, self.scenario, dt,
-                                    ((points,) + cell.history[:1]) if bdf2 else ())
+                                    ((cell.membrane.points,) + cell.history[:1]) if bdf2 else ())
         cells = tuple(moved.get(cell.id, cell) for cell in state.cells)
         health_started = clock.perf_counter()
         check_cells([moved[cell.id] for cell in active], self.limits, state.step + 1, flow.time)
         finished = clock.perf_counter()
-        self.timings.membrane += (fluid_started - started) + (health_started - membrane_started)
-        self.timings.fluid += membrane_started - fluid_started
+        solved = fluid.timings.solve - solved          # the implicit coupling's back-solve: the fluid's
+        self.timings.membrane += (fluid_started - started) + (health_started - membrane_started) - solved
+        self.timings.fluid += membrane_started - fluid_started + solved
         self.timings.health += finished - health_started
         self.timings.steps += 1
         return State(flow, cells, state.step + 1)

@@ -77,7 +77,7 @@ class HealthLimits:
     def suggested_dt(self, cell_type: CellType | None = None) -> float:
         """A smaller dt to try: the cell's stable dt (``stable_dt``) when dt is above it, else dt / 4."""
         stable = self.stable_dt(cell_type)
-        return stable if stable is not None and self.dt > stable else self.dt / 4
+        return stable if stable is not None and self.dt > stable * (1 + 1e-9) else self.dt / 4
 
     def dt_hint(self, cell_type: CellType | None = None) -> str:
         suggested = self.suggested_dt(cell_type)

@@ -25,6 +25,7 @@ INITIAL_FLOWS = ("steady", "rest")
 LINEAR_SOLVERS = ("auto", "pardiso", "superlu")
 PRECISIONS = ("mixed", "double")
 TIME_SCHEMES = ("auto", "euler", "bdf2")
+COUPLINGS = ("explicit", "implicit")
 AREA_CONSTRAINTS = ("none", "pressure", "projection", "pressure+projection")
 # the two membrane methods a user picks between (``--membrane``): field values each one sets
 MEMBRANE_METHODS = {
@@ -266,6 +267,11 @@ class Numerics:
     ``auto`` (the default: ``bdf2`` with a ``tolerance``, ``euler`` with fixed steps; ``bdf2`` needs the
     convection treatment imex or stokes).
 
+    ``membrane_coupling`` is how the membrane force enters the step: ``explicit`` (the paper's: the force of the old
+    positions; each cell has a largest stable dt, ``sim.steplimit``) or ``implicit`` (the force of the new positions,
+    through a small system per cell and one more back-solve a step: stable at far larger steps; ``sim.coupling``,
+    docs/numerics.md "The membrane coupling"); implicit needs the convection treatment imex or stokes.
+
     ``max_stretch`` is the operational meaning of the paper's Remark 2.4 ("membranes torn apart"): a
     membrane whose length exceeds ``max_stretch`` times its resting length L is torn apart and the health
     checks stop the run saying the flow is too fast for it. The paper's energy has no rupture law, so
@@ -291,6 +297,7 @@ class Numerics:
     max_stretch: float = 20.0
     tolerance: float = 0.0
     time_scheme: str = "auto"
+    membrane_coupling: str = "explicit"
 
     def __post_init__(self):
         _positive(self, "mesh_h", "dt", "nonlinear_tolerance", "membrane_spacing", "max_area_change")
@@ -315,6 +322,11 @@ class Numerics:
         _choice(self, "precision", PRECISIONS)
         _choice(self, "initial_flow", INITIAL_FLOWS)
         _choice(self, "time_scheme", TIME_SCHEMES)
+        _choice(self, "membrane_coupling", COUPLINGS)
+        if self.membrane_coupling == "implicit" and self.convection not in ("imex", "stokes"):
+            raise ScenarioError("membrane_coupling", f"implicit needs the convection treatment imex or stokes (got "
+                                                     f"convection {self.convection!r}); use membrane_coupling = "
+                                                     f"\"explicit\" with it")
         if self.scheme == "bdf2" and self.convection not in ("imex", "stokes"):
             raise ScenarioError("time_scheme", f"bdf2 needs the convection treatment imex or stokes (got convection "
                                                f"{self.convection!r}); use time_scheme = \"euler\" with it")

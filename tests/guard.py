@@ -31,6 +31,7 @@ HEAVY = {
     "vcyto.bench.auto": ["bench_auto"],
     "vcyto.bench.gym": ["bench_gym"],
     "vcyto.bench.membrane": ["bench_membrane"],
+    "vcyto.bench.coupling": ["bench_coupling"],
     "vcyto.bench.treatments": ["bench_paper_treatments", "bench_treatments"],
     "vcyto.bench.fluid": ["bench_fluid"],
     "vcyto.bench.tolerance": ["bench_tolerance"],

@@ -154,7 +154,9 @@ def test_the_tradeoff_ladder_names_the_time_scheme():
     assert len(labels) == len(set(labels)) == len(LADDER) - 2       # the two bdf2 levels are now duplicates
     oseen = resolved_ladder(Scenario().with_numerics(convection="oseen"), LADDER)
     assert not any("bdf2" in level.label for level in oseen)          # explicit bdf2 left out, auto is euler
-    assert len(oseen) == len(LADDER) - 2 and all(level.scheme in ("euler", "auto") for level in oseen)
+    # and the implicit coupling's levels too: both need a linear fluid step
+    assert not any("implicit" in level.label for level in oseen)
+    assert len(oseen) == len(LADDER) - 4 and all(level.scheme in ("euler", "auto") for level in oseen)
 
 
 def test_the_paper_run_reports_its_time_scheme(tmp_path):

@@ -57,6 +57,7 @@ OTHER_COMMANDS = {
     ("bench", "gym"): ["--count", "--rate", "--min-spacing", "--repeats", "--seed"],
     ("bench", "fluid"): ["--repeats"],
     ("bench", "treatments"): ["--steps"],
+    ("bench", "coupling"): ["--steps", "--repeats", "--dt", "--mesh-h"],
     ("bench", "sweep"): ["--workers", "--repeats"],
     ("bench", "sort"): ["--counts", "--rate", "--seed"],
     ("calibrate", "--output", ""): ["--model", "--pulse", "--lead", "--pulse-range", "--pulse-step", "--lead-step",

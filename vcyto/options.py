@@ -15,7 +15,15 @@ from pathlib import Path
 
 from controller.sorter import MODES, ControllerSettings
 from sim import plants
-from sim.scenario import CONVECTIONS, LINEAR_SOLVERS, MEMBRANE_METHODS, SAW_MODELS, TIME_SCHEMES, ScenarioError
+from sim.scenario import (
+    CONVECTIONS,
+    COUPLINGS,
+    LINEAR_SOLVERS,
+    MEMBRANE_METHODS,
+    SAW_MODELS,
+    TIME_SCHEMES,
+    ScenarioError,
+)
 
 from . import arguments as limits
 from . import units
@@ -51,6 +59,10 @@ def scenario_options(parser: argparse.ArgumentParser):
     group.add_argument("--time-scheme", choices=TIME_SCHEMES,
                        help="FE-IB time discretisation: euler (the paper's first-order step), bdf2 (second order; "
                             "docs/numerics.md) or auto (the default: bdf2 with --tolerance, euler otherwise)")
+    group.add_argument("--membrane-coupling", choices=COUPLINGS,
+                       help="membrane coupling: explicit (the force of the old positions; the default) or implicit "
+                            "(the force of the new positions: stable at far larger steps, about 2x the cost a step; "
+                            "docs/numerics.md \"The membrane coupling\")")
     group.add_argument("--saw-model", choices=SAW_MODELS, help="SAW model (default paper)")
     group.add_argument("--solver", choices=LINEAR_SOLVERS, help="linear solver (default auto)")
     group.add_argument("--membrane", choices=tuple(MEMBRANE_METHODS),
@@ -70,7 +82,8 @@ def scenario_from(args, membrane: str | None = None):
         raise UsageError(f"--time-scheme: sets the time scheme of the feib step only; drop it or use --model feib "
                          f"or auto (got --model {args.model})")
     for option, field in (("mesh_h", "numerics.mesh_h"), ("dt", "numerics.dt"), ("convection", "numerics.convection"),
-                          ("time_scheme", "numerics.time_scheme"), ("saw_model", "saw.model"),
+                          ("time_scheme", "numerics.time_scheme"),
+                          ("membrane_coupling", "numerics.membrane_coupling"), ("saw_model", "saw.model"),
                           ("solver", "numerics.linear_solver")):
         value = getattr(args, option, None)
         if value is not None:

@@ -88,6 +88,7 @@ def run_paper(number: int, scenario: Scenario, max_time: float = 20e-3, progress
         "dofs": plant.fluid.space.dofs,
         "convection": scenario.numerics.convection,
         "time_scheme": scenario.numerics.scheme,
+        "membrane_coupling": scenario.numerics.membrane_coupling,
         "saw_model": scenario.saw.model,
         "steps": state.step,
         "wall_time_s": {
@@ -159,7 +160,8 @@ def report_lines(result: dict) -> list[str]:
     return [
         f"paper scenario {result['scenario']}: {cell['type']}, {result['method']}",
         f"  mesh h = {result['mesh_h_um']:.3g} um ({result['dofs']:,} DOFs), dt = {result['dt_us']:g} us "
-        f"({result['time_scheme']}), convection {result['convection']}, SAW model {result['saw_model']}",
+        f"({result['time_scheme']}, {result.get('membrane_coupling', 'explicit')} coupling), convection "
+        f"{result['convection']}, SAW model {result['saw_model']}",
         f"  outlet: {cell['outlet']} (paper: {result['paper_outlet']}), exit at t = {cell['exit_time_ms']:.3f} ms, "
         f"y = {cell['exit_y_um']:.1f} um, after {result['steps']} steps",
         f"  enclosed area at exit: {100 * cell['area_ratio_final']:.2f} % of the initial area "

@@ -40,6 +40,7 @@ def _measure(scenario, cells, mesh_sizes, progress, rows):
             rows.append({
                 "cell": name, "mesh_h_um": h / UM, "mesh": size.describe(), "dofs": size.dofs,
                 "time_scheme": meshed.numerics.scheme, "membrane_method": meshed.membrane_method(),
+                "membrane_coupling": meshed.numerics.membrane_coupling,
                 "stable_dt_us": result.stable_dt * 1e6,
                 "unstable_dt_us": result.unstable_dt * 1e6 if result.unstable_dt != float("inf") else None,
                 "failure": result.failure, "trials": result.trials,
@@ -51,7 +52,8 @@ def _measure(scenario, cells, mesh_sizes, progress, rows):
 
 
 def report_lines(result: dict) -> list[str]:
-    lines = ["largest stable dt (semi-implicit FE-IB, " + result["criterion"] + ")",
+    couplings = sorted({row.get("membrane_coupling", "explicit") for row in result["rows"]}) or ["explicit"]
+    lines = [f"largest stable dt (FE-IB, {' and '.join(couplings)} membrane coupling, " + result["criterion"] + ")",
              f"  {'cell':<9} {'h (um)':>7} {'DOFs':>9} {'scheme':<6} {'stable dt':>11} {'unstable dt':>12} "
              f"{'law':>9} {'paper dt':>9} {'(33), C=1':>10}  what failed"]
     for row in result["rows"]:

@@ -71,6 +71,7 @@ class Level:
     stiff: float | None = None         # auto: its stiff-cell capillary number (None: sim.auto's default; 0: off)
     tolerance: float | None = None     # feib: dt picked per step from dt..8 dt for this path error (sim.adaptive)
     scheme: str = "auto"               # feib: numerics.time_scheme (auto: bdf2 with a tolerance, euler otherwise)
+    membrane_coupling: str = "auto"    # feib: numerics.membrane_coupling (auto: the scenario's; sim.coupling)
 
     @property
     def window_mesh_h(self) -> float:
@@ -88,6 +89,7 @@ class Level:
         text += f" tolerance={self.tolerance / UM:g}um" if self.tolerance is not None else ""
         if self.model == "feib" and (self.scheme == "bdf2" or (self.scheme == "auto" and self.tolerance is not None)):
             text += " bdf2"             # auto: bdf2 with a tolerance (and convection imex, the ladder's default)
+        text += " implicit coupling" if self.model == "feib" and self.membrane_coupling == "implicit" else ""
         return text + (f" stiff Ca<{self.stiff:g}" if self.stiff is not None else "")
 
 
@@ -100,6 +102,8 @@ LADDER = (
     Level("feib", PAPER_H, 2.5e-6, tolerance=1e-6),   # dt from 2.5-40 us by the error estimate (bdf2)
     Level("feib", PAPER_H, 2.5e-6, tolerance=3e-6),
     Level("feib", 2 * PAPER_H, 10e-6),
+    Level("feib", PAPER_H, 50e-6, membrane_coupling="implicit"),     # near and above the melanoma's explicit limit
+    Level("feib", PAPER_H, 100e-6, membrane_coupling="implicit"),
     Level("oneway", PAPER_H, 2.5e-6),
     Level("oneway", PAPER_H, 10e-6),
     Level("rom", PAPER_H, 20e-6),
@@ -138,7 +142,9 @@ def make_plant(scenario: Scenario, level: Level, flows: _Flows):
     numerics = {"mesh_h": level.mesh_h} if level.model == "rom" else {"mesh_h": level.mesh_h, "dt": level.dt}
     scenario = scenario.with_numerics(**numerics)
     if level.model == "feib":
-        return plants.build("feib", scenario.with_numerics(tolerance=level.tolerance or 0.0, time_scheme=level.scheme))
+        coupling = scenario.numerics.membrane_coupling if level.membrane_coupling == "auto" else level.membrane_coupling
+        return plants.build("feib", scenario.with_numerics(tolerance=level.tolerance or 0.0, time_scheme=level.scheme,
+                                                           membrane_coupling=coupling))
     if level.model == "auto":
         rule = {name: value for name, value in (("coupling", level.coupling), ("stiff_capillary", level.stiff))
                 if value is not None}
@@ -231,11 +237,14 @@ def resolved_ladder(scenario: Scenario, ladder) -> tuple:
     for level in ladder:
         if level.model == "feib":
             scheme = scenario.numerics.time_scheme if level.scheme == "auto" else level.scheme
+            coupling = scenario.numerics.membrane_coupling if level.membrane_coupling == "auto" \
+                else level.membrane_coupling
             try:
-                numerics = scenario.with_numerics(tolerance=level.tolerance or 0.0, time_scheme=scheme).numerics
+                numerics = scenario.with_numerics(tolerance=level.tolerance or 0.0, time_scheme=scheme,
+                                                  membrane_coupling=coupling).numerics
             except ScenarioError:
                 continue
-            level = replace(level, scheme=numerics.scheme)
+            level = replace(level, scheme=numerics.scheme, membrane_coupling=numerics.membrane_coupling)
         if level.label not in labels:
             labels.add(level.label)
             levels.append(level)

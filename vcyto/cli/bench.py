@@ -222,6 +222,30 @@ def _paper(args, scenario, progress):
     return result, treatments.paper_treatment_lines(result)
 
 
+def _coupling_parser(targets):
+    coupling_bench = targets.add_parser("coupling", help="the explicit membrane coupling against the implicit one in "
+                                                         "Scenario II: cost per step, largest step, path error")
+    coupling_bench.add_argument("--steps", default="5us,10us,25us,50us,100us", metavar="LIST",
+                                help="the ladder of steps each coupling runs Scenario II at (default "
+                                     "5us,10us,25us,50us,100us); the reference is the explicit run at --dt")
+    coupling_bench.add_argument("--repeats", type=Integer(low=1, high=1000), default="3",
+                                help="interleaved runs of the cost per step (default 3)")
+    scenario_options(coupling_bench)
+    output_options(coupling_bench)
+    coupling_bench.set_defaults(handler=command_bench)
+
+
+def _coupling(args, scenario, progress):
+    from .. import units
+    from ..bench import coupling
+    steps = positive_list(args.steps, "--steps", "5us,25us,100us",
+                          lambda part: units.parse_quantity(part, "time", "s", "--steps"))
+    if max(steps) > 1e-3:
+        raise UsageError(f"--steps: takes steps of at most 1 ms, e.g. 5us,25us,100us (got {args.steps})")
+    result = coupling.bench_coupling(scenario, steps, args.repeats, progress=progress)
+    return result, coupling.coupling_lines(result)
+
+
 def _auto(args, scenario, progress):
     from ..bench import auto
     from ..progress import Progress
@@ -349,6 +373,7 @@ TARGETS = {
     "paper": Target(_paper_parser, _paper),
     "auto": Target(_auto_parser, _auto),
     "membrane": Target(_membrane_parser, _membrane),
+    "coupling": Target(_coupling_parser, _coupling),
     "recording": Target(_recording_parser, _recording),
     "sweep": Target(_sweep_parser, _sweep, scenario=False),
     "process": Target(_process_parser, _process, scenario=False),

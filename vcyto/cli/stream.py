@@ -10,6 +10,7 @@ from controller.protocol import ControllerError
 
 from .. import outputs
 from ..arguments import Integer, Number, Quantity
+from ..restored import restored_warning
 from ..options import (
     late_pulse_note,
     scenario_from,
@@ -346,6 +347,8 @@ def _report_stream(args, result, stopped, view, files, settings, scenario):
                      f"(Parquet); summary: {files.path('json')}")
     for note in view.notes:
         runfiles.say(note)
+    if (warning := restored_warning((result.get("statistics") or {}).get("area_restored"))) is not None:
+        runfiles.say(warning)
     emit(args, result, lines)
     if stopped is None:
         return

@@ -129,3 +129,28 @@ def test_paper_run_reports_the_restored_area_and_warns_above_the_limit(membrane,
     assert (cell["area_restored"] > RESTORED_LIMIT) == warned
     lines = [line for line in result.stderr.splitlines() if "area projection restored" in line]
     assert len(lines) == (1 if warned else 0)
+
+
+def test_recording_and_summary_carry_each_cells_restored_area(tmp_path):
+    """A membrane plant's cell: its /outcome in the MCAP carries the area the projection restored, the summary's
+    per-cell ``area_corrected`` and ``statistics.area_restored`` agree with it."""
+    from mcap.reader import make_reader
+
+    from sim.arrivals import Arrivals
+    from vcyto.recording import McapRecorder
+    from vcyto.stream import StreamSettings, run_stream
+
+    scenario = Scenario().with_numerics(mesh_h=10 * UM, dt=10e-6)
+    path = tmp_path / "run.mcap"
+    recorder = McapRecorder(path, {"seed": 0}, flush_every=10, field_every=0)
+    try:
+        result = run_stream(scenario, StreamSettings(Arrivals(cells=("melanoma",)), model="oneway", seed=0),
+                            sinks=[recorder])
+    finally:
+        recorder.close()
+    with open(path, "rb") as handle:
+        outcomes = [json.loads(message.data) for _, channel, message in make_reader(handle).iter_messages()
+                    if channel.topic == "/outcome"]
+    cell = result["cells"][0]
+    assert len(outcomes) == 1 and outcomes[0]["area_restored"] == cell["area_corrected"] > 0
+    assert result["statistics"]["area_restored"]["largest"] == cell["area_corrected"]

@@ -336,7 +336,7 @@ class Tally:
         if outcome is not None:
             self.outcomes[outcome] = self.outcomes.get(outcome, 0) + 1
             count["co_deflected"] += outcome == "co-deflected"
-        self.restored.add(cell["key"], cell.get("area_corrected"))
+        self.restored.add(cell.get("key"), cell.get("area_corrected"))
         if cell["exit_time_ms"] is not None:
             self.last_exit_ms = max(self.last_exit_ms or cell["exit_time_ms"], cell["exit_time_ms"])
 

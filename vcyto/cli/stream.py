@@ -10,7 +10,6 @@ from controller.protocol import ControllerError
 
 from .. import outputs
 from ..arguments import Integer, Number, Quantity
-from ..restored import restored_warning
 from ..options import (
     late_pulse_note,
     scenario_from,
@@ -20,6 +19,7 @@ from ..options import (
     stream_settings,
     tolerance_options,
 )
+from ..restored import restored_warning
 from .common import (
     EXIT_NUMERICAL,
     EXIT_SIGINT,

@@ -85,10 +85,12 @@ def _solve_areas(updates, drifts, velocities, time) -> np.ndarray:
         for c, (update, x) in enumerate(zip(updates, points)):
             gradient = update.membrane.with_points(x).area_gradient()
             jacobian[c] = [float(np.sum(gradient * w)) for w in velocities[c]]
-        pressures = pressures - np.linalg.solve(jacobian, residual)
+        try:
+            pressures = pressures - np.linalg.solve(jacobian, residual)
+        except np.linalg.LinAlgError:
+            pressures = np.full(count, math.nan)
         if not np.all(np.isfinite(pressures)):
-            break
-    if not np.all(np.isfinite(pressures)) or math.isnan(float(np.sum(pressures))):
-        raise NumericalBlowUp(f"the cells' interior pressures of the area constraint are not finite at t = {time:.6g} "
-                              "s: the step is too large for this flow; reduce numerics.dt")
+            raise NumericalBlowUp(f"the cells' interior pressures of the area constraint have no finite solution at "
+                                  f"t = {time:.6g} s (the fluid's response to them moves no area): the step is too "
+                                  "large for this flow; reduce numerics.dt")
     return pressures

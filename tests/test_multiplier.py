@@ -154,3 +154,17 @@ def test_recording_and_summary_carry_each_cells_restored_area(tmp_path):
     cell = result["cells"][0]
     assert len(outcomes) == 1 and outcomes[0]["area_restored"] == cell["area_corrected"] > 0
     assert result["statistics"]["area_restored"]["largest"] == cell["area_corrected"]
+
+
+def test_pressures_that_move_no_area_are_a_numerical_failure_with_its_cause():
+    from sim.fluid import NumericalBlowUp
+    from sim.multiplier import Update, _solve_areas
+
+    membrane = Membrane.of(CellType("c", 2.8e-4, 1.2e-16, (8 * UM, 8 * UM)), (0, 0), 1.6 * UM)
+    shrunk = 0.99 * membrane.points
+    update = Update(membrane, shrunk, 1e-6, (None, None), membrane.points)
+    with pytest.raises(NumericalBlowUp, match="moves no area"):
+        _solve_areas([update], [shrunk], [[np.zeros_like(shrunk)]], 0.0)
+    grown = _solve_areas([update], [shrunk], [[1e-6 * membrane.area_gradient()]], 0.0)
+    restored = shrunk + grown[0] * 1e-6 * membrane.area_gradient()
+    assert membrane.area(restored) == pytest.approx(membrane.initial_area, rel=1e-13)

@@ -84,6 +84,9 @@ MEASURED = (
     Measured("melanoma", 20e-6 / 3, 16 * MELANOMA, "bdf2", "conserving", 11.49 * US, 13.28 * US),
     Measured("melanoma", 20e-6 / 3, 25 * MELANOMA, "euler", "conserving", 13.71 * US, 16.18 * US),
     Measured("melanoma", 20e-6 / 3, 100 * MELANOMA, "euler", "conserving", 2.85 * US, 3.44 * US),
+    # the area kept by the step (``sim.multiplier``)
+    Measured("melanoma", 10e-6 / 3, MELANOMA, "euler", "multiplier", 48.02 * US, 54.27 * US),
+    Measured("melanoma", 10e-6 / 3, MELANOMA, "bdf2", "multiplier", 26.06 * US, 29.45 * US),
 )
 
 

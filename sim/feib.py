@@ -26,6 +26,7 @@ from .fluid import Flow, NavierStokes, value_back
 from .geometry import MESH_INSET, clip_to_channel, injection_point
 from .health import HealthLimits, check_cells, under_resolved
 from .membrane import Membrane
+from .multiplier import Update, area_pressures
 from .scenario import CellType, Scenario
 from .streamline import outlet_at
 from .transfer import PointLocator
@@ -40,7 +41,9 @@ class Measures:
     """A cell's shape figures now and their extremes since birth: area / initial area, point spacing / h.
 
     Updated while the whole membrane is inside the channel (points past the outlet move by a made-up rule);
-    ``area_corrected`` sums the area the projection restored (|dA| / A0 per step): what leaked before it.
+    ``area_corrected`` sums the area the projection restored (|dA| / A0 per step): what leaked before it;
+    ``area_resampled`` sums the area the point redistributions' resampling changed (|dA| / A0 each; with an area
+    constraint the redistribution puts it back itself, so this is not part of the leak).
     """
 
     area_ratio: float = 1.0
@@ -52,16 +55,19 @@ class Measures:
     spacing_lowest: float = float("inf")
     spacing_highest: float = 0.0
     area_corrected: float = 0.0
+    area_resampled: float = 0.0
 
     @classmethod
-    def of(cls, membrane: Membrane, mesh_h: float, before: "Measures | None" = None, corrected: float = 0.0):
+    def of(cls, membrane: Membrane, mesh_h: float, before: "Measures | None" = None, corrected: float = 0.0,
+           resampled: float = 0.0):
         ratio = membrane.area() / membrane.initial_area
         lengths = membrane.spacing()
         low, high = float(lengths.min()) / mesh_h, float(lengths.max()) / mesh_h
         before = before or cls()
         return cls(ratio, float(lengths.sum()), low, high, min(before.area_ratio_min, ratio),
                    max(before.area_ratio_max, ratio), min(before.spacing_lowest, low),
-                   max(before.spacing_highest, high), before.area_corrected + corrected)
+                   max(before.spacing_highest, high), before.area_corrected + corrected,
+                   before.area_resampled + resampled)
 
     def as_dict(self) -> dict:
         return {name: getattr(self, name) for name in self.__dataclass_fields__}
@@ -165,7 +171,13 @@ class ImmersedBoundary:
         load, located = self.membrane_load(active, at)
         fluid_started = clock.perf_counter()
         implicit = self.coupling is not None and bool(active)
-        flow = fluid.step(state.flow, actuation, load if active else None, ahead=False if implicit else ahead)
+        kept = self._kept_areas(active, before, at, located, dt)
+        flow = fluid.step(state.flow, actuation, load if active else None,
+                          ahead=False if implicit or kept else ahead)
+        if kept:            # the area constraint's multiplier: each cell's interior pressure in the same step
+            flow, _ = area_pressures(fluid, self.locator, flow, kept, self._force_weights)
+            if ahead and not implicit:
+                (fluid if ahead is True else ahead).prefetch(flow)
         membrane_started = clock.perf_counter()
         news = []
         for cell, old, (elements, reference) in zip(active, before, located):
@@ -195,6 +207,20 @@ class ImmersedBoundary:
         self.timings.health += finished - health_started
         self.timings.steps += 1
         return State(flow, cells, state.step + 1)
+
+    def _kept_areas(self, active, before, at, located, dt) -> list[Update]:
+        """The cells wholly in the channel whose area the multiplier keeps (``sim.multiplier``), as ``Update``s."""
+        if "multiplier" not in self.scenario.numerics.area_constraint:
+            return []
+        length = self.scenario.channel.length
+        return [Update(cell.membrane, cell.membrane.points if old is None else (4 * cell.membrane.points - old) / 3,
+                       dt if old is None else 2 * dt / 3, where, points)
+                for cell, old, points, where in zip(active, before, at, located)
+                if (cell.membrane.points[:, 0] < length).all() and (points[:, 0] < length).all()]
+
+    def _force_weights(self, points: np.ndarray) -> np.ndarray:
+        """1 for points in the channel, 0 for those through an outlet (they exert no force)."""
+        return (points[:, 0] < self.scenario.channel.length).astype(float)
 
     @staticmethod
     def _before(cell: Cell, flow: Flow, dt: float) -> np.ndarray | None:
@@ -239,20 +265,27 @@ def new_cell(scenario: Scenario, cell_type: CellType, cell_id: int, time: float,
     return Cell(cell_id, membrane, born=time, measures=Measures.of(membrane, numerics.mesh_h))
 
 
-def reshape(membrane: Membrane, numerics, history: tuple = ()) -> tuple[Membrane, float, tuple]:
+def reshape(membrane: Membrane, numerics, history: tuple = ()) -> tuple[Membrane, float, float, tuple]:
     """The redistribution of points and the area constraint's projection, as ``numerics`` asks; the
-    relative area the projection restored (redistribution included); ``history`` (earlier points, bdf2's)
-    carried to the redistributed points' spline parameters."""
+    relative area the projection restored, the relative area the redistribution's resampling changed (with an
+    area constraint the redistribution puts it back itself: the resampled spline is moved along its normal to the
+    area of the spline it came from), and ``history`` (earlier points, bdf2's) carried to the redistributed
+    points' spline parameters."""
+    resampled = 0.0
     if numerics.redistribute:
         spacing = membrane.spacing() / numerics.mesh_h
         low, high = numerics.spacing_band
         if spacing.min() < low or spacing.max() > high:
+            area = membrane.area()
             membrane, history = membrane.resampled_carrying(numerics.membrane_spacing * numerics.mesh_h, history)
+            resampled = abs(membrane.area() - area) / membrane.initial_area
+            if numerics.area_constraint != "none":      # a re-parametrisation keeps the shape's area
+                membrane = membrane.with_area(area)
     corrected = 0.0
     if "projection" in numerics.area_constraint:
         corrected = abs(membrane.area() / membrane.initial_area - 1)
         membrane = membrane.with_area(membrane.initial_area)
-    return membrane, corrected, history
+    return membrane, corrected, resampled, history
 
 
 def settle(cell: Cell, points: np.ndarray, time: float, scenario: Scenario, dt: float | None = None,
@@ -265,8 +298,8 @@ def settle(cell: Cell, points: np.ndarray, time: float, scenario: Scenario, dt: 
     measures = cell.measures
     length = scenario.channel.length
     if (points[:, 0] < length).all():
-        membrane, corrected, history = reshape(membrane, scenario.numerics, history)
-        measures = Measures.of(membrane, scenario.numerics.mesh_h, measures, corrected)
+        membrane, corrected, resampled, history = reshape(membrane, scenario.numerics, history)
+        measures = Measures.of(membrane, scenario.numerics.mesh_h, measures, corrected, resampled)
     before, after = cell.membrane.centroid(), membrane.centroid()
     if after[0] < length:
         return replace(cell, membrane=membrane, measures=measures, history=history)

@@ -501,18 +501,22 @@ class NavierStokes:
                               np.asarray(pressure, dtype=float), float(self.pressure_scale), out)
         return out
 
-    def _solve(self, system, rhs, inflow_weight=1.0, jet_weight=0.0, near=None):
+    def _solve(self, system, rhs, inflow_weight=1.0, jet_weight=0.0, near=None, once=False):
         """Solve ``system`` for the reduced ``rhs`` with boundary velocity inflow_weight * inflow + jet_weight * jet.
 
         ``near`` (velocity, pressure) is a solution close to this one (the last step's): the mixed-precision
-        solve refines from it (``sim.linalg.MixedPrecision``); direct solves ignore it."""
+        solve refines from it (``sim.linalg.MixedPrecision``); direct solves ignore it. ``once``: one back-solve of
+        the factorisation, unrefined (single precision with ``precision = "mixed"``: ~1e-6 relative)."""
         if inflow_weight:
             kernels.subtract_scaled(rhs, float(inflow_weight), system.lift_inflow)
         if jet_weight:
             kernels.subtract_scaled(rhs, float(jet_weight), system.lift_jet)
         guess = None if near is None else self._free_solution(*near)
         started = clock.perf_counter()
-        free_solution = system.factor.solve(rhs, guess)
+        if once:
+            free_solution = np.asarray(getattr(system.factor, "inner", system.factor).solve(rhs), dtype=np.float64)
+        else:
+            free_solution = system.factor.solve(rhs, guess)
         self.timings.solve += clock.perf_counter() - started
         velocity = np.empty((2, self.space.N))
         kernels.boundary_velocity(float(inflow_weight), np.ascontiguousarray(self.inflow, dtype=float).ravel(),
@@ -767,6 +771,15 @@ class NavierStokes:
         """
         self.inflow = np.array(velocity, dtype=float)
         self._constant_system()
+
+    def response(self, load: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The change (velocity (2, N), pressure) of an imex or stokes step's solution for an extra load (2, N): one
+        back-solve of the constant matrix with homogeneous boundary data (the step is affine in its load;
+        ``sim.multiplier``), unrefined: with mixed precision ~1e-6 of the response, which only the area
+        constraint's small pressures multiply."""
+        if self._constant is None or self.scenario.numerics.convection not in ("imex", "stokes"):
+            raise ValueError(f"the {self.scenario.numerics.convection} treatment's step is not affine in its load")
+        return self._solve(self._constant, self._free_rhs(load), 0.0, 0.0, once=True)
 
     def backsolve(self, rhs: np.ndarray) -> np.ndarray:
         """One bare back-solve of the constant factorisation (the benchmarks' yardstick); with mixed precision

@@ -26,11 +26,13 @@ LINEAR_SOLVERS = ("auto", "pardiso", "superlu")
 PRECISIONS = ("mixed", "double")
 TIME_SCHEMES = ("auto", "euler", "bdf2")
 COUPLINGS = ("explicit", "implicit")
-AREA_CONSTRAINTS = ("none", "pressure", "projection", "pressure+projection")
+AREA_CONSTRAINTS = ("none", "pressure", "projection", "pressure+projection", "multiplier", "pressure+multiplier",
+                    "multiplier+projection", "pressure+multiplier+projection")
 # the two membrane methods a user picks between (``--membrane``): field values each one sets
 MEMBRANE_METHODS = {
     "paper": {"area_constraint": "none", "redistribute": False},
     "conserving": {"area_constraint": "pressure+projection", "redistribute": True},
+    "multiplier": {"area_constraint": "pressure+multiplier+projection", "redistribute": True},
 }
 
 
@@ -250,8 +252,10 @@ class Numerics:
 
     Cells keeping their size (docs/numerics.md, "Cells that keep their size"): ``area_constraint`` is ``none`` (the
     paper's literal method, which leaks area), ``pressure`` (an interior pressure, the Lagrange multiplier
-    of the area constraint, balances the membrane force's area-changing part), ``projection`` (after each
-    step the membrane moves along its normal to restore the area) or both. ``redistribute`` re-spaces a
+    of the area constraint, balances the membrane force's area-changing part), ``multiplier`` (each cell's
+    interior pressure is solved with the fluid so that the step keeps its area: ``sim.multiplier``; imex or
+    stokes convection), ``projection`` (after each step the membrane moves along its normal to restore the
+    area) or a combination joined by ``+`` in that order. ``redistribute`` re-spaces a
     membrane's points equally along its spline, ``membrane_spacing`` apart, whenever a spacing leaves
     ``spacing_band`` (both in units of ``mesh_h``).
 
@@ -327,6 +331,13 @@ class Numerics:
             raise ScenarioError("membrane_coupling", f"implicit needs the convection treatment imex or stokes (got "
                                                      f"convection {self.convection!r}); use membrane_coupling = "
                                                      f"\"explicit\" with it")
+        if "multiplier" in self.area_constraint and self.convection not in ("imex", "stokes"):
+            raise ScenarioError("area_constraint", f"the multiplier needs the convection treatment imex or stokes (got "
+                                                   f"convection {self.convection!r}); drop \"multiplier\" with it")
+        if "multiplier" in self.area_constraint and self.membrane_coupling == "implicit":
+            raise ScenarioError("area_constraint", "the multiplier keeps the area of the explicit coupling's step: "
+                                                   "with membrane_coupling = \"implicit\" drop \"multiplier\" (or "
+                                                   "take the explicit coupling)")
         if self.scheme == "bdf2" and self.convection not in ("imex", "stokes"):
             raise ScenarioError("time_scheme", f"bdf2 needs the convection treatment imex or stokes (got convection "
                                                f"{self.convection!r}); use time_scheme = \"euler\" with it")
@@ -446,7 +457,8 @@ class Scenario:
         return replace(self, channel=replace(self.channel, inlets=inlets))
 
     def with_membrane(self, method: str) -> "Scenario":
-        """The scenario with the membrane method ``paper`` (literal, leaks) or ``conserving`` (keeps area)."""
+        """The scenario with the membrane method ``paper`` (literal, leaks), ``conserving`` (keeps area) or
+        ``multiplier`` (conserving, with the area kept by the step itself: ``sim.multiplier``)."""
         if method not in MEMBRANE_METHODS:
             raise ScenarioError("membrane", f"must be one of {', '.join(MEMBRANE_METHODS)} (got {method!r})")
         return self.with_numerics(**MEMBRANE_METHODS[method])

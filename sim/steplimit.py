@@ -96,6 +96,9 @@ MEASURED = (
     # 100 us its membrane intersects itself (its points bunch up: no redistribution)
     Measured("melanoma", 5e-6 / 3, MELANOMA, "euler", "paper", 50 * US, 100 * US, "implicit"),
     Measured("melanoma", 5e-6 / 3, MELANOMA, "euler", "conserving", 100 * US, math.inf, "implicit"),
+    # the area kept by the step (``sim.multiplier``)
+    Measured("melanoma", 10e-6 / 3, MELANOMA, "euler", "multiplier", 48.02 * US, 54.27 * US),
+    Measured("melanoma", 10e-6 / 3, MELANOMA, "bdf2", "multiplier", 26.06 * US, 29.45 * US),
 )
 
 

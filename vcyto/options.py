@@ -66,7 +66,9 @@ def scenario_options(parser: argparse.ArgumentParser):
     group.add_argument("--saw-model", choices=SAW_MODELS, help="SAW model (default paper)")
     group.add_argument("--solver", choices=LINEAR_SOLVERS, help="linear solver (default auto)")
     group.add_argument("--membrane", choices=tuple(MEMBRANE_METHODS),
-                       help="membrane method: conserving (area constraint + point redistribution; the default) or "
+                       help="membrane method: conserving (area constraint + point redistribution; the default), "
+                            "multiplier (conserving, with each cell's interior pressure solved in the step so that "
+                            "the step itself keeps the area: one more back-solve a cell; docs/numerics.md) or "
                             "paper (the paper's literal method, which leaks area; the default of vcyto paper)")
 
 

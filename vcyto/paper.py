@@ -18,6 +18,7 @@ from sim.scenario import UM, Scenario
 
 from . import STARTED, figures
 from .painter import Painter
+from .restored import Restored
 
 
 @dataclass(frozen=True)
@@ -103,6 +104,7 @@ def run_paper(number: int, scenario: Scenario, max_time: float = 20e-3, progress
             "health_checks": timings.health,
         },
         "time_steps": plant.adaptive.summary(state.time) if plant.adaptive else None,
+        "area_restored": _restored(spec.cell, final),
         "_path": np.array(path),
         "_times": np.array(times),
         "_outlines": _pick(outlines + [(state.time, final.membrane.points)], snapshots),
@@ -118,9 +120,17 @@ def _cell_summary(type_name: str, final) -> dict:
     return {"type": type_name, "outlet": final.fate if not final.in_channel else "lost",
             "exit_time_ms": final.exit_time * 1e3, "exit_y_um": final.exit_y / UM,
             "area_ratio_final": measures.area_ratio, "area_ratio_min": measures.area_ratio_min,
-            "area_ratio_max": measures.area_ratio_max,
+            "area_ratio_max": measures.area_ratio_max, "area_restored": measures.area_corrected,
+            "area_resampled": measures.area_resampled,
             "spacing_over_h": [measures.spacing_lowest, measures.spacing_highest],
             "membrane_points": final.membrane.count, "redistributions": final.membrane.redistributions}
+
+
+def _restored(type_name: str, final) -> dict | None:
+    """The projection's restoration figures (``vcyto.restored``) of the run's one cell."""
+    restored = Restored()
+    restored.add(type_name, final.measures.area_corrected)
+    return restored.summary()
 
 
 def method_description(scenario: Scenario) -> str:
@@ -168,6 +178,8 @@ def report_lines(result: dict) -> list[str]:
         f"(range {100 * cell['area_ratio_min']:.2f}-{100 * cell['area_ratio_max']:.2f} %); point spacing "
         f"{cell['spacing_over_h'][0]:.2f}-{cell['spacing_over_h'][1]:.2f} h, {cell['membrane_points']} points at exit, "
         f"{cell['redistributions']} redistributions",
+        f"  area restored by the projection over the transit: {100 * cell['area_restored']:.3f} % of the initial "
+        f"area (the redistributions changed {100 * cell['area_resampled']:.3f} %)",
         f"  wall time {wall['process']:.1f} s for the whole process (paper: {result['paper_wall_time']}): "
         f"set-up {wall['setup']:.2f} s, steady start {wall['steady_start']:.2f} s, {result['steps']} steps "
         f"{wall['stepping']:.2f} s ({wall['per_step_ms']:.2f} ms/step)",

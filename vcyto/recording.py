@@ -333,7 +333,8 @@ class McapRecorder:
     def _outcome(self, now: float, cell):
         name = self._classes.settle(cell)
         self._write("/outcome", now, {"time": now, "key": cell.key, "type": cell.type, "outlet": cell.fate,
-                                      "class": name, "exit_time": cell.exit_time, "exit_y_um": cell.exit_y / UM})
+                                      "class": name, "exit_time": cell.exit_time, "exit_y_um": cell.exit_y / UM,
+                                      "area_restored": (cell.measures or {}).get("area_corrected")})
         self._log(now, f"cell {cell.key} ({cell.type}) left by: {cell.fate} ({name})",
                   "INFO" if name in ("sorted", "passed") else "WARN")
         path = self._paths.pop(cell.key, None) or [(cell.x / UM, cell.y / UM)]

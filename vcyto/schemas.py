@@ -84,7 +84,9 @@ SCHEMAS = {
         "class": _string("outcome class (vcyto.outcomes.OUTCOME_CLASSES)"),
         "exit_time": _number("when it left", "s", nullable=True),
         "exit_y_um": _number("ordinate where it left", "um", nullable=True),
-        "time": _number("when its leaving was shown", "s")}, optional=("class", "time")),
+        "area_restored": _number("area the projection restored over its transit / initial area (vcyto.restored); "
+                                 "null without a membrane", "1", nullable=True),
+        "time": _number("when its leaving was shown", "s")}, optional=("class", "time", "area_restored")),
     "/flow/velocity": _object("vcyto.FlowField", "velocity and pressure at the mesh vertices, rows of constant y", {
         "time": TIME, "shape": {"type": "array", "items": {"type": "integer"}, "minItems": 2, "maxItems": 2,
                                 "description": "(rows, columns) of the vertex grid"},

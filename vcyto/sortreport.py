@@ -47,6 +47,7 @@ import numpy as np
 from controller.events import TYPE_I, TYPE_II
 
 from .outcomes import DEFAULT_OUTLET, SORTED_OUTLET, outcome_class
+from .restored import Restored
 
 SORTED_MODES = {"purity": True, "single": True, "enrichment": False}
 
@@ -335,6 +336,7 @@ class Tally:
         self.outlets: dict[str, int] = {}
         self.outcomes: dict[str, int] = {}
         self.last_exit_ms: float | None = None
+        self.restored = Restored()
 
     def add(self, cell: dict):
         count = self.counts
@@ -368,6 +370,7 @@ class Tally:
         if outcome is not None:
             self.outcomes[outcome] = self.outcomes.get(outcome, 0) + 1
             count["co_deflected"] += outcome == "co-deflected"
+        self.restored.add(cell.get("key"), cell.get("area_corrected"))
         if cell["exit_time_ms"] is not None:
             self.last_exit_ms = max(self.last_exit_ms or cell["exit_time_ms"], cell["exit_time_ms"])
 
@@ -399,6 +402,7 @@ class Tally:
             "outcomes": dict(sorted(self.outcomes.items())),
         }
         stats["rare_cell"] = self.rare_cell(offered_targets, stats["offered"])
+        stats["area_restored"] = self.restored.summary()
         return stats
 
     def rare_cell(self, offered_targets: int, offered: int) -> dict:
@@ -563,7 +567,7 @@ def report_lines(result: dict, table_limit: int = 200) -> list[str]:
                      "detector events in the FCS file)")
     elif len(cells) <= table_limit:
         lines.append(f"{'cell':>4}  {'type':<9} {'detected':>8}  {'decision':<8} {'outlet':<12} {'outcome':<13} "
-                     f"{'exit (ms)':>9}  {'area kept (min-max)':<20} spacing / h")
+                     f"{'exit (ms)':>9}  {'area kept (min-max)':<20} {'spacing / h':<11} restored")
         lines += [_cell_line(cell) for cell in cells]
     else:
         due = result["statistics"].get("cells", len(cells))
@@ -580,8 +584,10 @@ def _cell_line(cell) -> str:
     area = f"{100 * low_high[0]:6.2f}-{100 * low_high[1]:6.2f} %" if low_high else "-"
     spacing = cell.get("spacing_over_h")
     band = f"{spacing[0]:.2f}-{spacing[1]:.2f}" if spacing else "-"
+    restored = cell.get("area_corrected")
+    restored = f"{100 * restored:.3f} %" if restored is not None else "-"
     return (f"{cell['key']:>4}  {cell['type']:<9} {cell['detected_class'] or '-':>8}  {cell['decision'] or '-':<8} "
-            f"{cell['outlet']:<12} {cell.get('outcome', '-'):<13} {exit_ms}  {area:<20} {band}")
+            f"{cell['outlet']:<12} {cell.get('outcome', '-'):<13} {exit_ms}  {area:<20} {band:<11} {restored}")
 
 
 def _percent(value) -> str:
@@ -610,6 +616,7 @@ def sort_report_lines(result: dict) -> list[str]:
            if stats.get("not_yet_due") else ""),
         f"throughput {throughput:.0f} cells/s of simulated time" if throughput else "throughput n/a",
         *_rare_cell_lines(stats.get("rare_cell")),
+        *_restored_lines(stats.get("area_restored")),
         f"simulated {result['simulated_time_ms']:.3f} ms (IDT on {result['idt_on_time_ms']:.3f} ms) in "
         f"{result['wall_time_s']:.1f} s wall ({result['model']} model: set-up {result['setup_time_s']:.1f} s, loop "
         f"{result['wall_time_s'] - result['setup_time_s']:.3g} s); "
@@ -658,6 +665,14 @@ def _rare_cell_lines(figures: dict | None) -> list[str]:
             f"{_percent(figures['recovery_estimated'])}); purity 95 % interval "
             + (f"{100 * interval[0]:.1f}-{100 * interval[1]:.1f} %" if interval else "n/a")
             + (f"; {per_target:,.0f} events per target found" if per_target is not None else "")]
+
+
+def _restored_lines(figures: dict | None) -> list[str]:
+    """What the area projection restored (``vcyto.restored``), for runs whose cells have membranes."""
+    if not figures:
+        return []
+    return [f"area restored by the projection over a transit: largest {100 * figures['largest']:.3f} % of the initial "
+            f"area (cell {figures['cell']}); {figures['cells_over_limit']} cells over {100 * figures['limit']:g} %"]
 
 
 def _no_coincidence(stats: dict, result: dict) -> str:

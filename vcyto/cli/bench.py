@@ -72,7 +72,8 @@ def _auto_parser(targets):
 
 def _membrane_parser(targets):
     membrane_bench = targets.add_parser("membrane", help="the paper's literal membrane method against the conserving "
-                                                         "one: area kept, point spacing, outlets, cost per step")
+                                                         "ones (conserving, multiplier): area kept, area restored by "
+                                                         "the projection, point spacing, outlets, cost per step")
     membrane_bench.add_argument("--repeats", type=Integer(low=1, high=1000), default="2",
                                 help="interleaved runs per scenario (default 2)")
     scenario_options(membrane_bench)

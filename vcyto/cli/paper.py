@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from ..arguments import Quantity
 from ..options import check_run_time, scenario_from, scenario_options, tolerance_options
+from ..restored import restored_warning
 from .common import (
     EXIT_SIGINT,
     EXIT_SIGTERM,
@@ -64,4 +65,6 @@ def command_paper(args):
                 paper.save_png(str(png), result, scenario, painter)
                 result["png"] = str(png)
                 lines.append(f"  saved {png}")
+    if (warning := restored_warning(result["area_restored"])) is not None:
+        runfiles.say(warning)
     emit(args, paper.public(result), lines)

@@ -21,6 +21,7 @@ from ..options import (
     wire_controller,
     wire_options,
 )
+from ..restored import restored_warning
 from .common import (
     EXIT_NUMERICAL,
     EXIT_SIGINT,
@@ -346,6 +347,8 @@ def _report_stream(args, result, stopped, view, files, settings, scenario):
                      f"(Parquet); summary: {files.path('json')}")
     for note in view.notes:
         runfiles.say(note)
+    if (warning := restored_warning((result.get("statistics") or {}).get("area_restored"))) is not None:
+        runfiles.say(warning)
     emit(args, result, lines)
     if stopped is None:
         return

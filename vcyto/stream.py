@@ -251,6 +251,7 @@ class Loop:
         self.diagnostics = plant.diagnostics if isinstance(plant, contract.HasDiagnostics) and self.state_wanted \
             else None
         self.pending, self.shown = [], 0.0          # events not yet shown to the sinks; when they last saw a step
+        self._looked = None                         # the plant as looked at for the sinks, not yet shown
         self.observation = plant.reset(sample.admitted)
         # an event-driven plant that traces its cells: recorded steps without stopping the plant (vcyto.trace)
         self.tracer = (Tracer(plant, settings.record_interval) if self.paced and self.grouped and not self.single
@@ -283,7 +284,7 @@ class Loop:
         self.control.post(events)
         # what the sinks are shown of the plant does not depend on the answers: looked at while the controller
         # thinks (over the wire, in another process), then the answers are collected (lock-step)
-        look = self._look() if self._show_due(events) else None
+        look = self._looked = self._look() if self._show_due(events) else None
         self.control.collect()
         self.conclude(events, look)
 
@@ -348,6 +349,7 @@ class Loop:
         return (self.observation, self.truth_update(), self.diagnostics() if self.diagnostics is not None else None)
 
     def _show(self, look=None, final: bool = False):
+        look, self._looked = look or self._looked, None       # a look taken before an answer failed is not lost
         observation, truth, diagnostics = look if look is not None else self._look()
         trace = None
         if self.tracer is not None:
@@ -371,7 +373,8 @@ class Loop:
 
     def finish(self):
         """Show the sinks what they have not seen yet (the last step, events and cells that left since)."""
-        if self.sinks and self.grouped and (self.pending or self.decided or self.now > self.shown):
+        if self.sinks and (self.grouped or self._looked) and (self.pending or self.decided or self._looked
+                                                              or self.now > self.shown):
             self._show(final=True)
         self.rss_loop = _peak_rss_mb()
 

@@ -19,10 +19,10 @@ import time
 
 import numpy as np
 
-from sim.feib import ImmersedBoundary, State, settle
-from sim.health import NumericalBlowUp, check_cells
-from sim.openloop import stepping, with_cells
-from sim.scenario import UM, Scenario
+from sim.method.feib import ImmersedBoundary, State, settle
+from sim.method.health import NumericalBlowUp, check_cells
+from sim.method.openloop import stepping, with_cells
+from sim.model.scenario import UM, Scenario
 
 
 class TrapezoidalUpdate(ImmersedBoundary):

@@ -8,11 +8,11 @@ import sys
 import numpy as np
 import pytest
 
-from sim.feib import ImmersedBoundary
-from sim.fluid import NavierStokes, earlier_at, lagrange_weights, value_back
-from sim.membrane import Membrane
-from sim.openloop import stepping, with_cells
-from sim.scenario import UM, Scenario, ScenarioError
+from sim.method.feib import ImmersedBoundary
+from sim.method.fluid import NavierStokes, earlier_at, lagrange_weights, value_back
+from sim.method.membrane import Membrane
+from sim.method.openloop import stepping, with_cells
+from sim.model.scenario import UM, Scenario, ScenarioError
 
 
 def final_state(scheme, dt, until=300e-6):

@@ -9,7 +9,7 @@ import sys
 import pytest
 
 from controller.sorter import ControllerSettings
-from sim.scenario import ScenarioError
+from sim.model.scenario import ScenarioError
 from vcyto.controllerfile import controller_toml, load_controller
 
 

@@ -235,8 +235,8 @@ def test_a_signal_the_process_was_told_to_ignore_stays_ignored():
 
 STEPPED_SCRIPT = textwrap.dedent("""
     import sys, threading
-    from sim.fluid import NavierStokes
-    from sim.scenario import UM, Scenario
+    from sim.method.fluid import NavierStokes
+    from sim.model.scenario import UM, Scenario
     from vcyto.cli import exit_now
 
     LEFT_OPEN = open(sys.argv[1], "w")

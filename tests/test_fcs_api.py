@@ -8,8 +8,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from sim.arrivals import Arrivals
-from sim.scenario import Scenario
+from sim.model.arrivals import Arrivals
+from sim.model.scenario import Scenario
 from vcyto import __version__
 from vcyto.fcs import CHANNELS, write_fcs
 from vcyto.gatingml import GATE_IDS, write_gatingml

@@ -324,8 +324,8 @@ def test_controller_files_beyond_sense_are_one_line(sandbox, line, words):
 def test_a_pulse_far_shorter_than_the_drives_spin_up_is_said(sandbox):
     """A pulse the SAW drive cannot follow (a tenth of its spin-up time or less) is accepted, with a note."""
     from controller.sorter import ControllerSettings
-    from sim.arrivals import Arrivals
-    from sim.scenario import Scenario
+    from sim.model.arrivals import Arrivals
+    from sim.model.scenario import Scenario
     from vcyto.options import short_pulse_note
     from vcyto.stream import StreamSettings
     scenario = Scenario()

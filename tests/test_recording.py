@@ -13,9 +13,9 @@ from mcap.reader import make_reader
 from mcap.records import Channel, Message
 from mcap.stream_reader import StreamReader
 
-from sim.arrivals import Arrivals
-from sim.plant import StreamlinePlant
-from sim.scenario import Scenario
+from sim.model.arrivals import Arrivals
+from sim.model.scenario import Scenario
+from sim.plants.feib import StreamlinePlant
 from vcyto.recording import PER_STEP, McapRecorder
 from vcyto.sinks import BackgroundSinks
 from vcyto.stream import StreamSettings, StreamStopped, run_stream

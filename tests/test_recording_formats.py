@@ -15,9 +15,9 @@ from mcap.reader import make_reader
 from mcap_protobuf.decoder import DecoderFactory
 from rerun.chunk import RrdReader
 
-from sim.arrivals import Arrivals
-from sim.plant import FeibPlant
-from sim.scenario import Scenario
+from sim.model.arrivals import Arrivals
+from sim.model.scenario import Scenario
+from sim.plants.feib import FeibPlant
 from vcyto.classes import CLASS_IDS
 from vcyto.outcomes import outcome_class
 from vcyto.recording import McapRecorder
@@ -264,7 +264,7 @@ def test_the_flow_colours_are_matplotlibs_viridis_and_a_warm_process_needs_no_ma
     black = viridis(float("nan"))            # a single value: its own array, the table untouched
     black[...] = 255
     assert np.array_equal(viridis(values), expected) and viridis(0.0).tolist() == expected[0].tolist()
-    script = ("import sys; import vcyto.cache as c; c.install_default(); from sim.scenario import Scenario; "
+    script = ("import sys; import vcyto.cache as c; c.install_default(); from sim.model.scenario import Scenario; "
               "from vcyto.rerunlog import RerunLogger; from controller.detector import DetectorSettings; "
               "from vcyto.recording import velocity_field; import numpy as np; "
               "logger = RerunLogger(Scenario(), DetectorSettings().window, ('save', sys.argv[1])); "
@@ -285,7 +285,7 @@ def test_a_rerun_recording_does_not_import_pandas_and_pandas_stays_usable(tmp_pa
     imports pandas as usual and converts a categorical Series to a dictionary array."""
     script = ("import sys\nif sys.argv[2] == 'first': import pandas\n"
               "from vcyto import viewer\nif sys.argv[3] == 'command': viewer.spare_pandas_import()\n"
-              "from sim.scenario import Scenario; from vcyto.rerunlog import RerunLogger\n"
+              "from sim.model.scenario import Scenario; from vcyto.rerunlog import RerunLogger\n"
               "from controller.detector import DetectorSettings\n"
               "logger = RerunLogger(Scenario(), DetectorSettings().window, ('save', sys.argv[1]))\n"
               "logger.text('hello'); logger.close(); print('pandas' in sys.modules)\n"

@@ -1,4 +1,4 @@
-"""The fast FE-IB step (``sim.feib``, ``sim.fluid``, ``sim.kernels``) held to the plain one (``sim.reference``): the
+"""The fast FE-IB step (``sim.method.feib``, ``sim.method.fluid``, ``sim.fast.kernels``) held to the plain one (``sim.method.reference``): the
 same steps, Euler and BDF2, to round-off; and each fast kernel, the C ones and numba's, held to what the reference
 computes in its place (scikit-fem's assembly, ``basis.probes``, numpy expressions)."""
 
@@ -7,19 +7,19 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from sim import kernels, speed
-from sim.feib import ImmersedBoundary, State, new_cell
-from sim.reference import Level, ReferenceStep
-from sim.scenario import UM, Scenario
-from sim.taylorhood import TaylorHood
-from sim.transfer import PointLocator
+from sim.fast import kernels, speed
+from sim.method.feib import ImmersedBoundary, State, new_cell
+from sim.method.reference import Level, ReferenceStep
+from sim.method.taylorhood import TaylorHood
+from sim.method.transfer import PointLocator
+from sim.model.scenario import UM, Scenario
 
 STEPS = 3
 
 
 def scenario_of(scheme: str, area_constraint: str = "pressure") -> Scenario:
     """A coarse mesh, double precision (the default mixed precision refines to a tolerance, not to round-off),
-    no redistribution or projection (they follow the step: ``sim.feib.settle``)."""
+    no redistribution or projection (they follow the step: ``sim.method.feib.settle``)."""
     return Scenario().with_numerics(mesh_h=10 * UM, time_scheme=scheme, precision="double",
                                     area_constraint=area_constraint, redistribute=False)
 

@@ -6,9 +6,9 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from sim.boundary import cutoff, saw_jet_factor
-from sim.fluid import NavierStokes
-from sim.scenario import Saw, Scenario
+from sim.method.fluid import NavierStokes
+from sim.model.boundary import cutoff, saw_jet_factor
+from sim.model.scenario import Saw, Scenario
 
 # steps that are not multiples of the 10 ns carrier period: the paper's formula, sampled at them, gave
 # cos = +1, -1 alternating at 3.125 us and other values at every other one

@@ -10,7 +10,7 @@ import pytest
 
 from controller.detector import DetectorSettings
 from controller.sorter import ControllerSettings
-from sim.arrivals import Arrivals
+from sim.model.arrivals import Arrivals
 from vcyto.calibrate import Grid, calibrate
 from vcyto.sortreport import sort_report_lines
 from vcyto.stream import StreamSettings, run_stream
@@ -186,7 +186,7 @@ def test_rom_and_feib_envelopes_at_a_handful_of_offsets(paper_scenario, rom_plan
     Agreement within the calibration's offset step (0.02 ms): at every offset where feib has an outcome and
     which is more than one step from rom's edges, the fates agree; rom's edges lie in the intervals feib's
     outcomes bracket, widened by one step."""
-    from sim.plant import FeibPlant
+    from sim.plants.feib import FeibPlant
     from vcyto.calibrate import deflected, envelope_of, measure_delay
     shipped, grid = ControllerSettings(), Grid(offset_step=0.02e-3, offset_range=0.6e-3, resolution=2.5e-6)
     offsets = (-0.28e-3, -0.24e-3, -0.2e-3, 0.0, 0.08e-3, 0.16e-3, 0.2e-3, 0.24e-3, 0.28e-3)

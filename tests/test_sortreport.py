@@ -6,15 +6,15 @@ import math
 import numpy as np
 import pytest
 
-from sim.arrivals import Arrivals
-from sim.scenario import Scenario
+from sim.model.arrivals import Arrivals
+from sim.model.scenario import Scenario
 from vcyto import celltable, sortreport
 from vcyto.stream import StreamSettings, run_stream, statistics_of
 
 
 @pytest.fixture(scope="module")
 def rom_plant():
-    from sim.plants import build
+    from sim.plants.registry import build
     return build("rom", Scenario())
 
 
@@ -43,7 +43,7 @@ def test_every_admitted_cell_has_one_row_and_the_aggregates_are_the_tables(long_
     for record in records:                                  # pandas gives NaN for null numbers
         record.update({k: None for k, v in record.items() if isinstance(v, float) and math.isnan(v)})
     records.sort(key=lambda r: r["key"])
-    from sim.arrivals import offer
+    from sim.model.arrivals import offer
     rejected = [name for _, name in offer(settings.arrivals, np.random.default_rng(settings.seed).spawn(2)[0]).rejected]
     recomputed = statistics_of(records, result["simulated_time_ms"] * 1e-3, rejected=rejected, scenario=Scenario(),
                                controller_settings=settings.controller)

@@ -9,9 +9,9 @@ import pytest
 
 from controller.detector import DetectorSettings
 from controller.sorter import ControllerSettings
-from sim.arrivals import Arrivals, schedule
-from sim.plant import StreamlinePlant
-from sim.scenario import Scenario
+from sim.model.arrivals import Arrivals, schedule
+from sim.model.scenario import Scenario
+from sim.plants.feib import StreamlinePlant
 from vcyto.stream import StreamSettings, run_stream, statistics_of
 
 

@@ -24,7 +24,7 @@ STARTED = _time.perf_counter()      # for "whole process" wall times
 __version__ = "0.1.0"
 
 _EXPORTS = {
-    "Scenario": "sim.scenario", "Arrivals": "sim.arrivals",
+    "Scenario": "sim.model.scenario", "Arrivals": "sim.model.arrivals",
     "DetectorSettings": "controller.detector", "ControllerSettings": "controller.sorter",
     "load_scenario": "vcyto.config", "scenario_from_toml": "vcyto.config", "scenario_to_toml": "vcyto.config",
     "StreamSettings": "vcyto.stream", "run_stream": "vcyto.stream", "make_plant": "vcyto.stream",

@@ -34,8 +34,8 @@ import numpy as np
 from controller.detector import Detector, DetectorSettings
 from controller.events import TYPE_I, TYPE_II, Sighting
 from controller.sorter import ControllerSettings
-from sim.fluid import NumericalBlowUp
-from sim.scenario import Scenario
+from sim.method.fluid import NumericalBlowUp
+from sim.model.scenario import Scenario
 
 SORTED, DEFAULT = "upper", "lower"
 
@@ -381,7 +381,7 @@ def _class_of(cell_type) -> str:
 
 def make_calibration_plant(scenario: Scenario, model: str, control_period: float | None = None):
     """A plant of ``model`` for calibration cells (``rom``, ``auto``, ``oneway`` or ``feib``)."""
-    from sim import plants
+    from sim.plants import registry as plants
     return plants.build(model, scenario, control_period=control_period)
 
 

@@ -15,12 +15,12 @@ import time
 from dataclasses import dataclass, field, replace
 from typing import Callable
 
-from sim.feib import Cell, ImmersedBoundary
-from sim.fluid import NumericalBlowUp
-from sim.health import membrane_time_step
-from sim.membrane import Membrane
-from sim.openloop import stepping, with_cells
-from sim.scenario import UM, CellType, Scenario
+from sim.method.feib import Cell, ImmersedBoundary
+from sim.method.fluid import NumericalBlowUp
+from sim.method.health import membrane_time_step
+from sim.method.membrane import Membrane
+from sim.method.openloop import stepping, with_cells
+from sim.model.scenario import UM, CellType, Scenario
 
 OUTLETS = ("lower", "upper")
 
@@ -95,7 +95,7 @@ class _Collect(logging.Handler):
 def simulate(setting: Setting) -> Run:
     """Run the setting's cells until all have left (or the duration); a health-check stop is a diagnosis."""
     collect = _Collect()
-    logger = logging.getLogger("sim.feib")
+    logger = logging.getLogger("sim.method.feib")
     logger.addHandler(collect)
     run = Run()
     started = time.perf_counter()

@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from sim.scenario import UM, Scenario
-from sim.transfer import PointLocator
+from sim.method.transfer import PointLocator
+from sim.model.scenario import UM, Scenario
 
 from . import painter
 from .painter import pyplot, save_figure  # noqa: F401 - the figures' commands take them from here

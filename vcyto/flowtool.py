@@ -4,10 +4,10 @@ from __future__ import annotations
 
 import time
 
-from sim.calibration import FlowPaths, calibrate_streaming_force, injection_streamline
-from sim.fluid import NavierStokes
-from sim.scenario import UM, Scenario
-from sim.transfer import PointLocator
+from sim.method.calibration import FlowPaths, calibrate_streaming_force, injection_streamline
+from sim.method.fluid import NavierStokes
+from sim.method.transfer import PointLocator
+from sim.model.scenario import UM, Scenario
 
 from . import figures
 
@@ -64,7 +64,7 @@ def save_png(path: str, scenario: Scenario, solver: NavierStokes, flows, paths: 
 
 
 def calibrate(scenario: Scenario, progress=lambda message: None) -> dict:
-    """Calibrate the streaming force against the envelope jet (see ``sim.calibration``)."""
+    """Calibrate the streaming force against the envelope jet (see ``sim.method.calibration``)."""
     progress("calibrating the streaming force against the envelope jet (a dozen steady solves)")
     started = time.perf_counter()
     force, exit_y, iterations = calibrate_streaming_force(scenario)

@@ -12,9 +12,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from sim.feib import ImmersedBoundary
-from sim.openloop import stepping, with_cells
-from sim.scenario import UM, Scenario
+from sim.method.feib import ImmersedBoundary
+from sim.method.openloop import stepping, with_cells
+from sim.model.scenario import UM, Scenario
 
 from . import STARTED, figures
 from .painter import Painter
@@ -141,7 +141,7 @@ def _pick(items, count):
 
 
 def time_step_line(summary: dict | None) -> list[str]:
-    """One line on the dt used, when a tolerance picked it (``sim.adaptive``'s summary)."""
+    """One line on the dt used, when a tolerance picked it (``sim.method.adaptive``'s summary)."""
     if not summary:
         return []
     parts = ", ".join(f"{dt:g} us: {steps} steps, {ms:.3f} ms" for dt, steps, ms

@@ -57,7 +57,7 @@ from foxglove import Channel, Context, Schema, open_mcap
 from foxglove.mcap import MCAPCompression, MCAPWriteOptions
 from mcap_protobuf.schema import build_file_descriptor_set
 
-from sim.scenario import UM, Scenario
+from sim.model.scenario import UM, Scenario
 
 from . import foxglove
 from .classes import CLASS_COLOURS, CLASS_IDS, CellClasses

@@ -4,7 +4,7 @@ The scenario (a file: ``examples/scenarios/relaxation.toml``) must have every in
 off. One cell of the named type starts at the channel's centre in fluid at rest and relaxes towards a circle for
 ``duration``. Per mesh: the enclosed area at the end over the initial one, and the relaxation time, the time at
 which the aspect ratio's excess (a / b - 1, from the polygon's second moments) has fallen to 1/e of its start. All
-meshes take the same dt (the scenario's, or half the finest mesh's stability limit, ``sim.steplimit``, if that is
+meshes take the same dt (the scenario's, or half the finest mesh's stability limit, ``sim.method.steplimit``, if that is
 smaller), so only h changes. For three meshes refined by a constant ratio r: the area's error is known (the exact
 solution keeps it: 1 - A / A0), so its observed order is log(e1 / e2) / log(r) and log(e2 / e3) / log(r); the
 relaxation time's limit is not, so its observed order is log(|q1 - q2| / |q2 - q3|) / log(r), and its extrapolated
@@ -18,11 +18,11 @@ import time
 
 import numpy as np
 
-from sim.feib import ImmersedBoundary
-from sim.mesh import MeshSize
-from sim.openloop import stepping, with_cells
-from sim.scenario import UM, Scenario, ScenarioError
-from sim.steplimit import limit_of
+from sim.method.feib import ImmersedBoundary
+from sim.method.openloop import stepping, with_cells
+from sim.method.steplimit import limit_of
+from sim.model.mesh import MeshSize
+from sim.model.scenario import UM, Scenario, ScenarioError
 
 from .progress import rows_until_interrupted
 

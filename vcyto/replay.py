@@ -22,7 +22,7 @@ from mcap.opcode import Opcode
 from mcap.records import Channel, Chunk, Message, Metadata
 from mcap.stream_reader import StreamReader
 
-from sim.scenario import Scenario
+from sim.model.scenario import Scenario
 
 from .classes import class_of_type, provisional_class
 from .config import scenario_from_toml

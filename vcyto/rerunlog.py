@@ -45,7 +45,7 @@ import time
 
 import numpy as np
 
-from sim.scenario import UM, Scenario
+from sim.model.scenario import UM, Scenario
 
 from .classes import CLASS_COLOURS, CLASS_IDS, CLASS_NAMES, CellClasses
 from .foxglove import speed_grid
@@ -73,10 +73,10 @@ def viridis(scaled) -> np.ndarray:
 
 @functools.lru_cache(maxsize=1)
 def _viridis_table() -> np.ndarray:
-    """matplotlib's 256 viridis colours as uint8 RGB, through ``sim.store`` (keyed by matplotlib's version)."""
+    """matplotlib's 256 viridis colours as uint8 RGB, through ``sim.fast.store`` (keyed by matplotlib's version)."""
     from importlib.metadata import version
 
-    from sim.store import reuse
+    from sim.fast.store import reuse
 
     def build():
         from matplotlib import colormaps

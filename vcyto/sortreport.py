@@ -2,7 +2,7 @@
 
 Statistics (``statistics_of``), over the sample offered to the inlet:
 - events: cells detected; offered: cells in the sample; rejected_at_inlet: cells the inlet's dead time turned
-  away (``sim.arrivals``); sorted: sort decisions kept; aborted: sorts cancelled for coincidence;
+  away (``sim.model.arrivals``); sorted: sort decisions kept; aborted: sorts cancelled for coincidence;
 - purity: true targets among the cells that left by the sorted outlet;
 - yield: targets that left by the sorted outlet over the targets offered (rejected ones included);
 - abort_rate: aborts over type-II detections; co_deflected: correctly detected type-I cells that left by the
@@ -52,7 +52,7 @@ SORTED_MODES = {"purity": True, "single": True, "enrichment": False}
 
 
 def true_class(cell_type) -> str:
-    """The class a cell of ``cell_type`` (``sim.scenario.CellType``) should be sorted as."""
+    """The class a cell of ``cell_type`` (``sim.model.scenario.CellType``) should be sorted as."""
     return TYPE_II if cell_type.target else TYPE_I
 
 
@@ -197,8 +197,8 @@ class SortLedger:
 
 
 def mesh_record(scenario) -> dict:
-    """The mesh a run's flows are computed on: its size, squares and Taylor-Hood DOFs (``sim.mesh.MeshSize``)."""
-    from sim.mesh import MeshSize
+    """The mesh a run's flows are computed on: its size, squares and Taylor-Hood DOFs (``sim.model.mesh.MeshSize``)."""
+    from sim.model.mesh import MeshSize
     size = MeshSize.of(scenario.channel, scenario.numerics.mesh_h)
     return {"h_um": size.largest * 1e6, "squares": list(size.squares), "dofs": size.dofs, "uniform": size.uniform,
             "description": size.describe()}

@@ -1,15 +1,15 @@
 """`vcyto stability`: the largest stable dt per cell type and mesh size, beside the stability law's limit (the one the
-tolerance's cap and the failure hints use, ``sim.steplimit``), the paper's dt and its bound (33)."""
+tolerance's cap and the failure hints use, ``sim.method.steplimit``), the paper's dt and its bound (33)."""
 
 from __future__ import annotations
 
 import time
 
-from sim.fluid import NavierStokes
-from sim.mesh import MeshSize
-from sim.scenario import UM, Scenario
-from sim.stability import actuation_for, paper_bound, stable_dt
-from sim.steplimit import limit_of
+from sim.method.fluid import NavierStokes
+from sim.method.stability import actuation_for, paper_bound, stable_dt
+from sim.method.steplimit import limit_of
+from sim.model.mesh import MeshSize
+from sim.model.scenario import UM, Scenario
 
 from .progress import rows_until_interrupted
 

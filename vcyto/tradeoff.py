@@ -17,10 +17,10 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from sim.health import HealthError
-from sim.mesh import MeshSize
-from sim.openloop import stepping
-from sim.scenario import UM, Scenario, ScenarioError
+from sim.method.health import HealthError
+from sim.method.openloop import stepping
+from sim.model.mesh import MeshSize
+from sim.model.scenario import UM, Scenario, ScenarioError
 
 
 @dataclass(frozen=True)
@@ -60,21 +60,21 @@ def pair_scene(gap: float) -> Scene:
 @dataclass(frozen=True)
 class Level:
     """A plant model at a resolution: mesh h, time step (feib, oneway) or control period (rom), flow grid,
-    and (auto) the mesh of its feib windows (None: ``sim.auto``'s default)."""
+    and (auto) the mesh of its feib windows (None: ``sim.plants.auto``'s default)."""
 
     model: str
     mesh_h: float
     dt: float
     grid: float = 1e-6
     window: float | None = None
-    coupling: float | None = None      # auto: its coupling factor (None: sim.auto's default)
-    stiff: float | None = None         # auto: its stiff-cell capillary number (None: sim.auto's default; 0: off)
-    tolerance: float | None = None     # feib: dt picked per step from dt..8 dt for this path error (sim.adaptive)
+    coupling: float | None = None      # auto: its coupling factor (None: sim.plants.auto's default)
+    stiff: float | None = None         # auto: its stiff-cell capillary number (None: sim.plants.auto's default; 0: off)
+    tolerance: float | None = None     # feib: dt picked per step from dt..8 dt for this path error (sim.method.adaptive)
     scheme: str = "auto"               # feib: numerics.time_scheme (auto: bdf2 with a tolerance, euler otherwise)
 
     @property
     def window_mesh_h(self) -> float:
-        from sim.auto import WINDOW_MESH_H
+        from sim.plants.auto import WINDOW_MESH_H
         return self.window or max(self.mesh_h, WINDOW_MESH_H)
 
     @property
@@ -125,7 +125,7 @@ class _Flows:
         self.scenario, self.cache = scenario, {}
 
     def get(self, level: Level):
-        from sim.rom import RomFlows
+        from sim.plants.rom import RomFlows
         key = (level.mesh_h, level.grid)
         if key not in self.cache:
             self.cache[key] = RomFlows.of(self.scenario.with_numerics(mesh_h=level.mesh_h), level.grid)
@@ -133,8 +133,8 @@ class _Flows:
 
 
 def make_plant(scenario: Scenario, level: Level, flows: _Flows):
-    """A fresh plant of ``level`` (the registry ``sim.plants``) on the level's mesh and time step."""
-    from sim import plants
+    """A fresh plant of ``level`` (the registry ``sim.plants.registry``) on the level's mesh and time step."""
+    from sim.plants import registry as plants
     numerics = {"mesh_h": level.mesh_h} if level.model == "rom" else {"mesh_h": level.mesh_h, "dt": level.dt}
     scenario = scenario.with_numerics(**numerics)
     if level.model == "feib":

@@ -17,7 +17,7 @@ from urllib.parse import urlsplit
 
 import numpy as np
 
-from sim.scenario import Scenario
+from sim.model.scenario import Scenario
 
 # the Rerun SDK logs connection trouble as multi-line Rust log records; vcyto reports it in one line instead
 # (set RUST_LOG to see them)
@@ -288,7 +288,7 @@ def blueprint():
 
 def speed_scale_mm_s(scenario: Scenario) -> float:
     """The fixed top of the speed colour scale (mm/s): 1.2 x the fastest inflow, rounded up to 1, 2 or 5 x 10^k."""
-    from sim.boundary import inflow_velocity
+    from sim.model.boundary import inflow_velocity
     channel = scenario.channel
     y = np.linspace(0.0, channel.height, 2001)
     fastest = float(np.hypot(*inflow_velocity(channel, y)).max()) * 1e3 * 1.2

@@ -7,7 +7,7 @@ import time
 
 import numpy as np
 
-from sim.scenario import Scenario
+from sim.model.scenario import Scenario
 
 
 def bench_recording(scenario: Scenario, cells=("RBC", "melanoma"), repeats: int = 3, progress=None) -> dict:
@@ -17,8 +17,8 @@ def bench_recording(scenario: Scenario, cells=("RBC", "melanoma"), repeats: int 
     from pathlib import Path
 
     from controller.detector import DetectorSettings
-    from sim.arrivals import Arrivals
-    from sim.plant import FeibPlant
+    from sim.model.arrivals import Arrivals
+    from sim.plants.feib import FeibPlant
 
     from ..recording import McapRecorder
     from ..rerunlog import RerunSink

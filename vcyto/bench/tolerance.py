@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from sim.scenario import UM, Scenario
+from sim.model.scenario import UM, Scenario
 
 from ..paper import paper_scenario, run_paper
 

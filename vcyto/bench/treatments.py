@@ -8,10 +8,10 @@ import time
 
 import numpy as np
 
-from sim.fluid import NavierStokes
-from sim.mesh import channel_mesh
-from sim.scenario import UM, Scenario
-from sim.taylorhood import TaylorHood
+from sim.method.fluid import NavierStokes
+from sim.method.taylorhood import TaylorHood
+from sim.model.mesh import channel_mesh
+from sim.model.scenario import UM, Scenario
 
 
 def bench_treatments(scenario: Scenario, steps: int = 20, progress=lambda message: None) -> dict:

@@ -15,9 +15,9 @@ import sys
 import threading
 import traceback
 
-from sim.fluid import NumericalBlowUp
-from sim.linalg import SolverError
-from sim.scenario import ScenarioError
+from sim.fast.linalg import SolverError
+from sim.method.fluid import NumericalBlowUp
+from sim.model.scenario import ScenarioError
 
 from .. import runfiles, units
 from ..arguments import Parser

@@ -10,7 +10,7 @@ import time
 import numpy as np
 
 from controller.sorter import MODES
-from sim import plants
+from sim.plants import registry as plants
 
 from .. import outputs, runfiles, units
 from ..arguments import Number, Quantity
@@ -150,7 +150,7 @@ def _model_name(plant) -> str:
 
 def _check(scenario, plant, detector, settings, controller_from: str) -> dict:
     """The user's controller, built from the new calibration, on ``CHECK_CELLS``: where each cell went."""
-    from sim.arrivals import Arrivals
+    from sim.model.arrivals import Arrivals
 
     from .. import plugins
     from ..stream import StreamSettings, run_stream

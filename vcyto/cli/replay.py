@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from sim.scenario import ScenarioError
+from sim.model.scenario import ScenarioError
 
 from .. import outputs
 from .common import UsageError, emit, output_options

@@ -1,5 +1,5 @@
-"""The compiled part of vcyto: the split solve's substitution kernels (sim/fast/_substitute.c, sim/fast/supernodal.py) and the
-FE-IB step's kernels (sim/fast/_kernels.c, sim/fast/kernels.py).
+"""The compiled part of vcyto: the split solve's substitution kernels (sim/fast/_substitute.c, sim/fast/supernodal.py)
+and the FE-IB step's kernels (sim/fast/_kernels.c, sim/fast/kernels.py).
 
 Everything else is in pyproject.toml. Both extensions are optional: without a C compiler the install goes on, the
 split solve uses PARDISO's substitutions (a step ~40 % slower, the same accuracy) and the step's kernels are numba's

@@ -14,9 +14,10 @@ import importlib as _importlib
 
 _EXPORTS = {
     "Scenario": "sim.model.scenario", "ScenarioError": "sim.model.scenario", "Arrivals": "sim.model.arrivals",
-    "schedule": "sim.model.arrivals", "Observation": "sim.plants.contract", "CellView": "sim.plants.contract", "Truth": "sim.plants.contract",
-    "CellTruth": "sim.plants.contract", "Plant": "sim.plants.contract", "Schedule": "sim.plants.contract", "check_plant": "sim.plants.contract",
-    "FeibPlant": "sim.plants.feib", "StreamlinePlant": "sim.plants.feib",
+    "schedule": "sim.model.arrivals", "Observation": "sim.plants.contract", "CellView": "sim.plants.contract",
+    "Truth": "sim.plants.contract", "CellTruth": "sim.plants.contract", "Plant": "sim.plants.contract",
+    "Schedule": "sim.plants.contract", "check_plant": "sim.plants.contract",
+    "FeibPlant": "sim.plants.feib", "StreamlinePlant": "sim.plants.streamline",
 }
 __all__ = list(_EXPORTS)
 

@@ -125,7 +125,8 @@ def test_bench_auto_compares_the_two_models_cell_by_cell(coarse):
     scenario, _, _ = coarse
     result = bench_auto(scenario, count=3, rate=1000.0, seed=1)
     outcomes = result["outcomes"]
-    # cells offered at 1000/s: the inlet's dead time may reject some (sim.model.arrivals); every admitted one is compared
+    # cells offered at 1000/s: the inlet's dead time may reject some (sim.model.arrivals); every admitted one is
+    # compared
     assert [o["key"] for o in outcomes] == list(range(len(outcomes))) and len(outcomes) >= 2
     assert all(o["auto"] in ("upper", "lower") and o["feib"] in ("upper", "lower") for o in outcomes)
     assert [d["key"] for d in result["outlets_differ"]] == [o["key"] for o in outcomes if o["auto"] != o["feib"]]

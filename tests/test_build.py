@@ -1,6 +1,6 @@
-"""The README's install builds the compiled substitution kernels (sim/fast/_substitute.c) and step kernels (sim/fast/_kernels.c),
-optional extensions, wherever it can: a check kept apart from tests/test_supernodal.py and tests/test_c_kernels.py,
-whose tests are skipped without them."""
+"""The README's install builds the compiled substitution kernels (sim/fast/_substitute.c) and step kernels
+(sim/fast/_kernels.c), optional extensions, wherever it can: a check kept apart from tests/test_supernodal.py and
+tests/test_c_kernels.py, whose tests are skipped without them."""
 
 import platform
 import shutil

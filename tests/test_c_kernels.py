@@ -1,7 +1,7 @@
 """The FE-IB step's compiled C kernels (sim/fast/_kernels.c, called through sim.fast.kernels) against numba's
-(sim/fast/kernels_numba.py, the reference, itself tested against scikit-fem in tests/test_kernels.py): the same bits where
-numba's kernel is exact, round-off for the momentum kernel (numba's is compiled with fastmath); arrays the C kernels
-do not take go to numba's; and a warm FE-IB run does not import numba at all."""
+(sim/fast/kernels_numba.py, the reference, itself tested against scikit-fem in tests/test_kernels.py): the same bits
+where numba's kernel is exact, round-off for the momentum kernel (numba's is compiled with fastmath); arrays the C
+kernels do not take go to numba's; and a warm FE-IB run does not import numba at all."""
 
 import math
 import os

@@ -65,7 +65,8 @@ def test_changed_solver_code_misses_and_a_module_digest_is_stable_across_process
     NavierStokes(scenario()).steady(0.0)
     assert cache.misses == misses + 1
     monkeypatch.undo()
-    script = ("import sim.method.fluid, sim.fast.store\ndef f(x):\n    return x in {'alpha', 'beta', 'gamma', 'delta'}\n"
+    script = ("import sim.method.fluid, sim.fast.store\n"
+              "def f(x):\n    return x in {'alpha', 'beta', 'gamma', 'delta'}\n"
               "print(sim.method.fluid.solver_code_digest(), sim.fast.store.code_digest(f))")
     digests = {subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, check=True,
                               env={**os.environ, "PYTHONHASHSEED": seed},
@@ -235,8 +236,8 @@ def test_an_unwritable_cache_says_so_once_and_the_run_goes_on(tmp_path, caplog):
 
 
 def test_an_array_digest_hashes_dtype_shape_and_bytes_without_copying_them():
-    """``sim.fast.store.digest`` (the key part of a matrix, a cut, a mesh) is the SHA-256 of each array's dtype, shape and
-    C-order bytes: the same for a strided view as for its copy, different when only the shape or dtype differs."""
+    """``sim.fast.store.digest`` (the key part of a matrix, a cut, a mesh) is the SHA-256 of each array's dtype, shape
+    and C-order bytes: the same for a strided view as for its copy, different when only the shape or dtype differs."""
     import hashlib
 
     from sim.fast.store import digest

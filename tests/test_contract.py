@@ -81,7 +81,7 @@ def test_check_plant_flags_a_plant_that_loses_a_cell():
     assert len(problems) == 1 and problems[0].startswith("cells not conserved")
 
 
-PLANT_CLASSES = {"feib": ("sim.plants.feib", "FeibPlant"), "streamline": ("sim.plants.feib", "StreamlinePlant"),
+PLANT_CLASSES = {"feib": ("sim.plants.feib", "FeibPlant"), "streamline": ("sim.plants.streamline", "StreamlinePlant"),
                  "rom": ("sim.plants.rom", "RomPlant"), "oneway": ("sim.plants.oneway", "OneWayPlant"),
                  "auto": ("sim.plants.auto", "AutoPlant")}
 

@@ -1,4 +1,5 @@
-"""The one open-loop stepping helper (``sim.method.openloop``) the paper, extremes, stability and trade-off runs share."""
+"""The one open-loop stepping helper (``sim.method.openloop``) the paper, extremes, stability and trade-off runs
+share."""
 
 from dataclasses import dataclass
 

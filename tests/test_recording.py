@@ -15,7 +15,7 @@ from mcap.stream_reader import StreamReader
 
 from sim.model.arrivals import Arrivals
 from sim.model.scenario import Scenario
-from sim.plants.feib import StreamlinePlant
+from sim.plants.streamline import StreamlinePlant
 from vcyto.recording import PER_STEP, McapRecorder
 from vcyto.sinks import BackgroundSinks
 from vcyto.stream import StreamSettings, StreamStopped, run_stream

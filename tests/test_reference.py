@@ -1,6 +1,6 @@
-"""The fast FE-IB step (``sim.method.feib``, ``sim.method.fluid``, ``sim.fast.kernels``) held to the plain one (``sim.method.reference``): the
-same steps, Euler and BDF2, to round-off; and each fast kernel, the C ones and numba's, held to what the reference
-computes in its place (scikit-fem's assembly, ``basis.probes``, numpy expressions)."""
+"""The fast FE-IB step (``sim.method.feib``, ``sim.method.fluid``, ``sim.fast.kernels``) held to the plain one
+(``sim.method.reference``): the same steps, Euler and BDF2, to round-off; and each fast kernel, the C ones and numba's,
+held to what the reference computes in its place (scikit-fem's assembly, ``basis.probes``, numpy expressions)."""
 
 from dataclasses import replace
 

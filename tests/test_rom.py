@@ -17,8 +17,8 @@ from sim.method.streamline import trace
 from sim.method.transfer import PointLocator
 from sim.model.arrivals import Arrivals
 from sim.model.scenario import UM, Scenario
-from sim.plants.feib import StreamlinePlant
 from sim.plants.rom import JET_RESPONSE_TIME, RomFlows, RomPlant, area_mean_rule, measure_response_time
+from sim.plants.streamline import StreamlinePlant
 from vcyto.outcomes import SORTED_OUTLET
 from vcyto.stream import StreamSettings, run_stream
 

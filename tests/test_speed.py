@@ -55,8 +55,8 @@ def test_no_module_of_sim_reads_or_writes_the_environment():
 def test_sim_alone_ignores_the_variables_and_leaves_the_environment_as_it_was():
     """Imported without vcyto, with every variable set to its 'off', sim runs with the defaults and sets no
     KMP_BLOCKTIME while it loads MKL."""
-    program = ("import os, scipy.sparse as sp; from sim.fast import kernels, speed; from sim.fast.linalg import Pardiso, "
-               "pardiso_available\n"
+    program = ("import os, scipy.sparse as sp; from sim.fast import kernels, speed; "
+               "from sim.fast.linalg import Pardiso, pardiso_available\n"
                "if pardiso_available(): Pardiso(sp.identity(3, format='csr'), symmetric=True).solve([1.0, 2, 3])\n"
                "print(speed.current() == speed.SpeedSettings(), 'KMP_BLOCKTIME' in os.environ)")
     environment = {"PATH": "/usr/bin:/bin", "VCYTO_C_KERNELS": "0", "VCYTO_PREFETCH": "0", "VCYTO_SPLIT_SOLVE": "0",

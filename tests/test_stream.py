@@ -11,7 +11,7 @@ from controller.detector import DetectorSettings
 from controller.sorter import ControllerSettings
 from sim.model.arrivals import Arrivals, schedule
 from sim.model.scenario import Scenario
-from sim.plants.feib import StreamlinePlant
+from sim.plants.streamline import StreamlinePlant
 from vcyto.stream import StreamSettings, run_stream, statistics_of
 
 

@@ -1,6 +1,6 @@
-"""Our own substitutions for the split solve's halves (sim/fast/supernodal.py, sim/fast/_substitute.c): they solve to single
-precision like PARDISO's, give the same bits for the same input on either thread, refuse a factor they cannot take,
-and the split solve falls back to PARDISO's without them."""
+"""Our own substitutions for the split solve's halves (sim/fast/supernodal.py, sim/fast/_substitute.c): they solve to
+single precision like PARDISO's, give the same bits for the same input on either thread, refuse a factor they cannot
+take, and the split solve falls back to PARDISO's without them."""
 
 import threading
 from dataclasses import replace

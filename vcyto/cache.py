@@ -368,8 +368,8 @@ def clear(directory: Path | None = None) -> int:
     directory = directory or cache_directory()
     removed = 0
     if directory.exists():
-        # the directory entries (sim.fast.store's second kind, e.g. PARDISO's factorisations), named by their keys' hashes
-        # (and hidden ones being written): nothing else under the directory is touched
+        # the directory entries (sim.fast.store's second kind, e.g. PARDISO's factorisations), named by their keys'
+        # hashes (and hidden ones being written): nothing else under the directory is touched
         for entry in _entry_directories(directory):
             files = [path for path in entry.rglob("*") if path.is_file()]
             shutil.rmtree(entry, ignore_errors=True)

@@ -413,7 +413,8 @@ def _sorting_options(parser: argparse.ArgumentParser):
 def _plant_options(parser: argparse.ArgumentParser):
     parser.add_argument("--plant-from", metavar="FILE.py:NAME",
                         help="your plant instead of --model: NAME (a class or factory in FILE.py, or MODULE:NAME) is "
-                             "called with the scenario and returns a plant (sim.plants.contract.Plant; docs/controllers.md)")
+                             "called with the scenario and returns a plant (sim.plants.contract.Plant; "
+                             "docs/controllers.md)")
     parser.add_argument("--model", choices=plants.MODELS, default="feib",
                         help="plant: full FE-IB (default); auto (rom, switching to feib while a melanoma "
                              "shares the channel or cells are close together); oneway (membranes deforming in "

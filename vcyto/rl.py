@@ -135,8 +135,8 @@ class _Departures:
 class SortEnv(gymnasium.Env):
     """The sorting loop as a Gymnasium environment (module docstring).
 
-    ``model``: a plant of the registry (``sim.plants.registry``), built once (``plant``: one already built). The sample of
-    an episode: ``count`` cells of ``mix`` offered at ``rate`` cells/s (``process``, the inlet's dead time
+    ``model``: a plant of the registry (``sim.plants.registry``), built once (``plant``: one already built). The sample
+    of an episode: ``count`` cells of ``mix`` offered at ``rate`` cells/s (``process``, the inlet's dead time
     ``min_spacing``), or ``settings`` (a ``vcyto.stream.StreamSettings``: arrivals, detector, controller
     calibration, model; its seed is replaced by each episode's). ``reward``: one of ``REWARDS``.
     """

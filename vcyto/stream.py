@@ -39,10 +39,10 @@ STATUSES = ("complete", "truncated", "interrupted", "failed")
 
 class StreamStopped(Exception):
     """A run that did not finish: ``status`` is "interrupted" (KeyboardInterrupt, which SIGTERM is turned into
-    by the CLI) or "failed" (a numerical failure: ``sim.method.fluid.NumericalBlowUp`` or ``sim.fast.linalg.SolverError``;
-    or a controller that broke the protocol: ``controller.protocol.ControllerError``, or lost its connection).
-    ``result`` is the summary of what ran up to then (its "status" and "reason" say why it is partial);
-    ``__cause__`` is the original exception."""
+    by the CLI) or "failed" (a numerical failure: ``sim.method.fluid.NumericalBlowUp`` or
+    ``sim.fast.linalg.SolverError``; or a controller that broke the protocol: ``controller.protocol.ControllerError``,
+    or lost its connection). ``result`` is the summary of what ran up to then (its "status" and "reason" say why it is
+    partial); ``__cause__`` is the original exception."""
 
     def __init__(self, status: str, reason: str, result: dict):
         super().__init__(reason)
@@ -81,8 +81,9 @@ class StreamSettings:
 
 
 def make_plant(scenario: Scenario, settings: StreamSettings):
-    """A fresh plant of ``settings.model`` (the registry ``sim.plants.registry``). Set-up results (steady flows, matrices,
-    factorisations) come from the disk cache, as on the command line (``vcyto.cache``; ``VCYTO_CACHE=off``)."""
+    """A fresh plant of ``settings.model`` (the registry ``sim.plants.registry``). Set-up results (steady flows,
+    matrices, factorisations) come from the disk cache, as on the command line (``vcyto.cache``;
+    ``VCYTO_CACHE=off``)."""
     if settings.plant_from is not None:
         from . import plugins
         return plugins.plant(settings.plant_from, scenario)

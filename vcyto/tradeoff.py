@@ -69,7 +69,7 @@ class Level:
     window: float | None = None
     coupling: float | None = None      # auto: its coupling factor (None: sim.plants.auto's default)
     stiff: float | None = None         # auto: its stiff-cell capillary number (None: sim.plants.auto's default; 0: off)
-    tolerance: float | None = None     # feib: dt picked per step from dt..8 dt for this path error (sim.method.adaptive)
+    tolerance: float | None = None     # feib: dt picked per step from dt..8 dt for this path error (adaptive)
     scheme: str = "auto"               # feib: numerics.time_scheme (auto: bdf2 with a tolerance, euler otherwise)
 
     @property

@@ -91,7 +91,8 @@ def _call(name: str, *arguments, takes: bool = True):
 class jit_on_first_call:
     """A function numba compiles (``numba.njit(**options)``, its on-disk cache included) on its first call, so that
     importing the module that defines it does not import numba: for kernels only a cold set-up runs
-    (``sim.fast.supernodal``'s factor layout). ``py_func`` is the Python function (``sim.fast.store.code_digest`` names it)."""
+    (``sim.fast.supernodal``'s factor layout). ``py_func`` is the Python function (``sim.fast.store.code_digest`` names
+    it)."""
 
     def __init__(self, **options):
         self._options = options

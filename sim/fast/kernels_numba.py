@@ -1,7 +1,7 @@
 """Numba kernels for the per-step hot path: array in, array out, tested against scikit-fem.
 
-The reference for ``sim.fast.kernels``, which calls the compiled C copies of these kernels (``sim/fast/_kernels.c``) where
-they are installed and these otherwise (importing this module imports numba). The mesh is affine, so each element
+The reference for ``sim.fast.kernels``, which calls the compiled C copies of these kernels (``sim/fast/_kernels.c``)
+where they are installed and these otherwise (importing this module imports numba). The mesh is affine, so each element
 carries its inverse Jacobian and determinant; P2 basis values and reference gradients are tabulated once at the
 quadrature points (scikit-fem's own reference element supplies them, so local ordering matches
 ``basis.element_dofs``). Element contributions are computed in parallel into a per-element buffer, then scattered

@@ -1,8 +1,8 @@
 """The linear solvers by name: ``factorize`` picks a back-end of ``sim.fast.linalg`` (PARDISO, SuperLU) or the split
 solve of ``sim.fast.splitsolve`` for a matrix, as the scenario's ``numerics.solver`` and ``numerics.precision`` ask.
 
-The list of names is the scenario's (``sim.model.scenario.LINEAR_SOLVERS``, ``PRECISIONS``); the back-ends import
-nothing of the model or the method.
+The list of names is ``sim.fast.names`` (the scenario checks its choice against it); the back-ends import nothing of
+the model or the method.
 """
 
 from __future__ import annotations
@@ -12,12 +12,12 @@ import os
 import numpy as np
 import scipy.sparse as sp
 
-from ..model.scenario import LINEAR_SOLVERS, PRECISIONS
 from . import speed
 from .linalg import MixedPrecision, Pardiso, SolverError, SuperLU, pardiso_available
+from .names import LINEAR_SOLVERS, PRECISIONS
 from .splitsolve import MIN_UNKNOWNS, SplitPardiso
 
-SOLVERS = LINEAR_SOLVERS              # the one list: sim.model.scenario
+SOLVERS = LINEAR_SOLVERS              # the one list: sim.fast.names
 
 
 def factorize(matrix: sp.spmatrix, solver: str = "auto", symmetric: bool = False, previous=None,

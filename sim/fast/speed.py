@@ -16,8 +16,8 @@ from dataclasses import dataclass
 @dataclass(frozen=True)
 class SpeedSettings:
     """c_kernels: the compiled C step kernels where the install built them (``sim.fast.kernels``), else numba's.
-    prefetch: a fluid step computes the next step's momentum integrals on a helper thread (``sim.method.fluid``), else in
-    the step. split_solve: a large symmetric reproducible PARDISO system is solved as two halves on two threads
+    prefetch: a fluid step computes the next step's momentum integrals on a helper thread (``sim.method.fluid``), else
+    in the step. split_solve: a large symmetric reproducible PARDISO system is solved as two halves on two threads
     (``sim.fast.splitsolve``), else sequentially. own_substitutions: a single-precision split solve substitutes with
     the compiled kernels of ``sim.fast.supernodal``, else with PARDISO's. mkl_library: a ``libmkl_rt`` to load before
     the ones found in the environment's prefix ('' for none). openmp_blocktime_ms: how long Intel OpenMP's idle

@@ -3,8 +3,8 @@
 PARDISO's sequential substitutions (its phases 331 and 333) of a half of the paper's fluid run at ~0.77 ns an entry
 and pass, a tenth of what the last-level cache delivers (a half's single-precision factor is ~10 MB): they are bound
 by their code, not by the memory (docs/numerics.md, "Our own substitutions for the halves"). This module keeps the
-same factorisation in a layout of its own and substitutes with the C kernels of ``sim/fast/_substitute.c``, compiled when
-vcyto is installed (an optional extension: without a compiler, ``available()`` is False and the split solve keeps
+same factorisation in a layout of its own and substitutes with the C kernels of ``sim/fast/_substitute.c``, compiled
+when vcyto is installed (an optional extension: without a compiler, ``available()`` is False and the split solve keeps
 PARDISO's substitutions):
 
 - the ordering is PARDISO's (METIS nested dissection, from its analysis phase with ``iparm[4] = 2``), so the factor
@@ -245,8 +245,8 @@ def factor_arrays(block: sp.csr_matrix) -> dict:
 
 def _check(block: sp.csr_matrix, factor: "SupernodalLDL"):
     """``SolverError`` unless the factor solves ``block`` to single precision: a pivot that is zero to round-off (not
-    exactly) passes SuperLU and gives a factor of another matrix (PARDISO would perturb it; ``sim.fast.splitsolve`` moves
-    such unknowns out of the halves before they get here)."""
+    exactly) passes SuperLU and gives a factor of another matrix (PARDISO would perturb it; ``sim.fast.splitsolve``
+    moves such unknowns out of the halves before they get here)."""
     probe = np.random.default_rng(18).uniform(1.0, 2.0, block.shape[0])
     solution = factor.phase(333, factor.phase(332, factor.phase(331, probe)))
     error = np.linalg.norm(block @ solution - probe) / np.linalg.norm(probe)

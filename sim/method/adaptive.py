@@ -26,9 +26,9 @@ finest level: that event changes the membrane's forces at once, and only the fin
 reference puts it.
 
 Never above the stability limit of the cells in the channel: the law fitted to measured limits
-(``sim.method.steplimit``: it lies at or below every measured limit, in the run's time scheme, on the run's mesh). A cell
-type whose limit lies between two levels has its own level at the largest multiple of dt0 within it (the melanoma at
-the paper's mesh with bdf2), so that it is held there, not at the power of two below. The coarse level (16 dt0)
+(``sim.method.steplimit``: it lies at or below every measured limit, in the run's time scheme, on the run's mesh). A
+cell type whose limit lies between two levels has its own level at the largest multiple of dt0 within it (the melanoma
+at the paper's mesh with bdf2), so that it is held there, not at the power of two below. The coarse level (16 dt0)
 follows an accuracy rule, not a stability one: only for cells whose membrane relaxes slowly against it
 (``level_multiples``). Each level's fluid matrix is factored once, when first needed, on the same mesh. A finest
 step dt0 above a cell type's limit is taken anyway (it is the step asked for) with a warning in the log.
@@ -65,7 +65,7 @@ class AdaptiveSteps:
         self.multiples = level_multiples(plant.scenario)
         self.levels = [numerics.dt * m for m in self.multiples]
         self._fluids = {0: plant.fluid}
-        self._limits: dict[str, float] = {}                   # cell type: its stability limit (``sim.method.steplimit``)
+        self._limits: dict[str, float] = {}                   # cell type: its stability limit (``steplimit``)
         self._known: set[int] = set()
         self._actuation: float | None = None
         self.level = len(self.levels) - 1

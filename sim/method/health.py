@@ -30,8 +30,9 @@ from .steplimit import limit_of
 
 
 def paper_bound(cell_type: CellType, scenario: Scenario) -> float:
-    """The right-hand side of the paper's (33) times h, with C_cell = 1, on the initial shape (``sim.method.stability``): it
-    shows the paper's scaling (like h), not a limit (``sim.method.steplimit`` has the measured one)."""
+    """The right-hand side of the paper's (33) times h, with C_cell = 1, on the initial shape
+    (``sim.method.stability``): it shows the paper's scaling (like h), not a limit (``sim.method.steplimit`` has the
+    measured one)."""
     spacing = scenario.numerics.membrane_spacing * scenario.numerics.mesh_h
     membrane = Membrane.of(cell_type, (0.0, 0.0), spacing)
     first = np.linalg.norm(membrane.evaluate(4, derivative=1), axis=1).max()

@@ -1,8 +1,8 @@
 """The paper's semi-implicit FE-IB step written plainly: numpy, scipy and scikit-fem, nothing else.
 
-This is the page to read first. ``sim.method.feib`` and ``sim.method.fluid`` compute the same step fast (matrices gathered and
-factored once, compiled kernels, a split solve on two threads); ``tests/test_reference.py`` holds them to this one
-to round-off. Here everything is assembled and solved afresh each step.
+This is the page to read first. ``sim.method.feib`` and ``sim.method.fluid`` compute the same step fast (matrices
+gathered and factored once, compiled kernels, a split solve on two threads); ``tests/test_reference.py`` holds them to
+this one to round-off. Here everything is assembled and solved afresh each step.
 
 One step of size dt from (v^m, X^m), the paper's scheme (``euler``), with mu the viscosity and rho the density:
 

@@ -16,14 +16,14 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field, fields, is_dataclass, replace
 
+from ..fast.names import LINEAR_SOLVERS, PRECISIONS  # the machinery's choices a scenario names
+
 UM = 1e-6
 
 CONVECTIONS = ("imex", "oseen", "implicit", "stokes")
 SAW_MODELS = ("paper", "envelope", "streaming")
 PROFILE_READINGS = ("paper", "peak")
 INITIAL_FLOWS = ("steady", "rest")
-LINEAR_SOLVERS = ("auto", "pardiso", "superlu")
-PRECISIONS = ("mixed", "double")
 TIME_SCHEMES = ("auto", "euler", "bdf2")
 AREA_CONSTRAINTS = ("none", "pressure", "projection", "pressure+projection")
 # the two membrane methods a user picks between (``--membrane``): field values each one sets

@@ -53,7 +53,7 @@ def _rom(scenario, control_period, flows, **options):
 
 
 def _streamline(scenario, control_period, flows, **options):
-    from .feib import StreamlinePlant
+    from .streamline import StreamlinePlant
     return StreamlinePlant(scenario, control_period=control_period or STREAMLINE_CONTROL_PERIOD, **options)
 
 

@@ -12,7 +12,7 @@ import pytest
 from sim.fast import speed
 from sim.method.adaptive import LEVELS, LOOK_AHEAD, AdaptiveSteps
 from sim.model.scenario import UM, Scenario
-from vcyto.paper import paper_scenario, run_paper
+from vcyto.studies.paper import paper_scenario, run_paper
 
 
 def steps_of(scenario):

@@ -12,7 +12,7 @@ import pytest
 from sim.model.scenario import UM, Scenario
 from sim.plants.auto import AutoPlant
 from sim.plants.feib import FeibPlant
-from vcyto.tradeoff import SCENES, TOLERANCE_UM, Scene, compare, run_scene
+from vcyto.studies.tradeoff import SCENES, TOLERANCE_UM, Scene, compare, run_scene
 
 CLOSE_PAIR = SCENES[2]
 
@@ -136,7 +136,7 @@ def test_bench_auto_compares_the_two_models_cell_by_cell(coarse):
 
 
 def test_extra_scenes_are_the_close_pair_with_another_gap_or_without_the_melanoma():
-    from vcyto.tradeoff import lone_rbc_scene, pair_scene
+    from vcyto.studies.tradeoff import lone_rbc_scene, pair_scene
     assert pair_scene(0.25e-3).arrivals == CLOSE_PAIR.arrivals and pair_scene(0.25e-3).pulses == CLOSE_PAIR.pulses
     lone = lone_rbc_scene(0.565e-3)
     assert lone.arrivals == ((0.565e-3, "RBC"),) and lone.pulses == CLOSE_PAIR.pulses
@@ -175,8 +175,8 @@ def test_an_interrupted_tradeoff_prints_its_finished_rows_as_partial_and_saves_n
     import os
     import signal
 
-    from vcyto import tradeoff
     from vcyto.cli import main
+    from vcyto.studies import tradeoff
     calls = []
 
     def fake_run(plant, scene):
@@ -205,8 +205,8 @@ def test_an_interrupt_while_tradeoff_saves_waits_for_its_files(monkeypatch, tmp_
     import os
     import signal
 
-    from vcyto import tradeoff
     from vcyto.cli import main
+    from vcyto.studies import tradeoff
     monkeypatch.setattr(tradeoff, "make_plant", lambda scenario, level, flows: None)
     monkeypatch.setattr(tradeoff, "run_scene", lambda plant, scene: {
         "wall_s": 0.5, "cells": {0: {"fate": "lower"}}, "failure": None})

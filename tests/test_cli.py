@@ -177,7 +177,7 @@ def test_hints_name_commands_as_they_can_be_typed(monkeypatch, tmp_path):
     import os
     from pathlib import Path
 
-    from vcyto import runfiles
+    from vcyto.recording import runfiles
     script = Path(sys.executable).parent / "vcyto"
     assert script.is_file()
     monkeypatch.chdir(tmp_path)

@@ -13,7 +13,7 @@ from sim.method.feib import Cell, ImmersedBoundary
 from sim.method.health import HealthError, HealthLimits, check_cells, membrane_time_step, under_resolved
 from sim.method.membrane import Membrane
 from sim.model.scenario import UM, Scenario, ScenarioError
-from vcyto import extremes
+from vcyto.studies import extremes
 
 
 def run(name):
@@ -33,7 +33,7 @@ def test_dt_four_times_the_limit_is_stopped_with_a_smaller_dt_to_try():
     # the dt suggested is the melanoma's limit on this mesh by the stability law, at or below its measured limits
     from sim.method.steplimit import MEASURED, limit_of
     from sim.model.scenario import Scenario
-    from vcyto.extremes import PAPER_H
+    from vcyto.studies.extremes import PAPER_H
     scenario = Scenario().with_numerics(mesh_h=PAPER_H)
     suggested = limit_of(scenario.cell_type("melanoma"), scenario)
     melanoma = scenario.cell_type("melanoma")
@@ -141,7 +141,7 @@ def test_max_stretch_is_validated():
 
 def test_an_interrupt_keeps_the_cases_already_finished(monkeypatch):
     """Ctrl-C during a case: the cases finished before it are returned (and printed as a partial table)."""
-    from vcyto import extremes
+    from vcyto.studies import extremes
     calls = []
 
     def fake(case, base, fast):
@@ -159,7 +159,7 @@ def test_an_interrupt_keeps_the_cases_already_finished(monkeypatch):
 def test_an_interrupted_stability_map_keeps_its_finished_rows(monkeypatch):
     from sim.method.stability import StabilityResult
     from sim.model.scenario import Scenario
-    from vcyto import stabilitymap
+    from vcyto.studies import stabilitymap
     calls = []
 
     class Quiet:

@@ -206,7 +206,7 @@ def test_a_chunk_that_decompresses_to_gigabytes_is_not_decompressed(sandbox):
 
     import zstandard
 
-    from vcyto.replay import MAX_CHUNK_BYTES
+    from vcyto.recording.replay import MAX_CHUNK_BYTES
     compressor = zstandard.ZstdCompressor(level=1).compressobj()
     block = b"\0" * (16 << 20)
     count = 4 * MAX_CHUNK_BYTES // len(block)
@@ -251,7 +251,7 @@ def test_replay_memory_does_not_grow_with_the_recordings_length(sandbox):
     being the Rerun view's batches and what other threads of the test process allocate meanwhile)."""
     import tracemalloc
 
-    from vcyto.replay import replay
+    from vcyto.recording.replay import replay
     def cells(step):          # twenty cells in the channel, each for twenty steps, then it leaves
         return json.dumps({"time": step * 1e-4, "cells": [
             {"key": key, "type": "RBC", "x_um": float(step - key), "y_um": 1.0, "fate": "in_channel",

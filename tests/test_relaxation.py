@@ -12,7 +12,7 @@ from guard import vcyto_inline
 
 from sim.model.scenario import UM
 from vcyto.config import load_scenario
-from vcyto.relaxation import aspect_ratio, observed_order, relaxation, relaxation_time
+from vcyto.studies.relaxation import aspect_ratio, observed_order, relaxation, relaxation_time
 
 SCENARIO = Path(__file__).parent.parent / "examples" / "scenarios" / "relaxation.toml"
 QUIET = SimpleNamespace(note=lambda message: None)

@@ -73,7 +73,7 @@ def test_scenario_two_leaves_by_the_upper_outlet_at_any_step():
     """Scenario II (the paper's method) at the paper's step, at steps that are not multiples of the carrier's
     period (3.125 us sampled cos = -1 every other step and sent the melanoma lower) and at coarser ones: the
     upper outlet every time, the exit ordinates within 1 um of each other."""
-    from vcyto.paper import run_paper
+    from vcyto.studies.paper import run_paper
     base = Scenario().with_numerics(area_constraint="none", redistribute=False)
     exits = []
     for dt in (2.5e-6, 3.125e-6, 7e-6, 12.5e-6, 25e-6):

@@ -115,7 +115,7 @@ def test_a_rare_cell_sort_reports_its_figures(rom_plant):
 
 def test_the_fcs_of_a_long_run_is_read_from_its_table(long_run):
     """A summary without cells: the FCS events come from the table, the same as from the records."""
-    from vcyto.fcs import event_table
+    from vcyto.recording.fcs import event_table
     result, table, _ = long_run
     records = sorted(celltable.records(table), key=lambda r: r["key"])
     assert np.array_equal(event_table(result), event_table({"cells": records}))

@@ -155,7 +155,7 @@ def test_stream_rejects_bad_input_in_one_line(args, words):
 
 
 def test_fcs_export_round_trips(scenario, streamline_plant, tmp_path):
-    from vcyto.fcs import CHANNELS, read_fcs, write_fcs
+    from vcyto.recording.fcs import CHANNELS, read_fcs, write_fcs
     result = stream(scenario, streamline_plant, ("melanoma", "RBC", "melanoma"))
     path = write_fcs(tmp_path / "events.fcs", result, {"VCYTO_NOTE": "test"})
     names, events, keywords = read_fcs(path)

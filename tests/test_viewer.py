@@ -42,7 +42,7 @@ def run(tmp_path_factory):
 
 
 def steps_in(mcap_path):
-    from vcyto.replay import read_recording
+    from vcyto.recording.replay import read_recording
     _, messages, _ = read_recording(mcap_path)
     return sum(len(data["step"]) for topic, data in messages if topic == "/loop/steps")
 
@@ -125,7 +125,7 @@ def test_a_display_without_a_server_is_seen_before_the_viewer_is_started(monkeyp
     import os
     import socket
 
-    from vcyto import viewer
+    from vcyto.recording import viewer
     monkeypatch.delenv("WAYLAND_DISPLAY", raising=False)
     number = 700 + os.getpid() % 200                  # a display no X server on this machine is using
     monkeypatch.setenv("DISPLAY", f":{number}")
@@ -190,8 +190,8 @@ def stalled_viewer():
 
 
 def vcyto_on_port(port: int, *args, env=None, **options):
-    """``vcyto ARGS`` in a new process whose viewer port (``vcyto.viewer.VIEWER_PORT``, 9876) is ``port``."""
-    code = (f"import sys, vcyto.viewer as v; v.VIEWER_PORT = {port}; sys.argv = ['vcyto', *sys.argv[1:]]; "
+    """``vcyto ARGS`` in a new process whose viewer port (``vcyto.recording.viewer.VIEWER_PORT``, 9876) is ``port``."""
+    code = (f"import sys, vcyto.recording.viewer as v; v.VIEWER_PORT = {port}; sys.argv = ['vcyto', *sys.argv[1:]]; "
             "from vcyto.__main__ import run; run()")
     return subprocess.Popen([sys.executable, "-c", code, *args], env=env, stdout=subprocess.PIPE,
                             stderr=subprocess.PIPE, text=True, **options)
@@ -231,7 +231,7 @@ def rerun_server():
     import socket
     import time
 
-    from vcyto import viewer
+    from vcyto.recording import viewer
     binary = viewer.find_viewer()
     if binary is None:
         pytest.skip("no Rerun viewer binary installed")
@@ -252,7 +252,7 @@ def rerun_server():
 
 def test_the_handshake_tells_a_grpc_server_from_a_deaf_port(deaf_listener, rerun_server):
     """A real gRPC server of Rerun's answers the handshake; the deaf listener does not."""
-    from vcyto import viewer
+    from vcyto.recording import viewer
     assert "did not answer" in viewer.viewer_problem("127.0.0.1", deaf_listener, timeout=0.3)
     assert viewer.viewer_problem("127.0.0.1", rerun_server) is None
 

@@ -32,8 +32,9 @@ _EXPORTS = {
     "SortController": "controller.sorter", "Timing": "vcyto.control",
     "report_lines": "vcyto.stream", "StreamStopped": "vcyto.stream",
     "outcome_class": "vcyto.outcomes", "OUTCOME_CLASSES": "vcyto.outcomes",
-    "McapRecorder": "vcyto.recording", "RerunSink": "vcyto.rerunlog", "BackgroundSinks": "vcyto.sinks",
-    "write_fcs": "vcyto.fcs", "write_gatingml": "vcyto.gatingml",
+    "McapRecorder": "vcyto.recording.mcap", "RerunSink": "vcyto.recording.rerunlog",
+    "BackgroundSinks": "vcyto.recording.sinks",
+    "write_fcs": "vcyto.recording.fcs", "write_gatingml": "vcyto.recording.gatingml",
 }
 __all__ = ["__version__", *_EXPORTS]
 

@@ -21,7 +21,7 @@ from . import arguments as limits
 from . import units
 from .arguments import Integer, Number, Quantity
 from .config import load_scenario
-from .runfiles import say
+from .recording.runfiles import say
 
 SHIPPED = ControllerSettings()      # the shipped calibration: the defaults --help names
 MAX_TOLERANCE = 50e-6               # a path error per transit of --tolerance (the paper's outlets are 80 um wide)

@@ -587,7 +587,7 @@ def sort_report_lines(result: dict) -> list[str]:
     if result.get("mesh"):
         lines.append(f"mesh: {result['mesh']['description']}")
     if (result.get("time_steps") or {}).get("levels_us"):
-        from .paper import time_step_line
+        from .studies.paper import time_step_line
         lines += [line.strip() for line in time_step_line(result["time_steps"])]
     if result.get("status", "complete") != "complete":
         lines.append(f"PARTIAL RESULT ({result['status']}): {result['reason']}")

@@ -360,7 +360,7 @@ def _sightings(observation) -> list[Sighting]:
 
 
 def _field_payload(plant):
-    from .recording import velocity_field
+    from .recording.mcap import velocity_field
 
     def payload():
         vertices, velocity, pressure, grid_x, grid_y = plant.fields()

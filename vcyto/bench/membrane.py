@@ -14,7 +14,7 @@ def bench_membrane(scenario: Scenario, repeats: int = 2, progress=None) -> dict:
     area kept, point spacing, outlets and the cost per step (median of ``repeats``)."""
     from sim.method.feib import ImmersedBoundary, State
 
-    from ..paper import paper_scenario, run_paper
+    from ..studies.paper import paper_scenario, run_paper
 
     note = progress.note if progress else (lambda message: None)
     methods = ("paper", "conserving")

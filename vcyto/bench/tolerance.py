@@ -13,7 +13,7 @@ import numpy as np
 
 from sim.model.scenario import UM, Scenario
 
-from ..paper import paper_scenario, run_paper
+from ..studies.paper import paper_scenario, run_paper
 
 
 def path_distance(times, path, reference_times, reference_path) -> np.ndarray:

@@ -55,7 +55,7 @@ def treatment_lines(result: dict) -> list[str]:
 def bench_paper_treatments(number: int, scenario: Scenario, treatments=("imex", "implicit"), progress=None) -> dict:
     """Run paper scenario ``number`` with each convection treatment; outlet, exit time and path differences
     from the first listed as the reference is the last (the fully implicit one by default)."""
-    from ..paper import paper_scenario, run_paper
+    from ..studies.paper import paper_scenario, run_paper
     runs = {}
     for treatment in treatments:
         if progress:

@@ -12,10 +12,11 @@ import numpy as np
 from controller.sorter import MODES
 from sim.plants import registry as plants
 
-from .. import outputs, runfiles, units
+from .. import outputs, units
 from ..arguments import Number, Quantity
 from ..options import controller_settings, detector_settings, plugin_spec, scenario_from, scenario_options
 from ..outputs import strict_json
+from ..recording import runfiles
 from .common import SMALL_FILES_BYTES, UsageError, emit, output_directory, output_options, signals_seen
 
 
@@ -74,8 +75,8 @@ CHECK_CELLS = ("RBC", "melanoma", "RBC", "melanoma")
 
 
 def command_calibrate(args):
-    from .. import calibrate
     from ..controllerfile import controller_toml
+    from ..studies import calibrate
     scenario = scenario_from(args)
     output = output_directory(args.output, min_free=SMALL_FILES_BYTES)
     base = controller_settings(args)
@@ -134,7 +135,8 @@ def command_calibrate(args):
 
 def _plant(scenario, model: str, plant_from: str | None):
     """The plant the calibration cells go through: ``--model``'s, or the user's (a broken one: a usage error)."""
-    from .. import calibrate, plugins
+    from .. import plugins
+    from ..studies import calibrate
     if plant_from is None:
         return calibrate.make_calibration_plant(scenario, model)
     try:
@@ -173,7 +175,7 @@ def _check_line(check: dict) -> str:
 
 
 def _calibration_grid(args):
-    from ..calibrate import Grid
+    from ..studies.calibrate import Grid
     values = units.parse_list(args.pulse_range, "time", "ms", field="--pulse-range")
     if len(values) != 2 or not 0 < values[0] <= values[1] <= 10e-3:
         raise UsageError(f"--pulse-range: wants LO,HI with 0 < LO <= HI <= 10 ms, e.g. 0.02,2 "

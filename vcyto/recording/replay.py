@@ -24,9 +24,9 @@ from mcap.stream_reader import StreamReader
 
 from sim.model.scenario import Scenario
 
-from .classes import class_of_type, provisional_class
-from .config import scenario_from_toml
-from .outcomes import outcome_class
+from ..classes import class_of_type, provisional_class
+from ..config import scenario_from_toml
+from ..outcomes import outcome_class
 from .rerunlog import POINT_LIKE, RerunLogger, decision_text
 
 MEMBRANES = "/foxglove/membranes"

@@ -12,7 +12,7 @@ from __future__ import annotations
 import xml.etree.ElementTree as ET
 from pathlib import Path
 
-from . import outputs
+from .. import outputs
 
 GATING = "http://www.isac-net.org/std/Gating-ML/v2.0/gating"
 DATA_TYPE = "http://www.isac-net.org/std/Gating-ML/v2.0/datatypes"

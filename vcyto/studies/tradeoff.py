@@ -215,7 +215,7 @@ def tradeoff(scenario: Scenario, ladder=LADDER, scenes=SCENES, progress=None) ->
     """Every scene on every level; rows compared with the first level (the reference). An interrupt (Ctrl-C,
     SIGTERM) ends it with the rows finished so far, ``interrupted`` set. The feib levels' time schemes are
     resolved in ``scenario`` first (``resolved_ladder``)."""
-    from .progress import rows_until_interrupted
+    from ..progress import rows_until_interrupted
     ladder = resolved_ladder(scenario, ladder)
     rows, interrupted = rows_until_interrupted(lambda rows: _measure(scenario, ladder, scenes, progress, rows))
     return {"reference": ladder[0].label, "rows": rows, "interrupted": interrupted,
@@ -293,8 +293,8 @@ def save(result: dict, directory) -> dict:
     """tradeoff.md, tradeoff.csv and tradeoff.png (run wall time against mean path error, per level)."""
     from pathlib import Path
 
+    from ..outputs import write_into, write_whole
     from .figures import pyplot, save_figure
-    from .outputs import write_into, write_whole
     directory = Path(directory)
 
     def write_csv(temporary):

@@ -1,7 +1,7 @@
 """MCAP recording of a closed-loop run: Foxglove well-known channels any tool draws, vcyto's typed channels
 for analysis and replay, crash safety.
 
-Foxglove channels (protobuf, Foxglove's official schemas; ``vcyto.foxglove``; coordinates in metres, frame
+Foxglove channels (protobuf, Foxglove's official schemas; ``vcyto.recording.foxglove``; coordinates in metres, frame
 ``channel``): ``/foxglove/scene`` (``foxglove.SceneUpdate``: the device once, then per batch a marker per detector
 event and each cell's centroid path when it has left, coloured by outcome class, each with a lifetime so that the
 scene holds the recent ones), ``/foxglove/membranes`` (``foxglove.PointCloud`` every step shown: the membrane
@@ -9,7 +9,7 @@ points of the cells in the channel, with fields key, class and a colour), ``/fox
 (``foxglove.RawImage``, 32FC1 in mm/s, at the field cadence) and ``/foxglove/log`` (``foxglove.Log``: events,
 decisions with their reasons, outcomes).
 
-vcyto's channels (JSON, each with a JSON Schema stating required fields and units; ``vcyto.schemas.SCHEMAS``).
+vcyto's channels (JSON, each with a JSON Schema stating required fields and units; ``vcyto.recording.schemas.SCHEMAS``).
 The per-step ones are columns, one message per batch of steps (``flush_every``):
 - ``/loop/steps``        per step: time, step, IDT drive, cells the optics see, wall time, plant diagnostics
                          (dt, physics steps, cumulative solver times: wall-clock);
@@ -22,8 +22,8 @@ The per-step ones are columns, one message per batch of steps (``flush_every``):
 - ``/outcome``           each cell when it leaves (outlet, exit time and ordinate, outcome class);
 - ``/flow/velocity``     every ``field_every`` steps (0: never): velocity (m/s) and pressure (Pa) at the mesh
                          vertices (float32, base64) with the grid.
-Events, decisions and outcomes of a batch are written before its ``/loop/steps`` message (``vcyto.replay`` puts
-them back among the steps by their times).
+Events, decisions and outcomes of a batch are written before its ``/loop/steps`` message (``vcyto.recording.replay``
+puts them back among the steps by their times).
 
 Log and publish times are the wall-clock start of the run (``time_origin_unix_ns`` in the metadata) plus the
 simulated time, so MCAP tools show a date and a timeline as long as the simulated run; every message also
@@ -31,7 +31,7 @@ carries its simulated time. Run metadata (scenario TOML, seed, settings as JSON 
 an MCAP metadata record named ``run``, every value a plain string.
 
 The writer (the Foxglove SDK's, compiled) is flushed after each batch, so a killed process loses at most the
-batch being gathered (and the batches the background thread had not written yet, ``vcyto.sinks``); ``close``
+batch being gathered (and the batches the background thread had not written yet, ``vcyto.recording.sinks``); ``close``
 finishes the file (summary and index) and is called on normal exit, Ctrl-C and SIGTERM. State is bounded: the
 cells in the channel (their paths until they leave) and one batch.
 """
@@ -59,11 +59,11 @@ from mcap_protobuf.schema import build_file_descriptor_set
 
 from sim.model.scenario import UM, Scenario
 
+from ..classes import CLASS_COLOURS, CLASS_IDS, CellClasses
+from ..outputs import plain
+from ..sortreport import EVENT_NAMES, name_cells
 from . import foxglove
-from .classes import CLASS_COLOURS, CLASS_IDS, CellClasses
-from .outputs import plain
 from .schemas import SCHEMAS
-from .sortreport import EVENT_NAMES, name_cells
 
 PER_STEP = ("/loop/steps", "/cells/rows")
 # 1: JSON channels only, membranes in /cells; 2: Foxglove channels beside them (um); 3: the per-step channels as
@@ -142,7 +142,7 @@ def device_outlines(scenario: Scenario, detection_window=None) -> list:
 
 def _scenario_of(metadata: dict) -> Scenario:
     if "scenario_toml" in metadata:
-        from .config import scenario_from_toml
+        from ..config import scenario_from_toml
         return scenario_from_toml(str(metadata["scenario_toml"]))
     return Scenario()
 
@@ -216,7 +216,7 @@ class McapRecorder:
         self._write_proto("/foxglove/log", time_s, foxglove.log(self._stamp(time_s), text, level))
 
     def on_steps(self, records):
-        """Write a batch of steps (``vcyto.sinks.BackgroundSinks`` hands them over together)."""
+        """Write a batch of steps (``vcyto.recording.sinks.BackgroundSinks`` hands them over together)."""
         for record in records:
             self.on_step(record)
 

@@ -5,8 +5,8 @@ $PnS a short name): Time (integer ticks of $TIMESTEP = ``TIMESTEP`` s, the detec
 a.u.), FSC-A (forward scatter: the cell's area with noise, um^2), Velocity (mm/s), Class (1 = type I, 2 = type II),
 Decision (0 pass, 1 sort, 2 abort), Outlet (0 lower, 1 upper, 2 wall, 3 lost, 4 still in the channel when a partial
 run stopped). The data are float64 ($DATATYPE D), so Time is an exact integer tick count over any run shorter than
-~28 years and FL1-A is the detector's own value (the exported gate, ``vcyto.gatingml``, applied to the file counts
-exactly the detector's classifications). Every $PnR bounds its channel's values (a 1, 2 or 5 x 10^k at or above
+~28 years and FL1-A is the detector's own value (the exported gate, ``vcyto.recording.gatingml``, applied to the file
+counts exactly the detector's classifications). Every $PnR bounds its channel's values (a 1, 2 or 5 x 10^k at or above
 the largest), so a logicle or biexponential display spreads the events over the axis; $PnE is 0,0 (linear). The run
 is described by $CYT, $DATE, $BTIM, $ETIM and VCYTO_* keywords (model, seed, codes, device, detector and controller
 settings).
@@ -25,7 +25,7 @@ from pathlib import Path
 import flowio
 import numpy as np
 
-from . import outputs
+from .. import outputs
 
 CHANNELS = ("Time", "FL1-A", "FSC-A", "Velocity", "Class", "Decision", "Outlet")
 SHORT_NAMES = ("Time", "Fluorescence", "Forward scatter", "Velocity mm/s", "Class", "Decision", "Outlet")
@@ -60,7 +60,7 @@ def _table_events(path) -> np.ndarray:
     """``event_table`` read column by column from a per-cell table (memory: a few arrays of the events)."""
     import pyarrow.compute as pc
 
-    from .celltable import read_table
+    from ..celltable import read_table
     table = read_table(path, columns=["detection_time_ms", "fluorescence", "scatter", "velocity_mm_s",
                                       "detected_class", "decision", "outlet"])
     table = table.filter(pc.is_valid(table["detected_class"]))

@@ -20,7 +20,7 @@ import sys
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from . import outputs
+from .. import outputs
 
 
 @dataclass

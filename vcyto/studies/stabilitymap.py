@@ -11,7 +11,7 @@ from sim.method.steplimit import limit_of
 from sim.model.mesh import MeshSize
 from sim.model.scenario import UM, Scenario
 
-from .progress import rows_until_interrupted
+from ..progress import rows_until_interrupted
 
 PAPER_DT = {"RBC": 2.5e-6, "melanoma": 25e-6}
 

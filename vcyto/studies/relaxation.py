@@ -24,7 +24,7 @@ from sim.method.steplimit import limit_of
 from sim.model.mesh import MeshSize
 from sim.model.scenario import UM, Scenario, ScenarioError
 
-from .progress import rows_until_interrupted
+from ..progress import rows_until_interrupted
 
 STABLE_SHARE = 0.5      # of the finest mesh's stability limit: the dt every mesh takes
 

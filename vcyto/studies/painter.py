@@ -48,7 +48,7 @@ def save_figure(figure, path, dpi: int = 120) -> None:
     """Write ``figure`` as a PNG at ``path`` all at once: drawn into a temporary file beside it, then moved in
     place (``os.replace``), so an interrupted or failed save never leaves a truncated image under the name. zlib's
     fastest level: ~25 ms less of a ``vcyto paper`` run's wait for its figure, for a file 40 % larger (~175 kB)."""
-    from .outputs import write_whole
+    from ..outputs import write_whole
     write_whole(Path(path), lambda temporary: figure.savefig(temporary, format="png", dpi=dpi,
                                                              pil_kwargs={"compress_level": 1}))
 
@@ -117,7 +117,7 @@ class Painter:
         try:
             self._process = subprocess.Popen(
                 [sys.executable, "-c", "import runpy, sys; sys.path[0] = sys.argv.pop(1); "
-                 "runpy.run_module('vcyto.painter', run_name='__main__', alter_sys=True)", package_parent],
+                 "runpy.run_module('vcyto.studies.painter', run_name='__main__', alter_sys=True)", package_parent],
                 # its standard output (nothing is written there) is read to its end: ``communicate`` then returns
                 # as the helper exits, where with none to read it polls for the exit (up to 50 ms late)
                 stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL)

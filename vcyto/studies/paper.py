@@ -16,7 +16,8 @@ from sim.method.feib import ImmersedBoundary
 from sim.method.openloop import stepping, with_cells
 from sim.model.scenario import UM, Scenario
 
-from . import STARTED, figures
+from .. import STARTED
+from . import figures
 from .painter import Painter
 
 
@@ -175,7 +176,7 @@ def report_lines(result: dict) -> list[str]:
 
 
 def png_spec(result: dict, scenario: Scenario) -> dict:
-    """The data of the PNG (``vcyto.painter.paper_figure``): the final speed field with the centroid path and
+    """The data of the PNG (``vcyto.studies.painter.paper_figure``): the final speed field with the centroid path and
     membrane outlines along it, the device and a title."""
     speed, extent = figures.speed_image(result["_plant"].locator, result["_flow"].velocity, scenario)
     centroids = result["_path"]
@@ -191,7 +192,7 @@ def png_spec(result: dict, scenario: Scenario) -> dict:
 
 def save_png(path: str, result: dict, scenario: Scenario, painter: Painter | None = None) -> str:
     """The final speed field with the centroid path and membrane outlines along it, drawn by ``painter``'s
-    helper process when there is one (``vcyto.painter``); returns where it was drawn ("helper" or "here")."""
+    helper process when there is one (``vcyto.studies.painter``); returns where it was drawn ("helper" or "here")."""
     return (painter or Painter(start=False)).paint("paper", path, png_spec(result, scenario))
 
 

@@ -371,7 +371,7 @@ def _distinct_warnings(messages) -> list[str]:
 
 
 def run_cases(base: Scenario | None = None, fast: bool = True, names=None, progress=None) -> dict:
-    from .progress import rows_until_interrupted
+    from ..progress import rows_until_interrupted
     note = progress.note if progress else (lambda message: None)
 
     def measure(rows):

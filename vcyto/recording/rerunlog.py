@@ -1,4 +1,4 @@
-"""What a run shows in Rerun, live (``RerunSink``, a sink of the closed loop) or replayed (``vcyto.replay``).
+"""What a run shows in Rerun, live (``RerunSink``, a sink of the closed loop) or replayed (``vcyto.recording.replay``).
 
 Coordinates are the plant's, in micrometres, y up (0 = lower wall): every entity under ``device`` is logged in
 them, and a static transform on ``device`` (y -> height - y) shows them y up in Rerun's 2D view, whose y axis
@@ -47,7 +47,7 @@ import numpy as np
 
 from sim.model.scenario import UM, Scenario
 
-from .classes import CLASS_COLOURS, CLASS_IDS, CLASS_NAMES, CellClasses
+from ..classes import CLASS_COLOURS, CLASS_IDS, CLASS_NAMES, CellClasses
 from .foxglove import speed_grid
 from .viewer import finish_stream, import_rerun, speed_scale_mm_s
 
@@ -117,7 +117,7 @@ class SortFigures:
         self.aborts += action == "abort"
 
     def outcome(self, outlet: str, target: bool):
-        from .outcomes import SORTED_OUTLET
+        from ..outcomes import SORTED_OUTLET
         self.sorted_out += outlet == SORTED_OUTLET
         self.targets_sorted += target and outlet == SORTED_OUTLET
         self.targets_left += target
@@ -214,7 +214,7 @@ class RerunLogger:
             self.stream.log(entity, rr.SeriesLines(names=name, interpolation_mode=step_after), static=True)
 
     def _device(self, scenario, detection_window):
-        from .recording import device_outlines
+        from .mcap import device_outlines
         rr = self.rr
         groups = collections.defaultdict(list)
         for entity, points, colour, label in device_outlines(scenario, detection_window):

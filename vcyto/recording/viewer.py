@@ -1,6 +1,6 @@
 """Finding, starting and reaching a Rerun viewer, and the layout (blueprint) it shows a run in.
 
-What a run logs to the viewer (entities, colours, batching) is ``vcyto.rerunlog``.
+What a run logs to the viewer (entities, colours, batching) is ``vcyto.recording.rerunlog``.
 """
 
 from __future__ import annotations
@@ -233,7 +233,7 @@ class _NoPandasNow:
 
     def find_spec(self, name, path=None, target=None):
         if name == "pandas" or name.startswith("pandas."):
-            raise ImportError("pandas is not needed for this conversion (vcyto.viewer.import_rerun)")
+            raise ImportError("pandas is not needed for this conversion (vcyto.recording.viewer.import_rerun)")
         return None
 
 

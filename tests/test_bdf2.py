@@ -9,9 +9,10 @@ import numpy as np
 import pytest
 
 from sim.method.feib import ImmersedBoundary
-from sim.method.fluid import NavierStokes, earlier_at, lagrange_weights, value_back
+from sim.method.fluid import NavierStokes
 from sim.method.membrane import Membrane
 from sim.method.openloop import stepping, with_cells
+from sim.method.timeschemes import earlier_at, lagrange_weights, value_back
 from sim.model.scenario import UM, Scenario, ScenarioError
 
 

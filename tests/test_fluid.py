@@ -207,8 +207,8 @@ def test_implicit_treatment_solves_its_nonlinear_system(transients):
 
 @pytest.mark.parametrize("numerics", [{"dt": 2.5e-6}, {"dt": 20e-6, "time_scheme": "bdf2"}, {"dt": 1e-3}])
 def test_the_gathered_constant_matrix_is_the_block_assembly_bit_for_bit(numerics):
-    """The constant treatments' matrix of a step (``sim.method.fluid._Structure``: gathered from the positions of its
-    entries, as every --tolerance level builds its own) has the block assembly's entries, order and bits, so its
+    """The constant treatments' matrix of a step (``sim.fast.gathered.GatheredMatrix``: gathered from the positions of
+    its entries, as every --tolerance level builds its own) has the block assembly's entries, order and bits, so its
     factorisation, its kept entry in the cache and every solve are the same; the pressure scale too."""
     from sim.method.fluid import _structure
     fluid = NavierStokes(Scenario().with_numerics(mesh_h=20 * UM / 3, **numerics))
@@ -287,8 +287,8 @@ def test_the_helper_finishes_its_tasks_when_stopped_and_then_refuses_new_ones():
     import threading
     import time
 
-    from sim.method.fluid import _Helper
-    helper = _Helper()
+    from sim.fast.helper import Helper
+    helper = Helper()
     started = threading.Event()
     slow = helper.submit(lambda: (started.set(), time.sleep(0.2), "done")[2])
     started.wait(5)

@@ -41,10 +41,11 @@ import math
 
 import numpy as np
 
-from .fluid import NavierStokes, lagrange
+from .fluid import NavierStokes
 from .health import membrane_time_step
 from .membrane import polygon_centroid
 from .steplimit import limit_of
+from .timeschemes import lagrange
 
 logger = logging.getLogger(__name__)
 

@@ -24,10 +24,11 @@ import numpy as np
 
 from ..model.geometry import MESH_INSET, clip_to_channel, injection_point
 from ..model.scenario import CellType, Scenario
-from .fluid import Flow, NavierStokes, value_back
+from .fluid import Flow, NavierStokes
 from .health import HealthLimits, check_cells, under_resolved
 from .membrane import Membrane
 from .streamline import outlet_at
+from .timeschemes import value_back
 from .transfer import PointLocator
 
 IN_CHANNEL = "in_channel"
@@ -145,9 +146,9 @@ class ImmersedBoundary:
 
         euler (the paper's): the force at X^m, X^{m+1} = X^m + dt v^{m+1}(X^m). bdf2: the force at
         X* = 2 X^m - X^{m-1}, X^{m+1} = (4 X^m - X^{m-1}) / 3 + 2 dt / 3 v^{m+1}(X*), X^{m-1} the points at
-        t - dt from the cell's history (``sim.method.fluid.value_back``; a redistribution carries the history to the new
-        points' spline parameters); a new cell takes X* = X^m and the Euler update. ``ahead``: the fluid starts the
-        next step's momentum integrals (``NavierStokes.prefetch``) while the membranes move."""
+        t - dt from the cell's history (``sim.method.timeschemes.value_back``; a redistribution carries the history to
+        the new points' spline parameters); a new cell takes X* = X^m and the Euler update. ``ahead``: the fluid starts
+        the next step's momentum integrals (``NavierStokes.prefetch``) while the membranes move."""
         fluid = fluid or self.fluid
         dt = fluid.scenario.numerics.dt
         bdf2 = fluid.scenario.numerics.scheme == "bdf2"

@@ -21,32 +21,30 @@ is scaled inside the saddle-point matrix so both blocks have comparable entries;
 
 from __future__ import annotations
 
-import atexit
 import logging
 import os
-import queue
 import sys
-import threading
 import time as clock
-from concurrent.futures import Future
 from dataclasses import dataclass, field
 from functools import lru_cache
 
 import numpy as np
-import scipy
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 from skfem import ElementTriP2, FacetBasis, LinearForm, asm
 
-from ..fast import kernels, speed
+from ..fast import kernels
+from ..fast.gathered import GatheredMatrix, block_rows, gathered
+from ..fast.helper import helper, prefetch_wanted
 from ..fast.linalg import mkl_version
 from ..fast.solvers import factorize, resolved_solver_name
-from ..fast.store import code_digest, digest, module_digest, reuse
+from ..fast.store import digest, module_digest, reuse
 from ..model.boundary import inflow_velocity, saw_jet_factor, saw_window_profile
 from ..model.drive import lagged
 from ..model.mesh import channel_mesh
 from ..model.scenario import Scenario
 from .taylorhood import TaylorHood, mass_form
+from .timeschemes import earlier_at, lagrange_weights
 
 
 def solver_code_digest() -> str:
@@ -61,87 +59,13 @@ def solver_code_digest() -> str:
 
 @lru_cache(maxsize=1)
 def _python_code_digest() -> str:
-    from ..fast import kernels, linalg, solvers, splitsolve, supernodal
-    from . import taylorhood
-    return module_digest(sys.modules[__name__], kernels, linalg, solvers, splitsolve, supernodal, taylorhood)
+    from ..fast import gathered, helper, kernels, linalg, solvers, splitsolve, supernodal
+    from . import taylorhood, timeschemes
+    return module_digest(sys.modules[__name__], gathered, helper, kernels, linalg, solvers, splitsolve, supernodal,
+                         taylorhood, timeschemes)
 
 log = logging.getLogger(__name__)
 _NOTHING = np.zeros(0)          # an absent load for ``kernels.free_rhs``
-
-
-def prefetch_wanted() -> bool:
-    """Whether a step computes the next step's momentum integrals ahead on a helper thread (``NavierStokes.step``);
-    ``SpeedSettings.prefetch`` False (``sim.fast.speed``) computes them in the step itself (the same bits: for
-    measurements and tests)."""
-    return speed.current().prefetch
-
-
-class _Helper:
-    """One daemon thread that runs the tasks submitted to it one at a time, in order, each through a
-    ``concurrent.futures.Future`` (cancellable until it starts).
-
-    A daemon, unlike ``ThreadPoolExecutor``'s workers: an idle helper must not hold the process open. The
-    executable ends with ``os._exit`` once everything is written (``vcyto.cli.exit_now``), but only when no
-    non-daemon thread is alive; a pool's idle worker sent every FE-IB run through the interpreter's teardown
-    instead (0.15 s; 0.4 s with a Rerun recording; measured). At exit (``atexit``: both the quick and the ordinary
-    exit run it) the helper finishes what it was given, at most a step's integrals (~1 ms), and stops, so the
-    interpreter's teardown never meets it inside a kernel."""
-
-    def __init__(self):
-        self._tasks: queue.SimpleQueue = queue.SimpleQueue()
-        self._thread = threading.Thread(target=self._run, name="vcyto-momentum", daemon=True)
-        self._thread.start()
-        self._stopped = False
-        atexit.register(self.stop)
-
-    def stop(self, timeout: float = 10.0):
-        """Let the queued tasks finish, then end the thread (waiting at most ``timeout`` seconds); later
-        submissions are refused (``RuntimeError``: the caller computes them itself)."""
-        self._stopped = True
-        self._tasks.put(None)
-        if self._thread.is_alive() and self._thread is not threading.current_thread():
-            self._thread.join(timeout)
-
-    def submit(self, function, *arguments) -> Future:
-        if self._stopped or sys.is_finalizing():     # as ThreadPoolExecutor: no new work at shutdown
-            raise RuntimeError("cannot schedule new work after interpreter shutdown")
-        future: Future = Future()
-        self._tasks.put((future, function, arguments))
-        return future
-
-    def _run(self):
-        while (task := self._tasks.get()) is not None:
-            future, function, arguments = task
-            if future.set_running_or_notify_cancel():
-                try:
-                    future.set_result(function(*arguments))
-                except BaseException as error:      # handed to the caller's ``result()``
-                    future.set_exception(error)
-            # hold nothing while waiting: the task's arguments (a solver's buffers) would stay alive here
-            task = future = function = arguments = None
-
-
-_HELPER: _Helper | None = None                 # the process's helper (``_helper``)
-_HELPER_LOCK = threading.Lock()
-
-
-def _helper() -> _Helper:
-    """The one helper thread the fluid steps of a process share (``NavierStokes.prefetch``): one thread, so its
-    tasks run one at a time, in order."""
-    global _HELPER
-    with _HELPER_LOCK:
-        if _HELPER is None:
-            _HELPER = _Helper()
-        return _HELPER
-
-
-def _forget_helper():
-    """A forked child builds its own helper (the parent's thread is not in it), under a lock of its own."""
-    global _HELPER, _HELPER_LOCK
-    _HELPER, _HELPER_LOCK = None, threading.Lock()
-
-
-os.register_at_fork(after_in_child=_forget_helper)
 
 
 class NumericalBlowUp(RuntimeError):
@@ -158,47 +82,6 @@ class Flow:
     streaming_level: float = 0.0
     iterations: int = 0
     history: tuple = ()     # bdf2: (time, velocity) of the last two earlier steps, the latest first (() at a start)
-
-
-def value_back(time: float, value: np.ndarray, times, values, target: float) -> np.ndarray | None:
-    """bdf2's history: the value at ``target`` (one step back) from the value at ``time`` and the earlier
-    ``values`` at ``times`` (the latest first): an earlier value where its time is the target (equal steps, or
-    one level up after two equal steps), else the parabola through the three (the line through two) there;
-    None without history."""
-    if not len(values):
-        return None
-    index = earlier_at(time, times, target)
-    if index is not None:
-        return values[index]
-    return lagrange([time, *times], [value, *values], target)
-
-
-def earlier_at(time: float, times, target: float) -> int | None:
-    """The index in ``times`` (earlier than ``time``, the latest first) of the one that is ``target``, else None."""
-    for index, known in enumerate(times):
-        if abs(known - target) <= 1e-9 * abs(time - target):
-            return index
-    return None
-
-
-def lagrange_weights(nodes, target: float) -> list[float]:
-    """The weights of the values at ``nodes`` in the polynomial through them, evaluated at ``target``."""
-    weights = []
-    for i, node in enumerate(nodes):
-        weight = 1.0
-        for j, other in enumerate(nodes):
-            if j != i:
-                weight *= (target - other) / (node - other)
-        weights.append(weight)
-    return weights
-
-
-def lagrange(nodes, values, target: float):
-    """The polynomial through ``values`` at ``nodes`` (numbers or arrays), evaluated at ``target``."""
-    result = 0.0
-    for weight, point in zip(lagrange_weights(nodes, target), values):
-        result = result + weight * point
-    return result
 
 
 @dataclass
@@ -222,111 +105,15 @@ class _System:
     lift_jet: np.ndarray
 
 
-class _Structure:
-    """Where each entry of the constant treatments' reduced matrix comes from, so that the matrix of any time step
-    is gathered instead of assembled (two block assemblies and three slicings: ~0.15 s at the paper's mesh).
-
-    The matrix is the free rows of [[a, 0, -s Bx^T], [0, a, -s By^T], [-s Bx, -s By, 0]] with a = c M + mu L
-    (c the mass coefficient, which the step sets, mu the viscosity, s the pressure scale); its free columns are
-    the system, its Dirichlet columns the lift. An entry of a velocity block is c m + mu l at one position of
-    the union of the P2 mass and Laplace patterns (m or l zero where that matrix has no entry), one of a
-    divergence block -(s b) at one position of [Bx, By]. ``source`` holds those positions (the divergence's after
-    the union's) in the order the block assembly gives; as that assembly's sparse sum does, a velocity entry whose
-    value is exactly zero is left out. So ``assembled`` gives the assembly's entries, order and bits."""
-
-    def __init__(self, space: TaylorHood, divergence: sp.csr_matrix, arrays: dict):
-        # the union's values come from these, -1 (no entry) reading the appended zero
-        self._mass = np.append(space.mass.data, 0.0)[arrays["union_mass"]]
-        self._laplace = np.append(space.laplace.data, 0.0)[arrays["union_laplace"]]
-        self.divergence_largest = float(abs(divergence).max())    # [Bx, By]: the largest of either block
-        divergence = divergence.data
-        self._parts = {}
-        for name in ("rows", "lift"):         # each entry's values gathered once; a step only scales and adds
-            source = arrays[f"{name}_source"]
-            velocity = source < len(self._mass)
-            at = source[velocity]
-            self._parts[name] = (arrays[f"{name}_indptr"], arrays[f"{name}_indices"], tuple(arrays[f"{name}_shape"]),
-                                 velocity, ~velocity, self._mass[at], self._laplace[at],
-                                 divergence[source[~velocity] - len(self._mass)])
-
-    def velocity_largest(self, mass_coefficient: float, viscosity: float) -> float:
-        """max |a_ij|, a = c M + mu L."""
-        return float(np.abs(mass_coefficient * self._mass + viscosity * self._laplace).max())
-
-    def assembled(self, mass_coefficient: float, viscosity: float, scale: float):
-        """(system, lift) for these coefficients: ``NavierStokes._assembled(a, a)``'s matrices."""
-        return tuple(self._gathered(*self._parts[name], mass_coefficient, viscosity, scale)
-                     for name in ("rows", "lift"))
-
-    @staticmethod
-    def _gathered(indptr, indices, shape, velocity, coupling, mass, laplace, divergence, mass_coefficient, viscosity,
-                  scale) -> sp.csr_matrix:
-        values = np.empty(len(velocity))
-        momentum = mass_coefficient * mass
-        momentum += viscosity * laplace             # c m + mu l, as the sparse sum computes it
-        values[velocity] = momentum
-        values[coupling] = -(divergence * scale)       # the divergence blocks' entries
-        if (momentum == 0.0).any():
-            kept = coupling | (values != 0.0)
-            rows = np.repeat(np.arange(shape[0]), np.diff(indptr))[kept]
-            indptr = np.concatenate(([0], np.cumsum(np.bincount(rows, minlength=shape[0])))).astype(indptr.dtype)
-            indices, values = indices[kept], values[kept]
-        return sp.csr_matrix((values, indices, indptr), shape=shape)
-
-
-def _positions(pattern: sp.csr_matrix, within: sp.csr_matrix) -> np.ndarray:
-    """For each entry of ``pattern`` (canonical CSR), its position in ``within`` (canonical, same shape), or -1."""
-    def keys(matrix):
-        rows = np.repeat(np.arange(matrix.shape[0], dtype=np.int64), np.diff(matrix.indptr))
-        return rows * matrix.shape[1] + matrix.indices
-    wanted, present = keys(pattern), keys(within)
-    at = np.minimum(np.searchsorted(present, wanted), len(present) - 1)
-    return np.where(present[at] == wanted, at, -1)
-
-
-def _tagged_structure(mass: sp.csr_matrix, laplace: sp.csr_matrix, divergence: sp.csr_matrix, free: np.ndarray,
-                      dirichlet: np.ndarray) -> dict:
-    """``_Structure``'s arrays: the block assembly of ``NavierStokes._assembled`` done on matrices whose values are
-    their entries' positions (+1, exact in float64), so each entry of the result names its source."""
-    union = (abs(mass) + abs(laplace)).tocsr()       # the sum's pattern (its zero entries go later, by value)
-    union = sp.csr_matrix((np.ones(union.nnz), union.indices, union.indptr), shape=union.shape)
-    union.sum_duplicates()
-    union.sort_indices()
-    arrays = {"union_mass": _positions(union, mass), "union_laplace": _positions(union, laplace)}
-    tags_velocity = sp.csr_matrix((np.arange(1, union.nnz + 1, dtype=np.float64), union.indices, union.indptr),
-                                  shape=union.shape)
-    tags_divergence = sp.csr_matrix((np.arange(union.nnz + 1, union.nnz + divergence.nnz + 1, dtype=np.float64),
-                                     divergence.indices, divergence.indptr), shape=divergence.shape)
-    momentum = sp.bmat([[tags_velocity, None], [None, tags_velocity]], format="csr")
-    # the assembly's own blocks (the divergence's tags come out negated, as its values do)
-    for name, part in zip(("rows", "lift"), _block_rows(momentum, tags_divergence, free, dirichlet)):
-        arrays.update({f"{name}_indptr": part.indptr, f"{name}_indices": part.indices,
-                       f"{name}_source": np.abs(part.data).astype(np.int64) - 1, f"{name}_shape": np.array(part.shape)})
-    return arrays
-
-
-def _block_rows(momentum: sp.csr_matrix, divergence: sp.csr_matrix, free: np.ndarray, dirichlet: np.ndarray):
-    """The free rows of [[momentum, -D^T], [-D, 0]] (D the scaled divergence): (their free columns, their Dirichlet
-    columns). The one block assembly of every system the fluid solver factors, and of ``_Structure``'s tags."""
-    rows = sp.bmat([[momentum, -divergence.T], [-divergence, None]], format="csr")[free]
-    return rows[:, free].tocsr(), rows[:, dirichlet].tocsr()
-
-
-def _structure(space: TaylorHood, free: np.ndarray, dirichlet: np.ndarray) -> _Structure:
-    """The ``_Structure`` of ``space`` with these Dirichlet unknowns: kept on the space (the levels of a tolerance
-    share it) and through ``sim.fast.store`` (keyed by the sparsity patterns, the unknowns and the code)."""
+def _structure(space: TaylorHood, free: np.ndarray, dirichlet: np.ndarray) -> GatheredMatrix:
+    """The ``GatheredMatrix`` of ``space`` with these Dirichlet unknowns: kept on the space (the levels of a
+    tolerance share it) and through ``sim.fast.store`` (``sim.fast.gathered.gathered``)."""
     known = getattr(space, "_structures", None)
     if known is None:
         known = space._structures = {}
     name = digest(free, dirichlet)
     if name not in known:
-        mass, laplace = space.mass, space.laplace
-        divergence = sp.hstack(space.divergence).tocsr()
-        key = {"layout": 1, "unknowns": name, "scipy": scipy.__version__,
-               "patterns": digest(*(a for m in (mass, laplace, divergence) for a in (m.indptr, m.indices))),
-               "code": code_digest(_tagged_structure, _positions, _block_rows)}
-        known[name] = _Structure(space, divergence, reuse("fluid-structure", key, lambda: _tagged_structure(
-            mass, laplace, divergence, free, dirichlet)))
+        known[name] = gathered(space.mass, space.laplace, sp.hstack(space.divergence).tocsr(), free, dirichlet)
     return known[name]
 
 
@@ -447,7 +234,7 @@ class NavierStokes:
         """The free rows of [[A, -s B^T], [-s B, 0]], A = [[A_xx, A_xy], [A_yx, A_yy]]: (free columns, Dirichlet
         columns)."""
         momentum = sp.bmat([[block_xx, off_xy], [off_yx, block_yy]], format="csr")
-        return _block_rows(momentum, self._divergence, self.free, self.dirichlet)
+        return block_rows(momentum, self._divergence, self.free, self.dirichlet)
 
     def _system(self, block_xx, block_yy, off_xy=None, off_yx=None, symmetric=False, reuse=None):
         """Factor the free-free block of [[A, -s B^T], [-s B, 0]], A = [[A_xx, A_xy], [A_yx, A_yy]].
@@ -610,7 +397,7 @@ class NavierStokes:
         if self._ahead_buffer is None:
             self._ahead_buffer = self.space.element_buffer()
         try:
-            future = _helper().submit(self._element_integrals, flow, self._ahead_buffer, 1)
+            future = helper().submit(self._element_integrals, flow, self._ahead_buffer, 1)
         except RuntimeError:                   # the interpreter is shutting down: the next step computes them
             return
         self._ahead = (flow, future, os.getpid())

@@ -45,7 +45,7 @@ from .fluid import NavierStokes
 from .health import membrane_time_step
 from .membrane import polygon_centroid
 from .steplimit import limit_of
-from .timeschemes import lagrange
+from .timeschemes import lagrange, scheme_named
 
 logger = logging.getLogger(__name__)
 
@@ -73,7 +73,7 @@ class AdaptiveSteps:
         self.ratio = float("nan")
         self.history: list[tuple[float, float]] = []          # (time, dt) whenever dt changes
         self.steps = [0] * len(self.levels)
-        self.order = 2 if numerics.scheme == "bdf2" else 1
+        self.order = scheme_named(numerics.scheme).order
         self._tracks: dict[int, list] = {}                    # bdf2: the last three (time, area centroid) per cell
         self._spacings: dict[int, list] = {}                  # the last two spacing extremes per cell
         self.retaken = 0                                      # coarse steps retaken at the finest level

@@ -28,7 +28,6 @@ from .fluid import Flow, NavierStokes
 from .health import HealthLimits, check_cells, under_resolved
 from .membrane import Membrane
 from .streamline import outlet_at
-from .timeschemes import value_back
 from .transfer import PointLocator
 
 IN_CHANNEL = "in_channel"
@@ -151,12 +150,11 @@ class ImmersedBoundary:
         the next step's momentum integrals (``NavierStokes.prefetch``) while the membranes move."""
         fluid = fluid or self.fluid
         dt = fluid.scenario.numerics.dt
-        bdf2 = fluid.scenario.numerics.scheme == "bdf2"
+        scheme = fluid.scheme
         started = clock.perf_counter()
         active = [cell for cell in state.cells if cell.in_channel]
-        before = [self._before(cell, state.flow, dt) if bdf2 else None for cell in active]
-        at = [cell.membrane.points if old is None else 2 * cell.membrane.points - old
-              for cell, old in zip(active, before)]
+        before = [self._before(scheme, cell, state.flow, dt) for cell in active]
+        at = [scheme.extrapolated(cell.membrane.points, old) for cell, old in zip(active, before)]
         load, located = self.membrane_load(active, at)
         fluid_started = clock.perf_counter()
         flow = fluid.step(state.flow, actuation, load if active else None, ahead=ahead)
@@ -165,9 +163,8 @@ class ImmersedBoundary:
         for cell, old, (elements, reference) in zip(active, before, located):
             velocity = self.locator.interpolate_located(flow.velocity, elements, reference)
             points = cell.membrane.points
-            new = points + dt * velocity if old is None else (4 * points - old) / 3 + (2 * dt / 3) * velocity
-            moved[cell.id] = settle(cell, new, flow.time, self.scenario, dt,
-                                    ((points,) + cell.history[:1]) if bdf2 else ())
+            new = scheme.advanced(points, old, dt, velocity)
+            moved[cell.id] = settle(cell, new, flow.time, self.scenario, dt, scheme.carried(points, cell.history))
         cells = tuple(moved.get(cell.id, cell) for cell in state.cells)
         health_started = clock.perf_counter()
         check_cells([moved[cell.id] for cell in active], self.limits, state.step + 1, flow.time)
@@ -179,11 +176,10 @@ class ImmersedBoundary:
         return State(flow, cells, state.step + 1)
 
     @staticmethod
-    def _before(cell: Cell, flow: Flow, dt: float) -> np.ndarray | None:
-        """bdf2: the cell's points at t - dt (None when it has no history)."""
+    def _before(scheme, cell: Cell, flow: Flow, dt: float) -> np.ndarray | None:
+        """The cell's points at t - dt the scheme uses (None: a one-step scheme, or no history)."""
         history = cell.history[:len(flow.history)]
-        return value_back(flow.time, cell.membrane.points, [t for t, _ in flow.history[:len(history)]], history,
-                          flow.time - dt)
+        return scheme.back(flow.time, cell.membrane.points, [t for t, _ in flow.history[:len(history)]], history, dt)
 
     def membrane_load(self, cells, at=None):
         """The P2 load (2, N) of the membrane forces of ``cells`` and where each cell's points lie in the mesh

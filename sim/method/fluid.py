@@ -44,7 +44,7 @@ from ..model.drive import lagged
 from ..model.mesh import channel_mesh
 from ..model.scenario import Scenario
 from .taylorhood import TaylorHood, mass_form
-from .timeschemes import earlier_at, lagrange_weights
+from .timeschemes import TimeScheme, earlier_at, lagrange_weights, scheme_named
 
 
 def solver_code_digest() -> str:
@@ -209,7 +209,7 @@ class NavierStokes:
         space, fluid, numerics = self.space, self.scenario.fluid, self.scenario.numerics
         self.stiffness = fluid.viscosity * space.laplace
         # backward Euler: rho/dt M; BDF2: rho (3 v^{m+1} - 4 v^m + v^{m-1}) / (2 dt), so 3 rho / (2 dt) M
-        self.mass_coefficient = fluid.density / numerics.dt * (1.5 if numerics.scheme == "bdf2" else 1.0)
+        self.mass_coefficient = fluid.density / numerics.dt * self.scheme.mass
         structure = _structure(space, self.free, self.dirichlet)
         self.pressure_scale = structure.velocity_largest(self.mass_coefficient, fluid.viscosity) \
             / structure.divergence_largest
@@ -332,7 +332,6 @@ class NavierStokes:
         if level:
             load = level * self.streaming_unit_load if load is None else load + level * self.streaming_unit_load
         rhs = self._free_rhs(load)
-        bdf2 = numerics.scheme == "bdf2"
         self.space.scatter_momentum(self._element_momentum(state), self.positions, rhs)
         self.timings.load += clock.perf_counter() - started
         jet = self.jet_weight(new_time, actuation)
@@ -347,7 +346,7 @@ class NavierStokes:
         self._check(velocity, new_time, treatment)
         self.timings.steps += 1
         velocity.flags.writeable = pressure.flags.writeable = False     # a step's result stays as it was computed
-        history = ((state.time, state.velocity),) + state.history[:1] if bdf2 else ()
+        history = self.scheme.carried((state.time, state.velocity), state.history)
         flow = Flow(new_time, velocity, pressure, level, iterations, history)
         if ahead is True:
             self.prefetch(flow)
@@ -356,12 +355,17 @@ class NavierStokes:
         return flow
 
     # ------------------------------------------------------------------ the momentum integrals, computed ahead
+    @property
+    def scheme(self) -> TimeScheme:
+        """The time scheme of the steps (``sim.method.timeschemes``)."""
+        return scheme_named(self.scenario.numerics.scheme)
+
     def _momentum_back(self, state: Flow):
         """bdf2's velocity one step back for the momentum integrals of a step from ``state`` (``kernels.
         element_momentum``'s ``back``: the weights of v^m and the earlier velocities, and those two); None for euler
         or without history (a start: v^{m-1} = v^m, the euler integrals)."""
         numerics = self.scenario.numerics
-        if numerics.scheme != "bdf2" or not state.history:
+        if not scheme_named(numerics.scheme).kept or not state.history:
             return None
         times, earlier = [t for t, _ in state.history], [v for _, v in state.history]
         target = state.time - numerics.dt

@@ -128,7 +128,7 @@ def test_a_cell_without_an_estimate_holds_the_level_and_reset_forgets():
     steps = steps_of(scenario)
     estimates = iter([[0.01, None], [0.01, 0.01], [6.0, None]])      # 6 at level 2: level 1 at 6/16 x 3 > 1
     steps._ratio_bdf2 = lambda cell, time: next(current)
-    steps.plant = SimpleNamespace(fixed_step=lambda state, actuation, fluid, ahead=True: state, scenario=scenario)
+    steps.plant = SimpleNamespace(step=lambda state, actuation, dt, fluid, ahead=True: state, scenario=scenario)
     steps.fluid = lambda level: None
     steps._fluids = {}                # no solver: nothing to compute ahead (``_prefetch``)
     cells = [cell("RBC", k, scenario) for k in (1, 2)]
@@ -194,16 +194,16 @@ def test_a_coarse_step_that_redistributes_is_retaken_at_the_finest_level():
     spread = replace(rbc, membrane=rbc.membrane.resampled(0.8 * scenario.numerics.mesh_h, minimum_points=4))
     assert spread.membrane.spacing().max() > 0.7 * scenario.numerics.mesh_h      # above the band (0.3-0.7 h)
     state = plant.start(cells=(spread,))
-    steps = plant.adaptive
+    steps = AdaptiveSteps(plant)                           # wraps the plant's step, choosing each dt
     steps._known, steps.level = {1}, 2                     # a known cell at 10 us: no reason to step finer
-    new = plant.step(state, 0.0)
+    new = steps.step(state, 0.0)
     assert new.cells[0].membrane.redistributions == spread.membrane.redistributions + 1
     assert math.isclose(new.time - state.time, steps.levels[0]) and steps.retaken == 1
     assert steps.steps == [1] + [0] * (len(steps.levels) - 1) and steps.summary(new.time)["retaken"] == 1
     steps.reset()                                          # the cell as born (spacing inside the band): no retake
     steps._known, steps.level = {1}, 2
     state = plant.start(cells=(rbc,))
-    new = plant.step(state, 0.0)
+    new = steps.step(state, 0.0)
     assert new.cells[0].membrane.redistributions == rbc.membrane.redistributions and steps.retaken == 0
     assert math.isclose(new.time - state.time, steps.levels[2])
     assert steps.steps == [0, 0, 1] + [0] * (len(steps.levels) - 3)
@@ -218,10 +218,11 @@ def test_an_adaptive_run_computes_ahead_at_the_level_it_will_take(monkeypatch):
 
     scenario = Scenario().with_numerics(mesh_h=10 * UM / 3, tolerance=1e-6)        # the RBC resolved: levels climb
     plant = ImmersedBoundary(scenario)
+    steps = AdaptiveSteps(plant)
 
     def run(prefetch: bool):
         monkeypatch.setattr(speed, "_settings", replace(speed.current(), prefetch=prefetch))
-        plant.adaptive.reset()                                 # a new run on the same plant (its levels kept)
+        steps.reset()                                          # a new run on the same plant (its levels kept)
         used, original = [], NavierStokes._element_momentum
 
         def counted(solver, state):
@@ -229,14 +230,14 @@ def test_an_adaptive_run_computes_ahead_at_the_level_it_will_take(monkeypatch):
             used.append(pending is not None and pending[0] is state)
             return original(solver, state)
         monkeypatch.setattr(NavierStokes, "_element_momentum", counted)
-        state = plant.step(plant.start(), 0.0)                 # an empty channel: the coarsest level
+        state = steps.step(plant.start(), 0.0)                 # an empty channel: the coarsest level
         rbc = new_cell(scenario, scenario.cell_type("RBC"), 1, state.time, warn=False,
                        centre=np.array([0.4 * scenario.channel.length, 0.5 * scenario.channel.height]))
         state = State(state.flow, (rbc,), state.step)          # a new cell: the finest, then up level by level
         for _ in range(9):
-            state = plant.step(state, 0.0)
+            state = steps.step(state, 0.0)
         monkeypatch.setattr(NavierStokes, "_element_momentum", original)
-        return state, used, plant.adaptive.history
+        return state, used, steps.history
 
     ahead, used, history = run(True)
     here, used_here, history_here = run(False)

@@ -36,7 +36,7 @@ def test_the_fast_step_is_the_reference_step_to_round_off(scheme, area_constrain
     state = State(start.flow, (cell,))
     levels = [Level(start.flow.time, start.flow.velocity, start.flow.pressure, (cell.membrane.points,))]
     for _ in range(STEPS):
-        state = plant.fixed_step(state, actuation=1.0)
+        state = plant.step(state, actuation=1.0)
         before = levels[-2] if len(levels) > 1 else None
         levels.append(reference.step(levels[-1], [cell.membrane], actuation=1.0, before=before))
         fast, plain = state.flow, levels[-1]
@@ -56,7 +56,7 @@ def test_the_reference_is_a_different_step_when_the_scheme_differs():
     reference = ReferenceStep(scenario_of("euler"))
     start = plant.start(0.0)
     first = Level(start.flow.time, start.flow.velocity, start.flow.pressure, ())
-    fast = plant.fixed_step(plant.fixed_step(start, 1.0), 1.0).flow
+    fast = plant.step(plant.step(start, 1.0), 1.0).flow
     plain = reference.step(reference.step(first, [], 1.0), [], 1.0, before=first)
     assert np.abs(fast.velocity - plain.velocity).max() > 1e-6 * np.abs(plain.velocity).max()
 

@@ -57,7 +57,8 @@ LOOK_AHEAD = 1.0              # steps of a level over which a predicted redistri
 
 
 class AdaptiveSteps:
-    """The level choice and the error estimate of an ``ImmersedBoundary`` plant with ``numerics.tolerance``."""
+    """The steps of an ``ImmersedBoundary`` plant with ``numerics.tolerance``: wraps its step (``step``), choosing the
+    level, and so dt, of each and estimating its error."""
 
     def __init__(self, plant):
         self.plant = plant
@@ -166,7 +167,7 @@ class AdaptiveSteps:
         self._spacings = tracks
 
     # ------------------------------------------------------------------ the step
-    def step(self, state, actuation: float, until: float | None):
+    def step(self, state, actuation: float = 0.0, until: float | None = None):
         """One step of the level ``choose`` picks. A step above the finest in which a cell's points were
         redistributed is retaken at the finest level (states are values: the first is dropped), so every
         redistribution happens at the end of a finest-level step, as in the reference."""
@@ -177,11 +178,11 @@ class AdaptiveSteps:
         # the next step's momentum integrals start as the flow is known, at the level the estimate now gives
         # (``_prefetch`` starts them again in the rare case the step's own estimate changes that level)
         ahead = self._fluids.get(self._estimated_level(active, state.time), False)
-        new = self.plant.fixed_step(state, actuation, self.fluid(level), ahead=ahead)
+        new = self.plant.step(state, actuation, self.levels[level], self.fluid(level), ahead=ahead)
         if level > 0 and _redistributed(active, new):
             self.retaken += 1
             level = 0
-            new = self.plant.fixed_step(state, actuation, self.fluid(level), ahead=ahead)
+            new = self.plant.step(state, actuation, self.levels[level], self.fluid(level), ahead=ahead)
         dt = self.levels[level]
         if self.order == 2:
             ids = {cell.id for cell in active}

@@ -118,10 +118,6 @@ class ImmersedBoundary:
         self.locator = PointLocator(space.cmesh, space.velocity_basis.element_dofs)
         self.limits = HealthLimits.of(scenario)
         self.timings = Timings()
-        self.adaptive = None
-        if scenario.numerics.tolerance > 0:     # dt chosen per step from levels by an error estimate
-            from .adaptive import AdaptiveSteps
-            self.adaptive = AdaptiveSteps(self)
 
     # ------------------------------------------------------------------ cells
     def new_cell(self, cell_type: CellType, cell_id: int, time: float, centre=None, warn: bool = True) -> Cell:
@@ -132,24 +128,26 @@ class ImmersedBoundary:
         return State(self.fluid.initial_flow(actuation), tuple(cells))
 
     # ------------------------------------------------------------------ the step
-    def step(self, state: State, actuation: float = 0.0, until: float | None = None) -> State:
-        """One step: of ``numerics.dt``, or with ``numerics.tolerance`` of the level the error estimate picks
-        (``sim.method.adaptive``; never past ``until``)."""
-        if self.adaptive is not None:
-            return self.adaptive.step(state, actuation, until)
-        return self.fixed_step(state, actuation)
-
-    def fixed_step(self, state: State, actuation: float = 0.0, fluid: NavierStokes | None = None,
-                   ahead: "bool | NavierStokes" = True) -> State:
-        """One step of ``fluid``'s dt (default: this plant's fluid, dt = ``numerics.dt``) in its time scheme.
+    def step(self, state: State, actuation: float = 0.0, dt: float | None = None, fluid: NavierStokes | None = None,
+             ahead: "bool | NavierStokes" = True) -> State:
+        """One step of size ``dt`` (default ``numerics.dt``) with ``fluid``, a solver factored for that dt (default:
+        this plant's, for ``numerics.dt``), in the fluid's time scheme. With ``numerics.tolerance`` the steps' dt is
+        chosen from outside (``sim.method.adaptive.AdaptiveSteps`` wraps this step and passes dt and its solver).
 
         euler (the paper's): the force at X^m, X^{m+1} = X^m + dt v^{m+1}(X^m). bdf2: the force at
         X* = 2 X^m - X^{m-1}, X^{m+1} = (4 X^m - X^{m-1}) / 3 + 2 dt / 3 v^{m+1}(X*), X^{m-1} the points at
         t - dt from the cell's history (``sim.method.timeschemes.value_back``; a redistribution carries the history to
         the new points' spline parameters); a new cell takes X* = X^m and the Euler update. ``ahead``: the fluid starts
         the next step's momentum integrals (``NavierStokes.prefetch``) while the membranes move."""
+        if dt is None:
+            if self.scenario.numerics.tolerance > 0:
+                raise ValueError("numerics.tolerance picks each step's dt: step through "
+                                 "sim.method.adaptive.AdaptiveSteps")
+            dt = self.scenario.numerics.dt
         fluid = fluid or self.fluid
-        dt = fluid.scenario.numerics.dt
+        if fluid.scenario.numerics.dt != dt:
+            raise ValueError(f"a step of {dt} s needs a fluid solver factored for it (this one: "
+                             f"{fluid.scenario.numerics.dt} s)")
         scheme = fluid.scheme
         started = clock.perf_counter()
         active = [cell for cell in state.cells if cell.in_channel]

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import math
 
+from ..method.adaptive import AdaptiveSteps
 from ..method.feib import ImmersedBoundary, State
 from ..model.scenario import Scenario
 from .contract import CellTruth, CellView, Observation, Schedule, Truth, check_plant  # noqa: F401 (re-exported)
@@ -51,10 +52,12 @@ class FeibPlant:
     def __init__(self, scenario: Scenario, control_period: float | None = None, plant: ImmersedBoundary | None = None):
         self.scenario = scenario
         self.ib = plant or ImmersedBoundary(scenario)
+        # with a tolerance the steps' dt is chosen per step (sim.method.adaptive), wrapping the FE-IB step
+        self.adaptive = AdaptiveSteps(self.ib) if scenario.numerics.tolerance > 0 else None
         dt = scenario.numerics.dt
         # with a tolerance the period holds one step of the coarsest level (sim.method.adaptive), at most 10 us (the
         # IDT drive changes only between periods: a longer one would delay pulses by more than the steps' error)
-        natural = dt if self.ib.adaptive is None else max(dt, min(self.ib.adaptive.levels[-1], ADAPTIVE_PERIOD))
+        natural = dt if self.adaptive is None else max(dt, min(self.adaptive.levels[-1], ADAPTIVE_PERIOD))
         self.control_period = control_period or natural
         self.substeps = max(1, round(self.control_period / dt))
         self._initial = None
@@ -66,8 +69,8 @@ class FeibPlant:
             self._initial = self.ib.fluid.initial_flow(0.0)
         self.schedule = _Schedule(arrivals)
         self.state = State(self._initial, ())
-        if self.ib.adaptive is not None:
-            self.ib.adaptive.reset()
+        if self.adaptive is not None:
+            self.adaptive.reset()
         self._inject()
         return self.observe()
 
@@ -79,7 +82,7 @@ class FeibPlant:
             self.state = State(self.state.flow, self.state.cells + tuple(new), self.state.step)
 
     def step(self, actuation: float) -> Observation:
-        if self.ib.adaptive is not None:
+        if self.adaptive is not None:
             return self._adaptive_step(actuation)
         for _ in range(self.substeps):
             self.state = self.ib.step(self.state, actuation)
@@ -92,7 +95,7 @@ class FeibPlant:
         dt = self.scenario.numerics.dt
         end = (round(self.state.time / self.control_period) + 1) * self.control_period
         while self.state.time < end - 0.5 * dt:
-            self.state = self.ib.step(self.state, actuation, until=min(end, self._next_due()))
+            self.state = self.adaptive.step(self.state, actuation, until=min(end, self._next_due()))
             self._inject()
         return self.observe()
 
@@ -112,10 +115,10 @@ class FeibPlant:
 
     def time_steps(self) -> dict:
         """The dt used: fixed, or per level with the changes over time (``sim.method.adaptive``)."""
-        if self.ib.adaptive is None:
+        if self.adaptive is None:
             return {"dt_us": self.scenario.numerics.dt * 1e6, "steps": self.ib.timings.steps,
                     "scheme": self.scenario.numerics.scheme}
-        return self.ib.adaptive.summary(self.state.time)
+        return self.adaptive.summary(self.state.time)
 
     def adopt(self, state: State, injected: int):
         """Continue from ``state`` (built from another plant's) with the first ``injected`` arrivals injected."""
@@ -140,7 +143,7 @@ class FeibPlant:
     def diagnostics(self) -> dict:
         """Solver figures for logging: dt, steps so far, cumulative wall time per part (s)."""
         timings, fluid = self.ib.timings, self.ib.fluid.timings
-        adaptive = self.ib.adaptive
+        adaptive = self.adaptive
         dt = self.scenario.numerics.dt if adaptive is None or not adaptive.history else adaptive.history[-1][1]
         return {"dt": dt, "physics_steps": timings.steps, "fluid_solve_s": fluid.solve,
                 "fluid_load_s": fluid.load, "membrane_s": timings.membrane, "health_checks_s": timings.health,
@@ -178,7 +181,7 @@ class AdaptiveFeibPlant(FeibPlant):
                 end = self.clock + period
             stop = min(stop, end)
         before = self.state
-        self.state = self.ib.step(before, actuation, until=None if math.isinf(stop) else stop)
+        self.state = self.adaptive.step(before, actuation, until=None if math.isinf(stop) else stop)
         self._inject()
         return 1, self._crossed(before, tuple(stop_lines) + tuple(record_lines))
 

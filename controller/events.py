@@ -1,13 +1,13 @@
 """The plain data the instrument and the controller exchange (no numerics library, no ground truth).
 
-Of ``sim`` the controller imports only the plant contract (``sim.contract``: numpy and the standard library).
+Of ``sim`` the controller imports only the plant contract (``sim.plants.contract``: numpy and the standard library).
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
 
-from sim.contract import CellView
+from sim.plants.contract import CellView
 
 TYPE_I = "I"      # leaves by the default (lower) outlet: IDT off
 TYPE_II = "II"    # to be sorted to the upper outlet: IDT on

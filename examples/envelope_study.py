@@ -16,12 +16,12 @@ import sys
 import numpy as np
 
 from controller.sorter import ControllerSettings
-from sim import rom_kernels as kernels
-from sim.fluid import NavierStokes
-from sim.rom import area_mean_rule, default_response_time, wall_segments
-from sim.rom_transient import TRANSIENT_LAGS, fit_modes, step_response
-from sim.scenario import Scenario
-from sim.transfer import PointLocator
+from sim.fast import rom_kernels as kernels
+from sim.method.fluid import NavierStokes
+from sim.method.transfer import PointLocator
+from sim.model.scenario import Scenario
+from sim.plants.rom import area_mean_rule, default_response_time, wall_segments
+from sim.plants.rom_transient import TRANSIENT_LAGS, fit_modes, step_response
 
 SCENARIO = Scenario().with_numerics(mesh_h=20e-6 / 3, dt=10e-6)
 SHIPPED = ControllerSettings()
@@ -121,7 +121,7 @@ def _carry(fluid, locator, cell, offsets, weights, flows, pulse, mode):
 
 def membrane():
     """feib's RBC under the pulse: its membrane's extent as it nears the divider, and its fate."""
-    from sim.plant import FeibPlant
+    from sim.plants.feib import FeibPlant
     plant = FeibPlant(SCENARIO)
     plant.reset([(0.0, "RBC")])
     centre, arrival, previous = 0.5 * sum(SCENARIO.channel.saw_window.span), math.nan, None

@@ -19,18 +19,18 @@ import time
 
 import numpy as np
 
-from sim.feib import ImmersedBoundary, State, settle
-from sim.health import NumericalBlowUp, check_cells
-from sim.openloop import stepping, with_cells
-from sim.scenario import UM, Scenario
+from sim.method.feib import ImmersedBoundary, State, settle
+from sim.method.health import NumericalBlowUp, check_cells
+from sim.method.openloop import stepping, with_cells
+from sim.model.scenario import UM, Scenario
 
 
 class TrapezoidalUpdate(ImmersedBoundary):
     """FE-IB with the membrane moved by the trapezoidal rule (the fluid step is unchanged)."""
 
-    def fixed_step(self, state, actuation=0.0, fluid=None):
+    def step(self, state, actuation=0.0, dt=None, fluid=None, ahead=False):
         fluid = fluid or self.fluid
-        dt = fluid.scenario.numerics.dt
+        dt = fluid.scenario.numerics.dt if dt is None else dt
         active = [cell for cell in state.cells if cell.in_channel]
         load, located = self.membrane_load(active)
         flow = fluid.step(state.flow, actuation, load if active else None)

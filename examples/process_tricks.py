@@ -8,7 +8,7 @@
   during the run of the README's stream with ``--tolerance 1um``, with the imports frozen and without;
 - the switch interval (``vcyto.cli.SWITCH_INTERVAL_S``): whole-process wall of that stream (its recordings
   included) at 0.2 ms and at Python's default 5 ms;
-- the figure's helper process (``vcyto.painter``): whole-process wall of ``vcyto paper 2`` (with its PNG), the
+- the figure's helper process (``vcyto.studies.painter``): whole-process wall of ``vcyto paper 2`` (with its PNG), the
   figure drawn by the helper and drawn by the command itself.
 
 Each child runs with a warm set-up cache of its own (one untimed run first). Prints the medians and the median of
@@ -78,7 +78,7 @@ PAINTER = """
 import os, sys
 import vcyto.__main__ as entry
 cli = entry.load_command_line()
-import vcyto.painter as painter
+import vcyto.studies.painter as painter
 if {helper}:
     painter.core_idle = lambda: True          # the helper whatever the load
 else:

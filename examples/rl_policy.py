@@ -32,8 +32,8 @@ import gymnasium
 import numpy as np
 
 import vcyto.rl as rl
-from sim.fluid import NumericalBlowUp
-from sim.linalg import SolverError
+from sim.fast.linalg import SolverError
+from sim.method.fluid import NumericalBlowUp
 from vcyto.stream import StreamStopped, run_stream
 
 FLUORESCENCE = rl.EVENT_FIELDS.index("fluorescence")

@@ -19,9 +19,9 @@ import time
 
 from membrane_update_study import distance, path
 
-from sim.feib import ImmersedBoundary
-from sim.health import HealthError, NumericalBlowUp
-from sim.scenario import UM, Scenario
+from sim.method.feib import ImmersedBoundary
+from sim.method.health import HealthError, NumericalBlowUp
+from sim.model.scenario import UM, Scenario
 
 
 def main(arguments):

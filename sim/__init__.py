@@ -5,7 +5,7 @@ plants of ``vcyto.make_plant``): ``reset(arrivals) -> Observation`` with ``arriv
 (time in s, cell type name); ``step(actuation) -> Observation`` advances one control period with the IDT
 drive ``actuation`` (0 or 1); ``observe() -> Observation`` (what the optics see: ``CellView``s);
 ``truth() -> Truth`` (``CellTruth``s: fates, membranes; never shown to the controller); ``done``;
-``control_period`` (s); ``sim.contract`` states it (``Plant`` and its optional capabilities).
+``control_period`` (s); ``sim.plants.contract`` states it (``Plant`` and its optional capabilities).
 ``check_plant(make_plant, arrivals)`` checks a factory of fresh plants against the contract.
 Exports are imported on first use.
 """
@@ -13,10 +13,11 @@ Exports are imported on first use.
 import importlib as _importlib
 
 _EXPORTS = {
-    "Scenario": "sim.scenario", "ScenarioError": "sim.scenario", "Arrivals": "sim.arrivals",
-    "schedule": "sim.arrivals", "Observation": "sim.contract", "CellView": "sim.contract", "Truth": "sim.contract",
-    "CellTruth": "sim.contract", "Plant": "sim.contract", "Schedule": "sim.contract", "check_plant": "sim.contract",
-    "FeibPlant": "sim.plant", "StreamlinePlant": "sim.plant",
+    "Scenario": "sim.model.scenario", "ScenarioError": "sim.model.scenario", "Arrivals": "sim.model.arrivals",
+    "schedule": "sim.model.arrivals", "Observation": "sim.plants.contract", "CellView": "sim.plants.contract",
+    "Truth": "sim.plants.contract", "CellTruth": "sim.plants.contract", "Plant": "sim.plants.contract",
+    "Schedule": "sim.plants.contract", "check_plant": "sim.plants.contract",
+    "FeibPlant": "sim.plants.feib", "StreamlinePlant": "sim.plants.streamline",
 }
 __all__ = list(_EXPORTS)
 

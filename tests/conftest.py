@@ -5,8 +5,8 @@ import tempfile
 
 import pytest
 
-from sim.fluid import NavierStokes
-from sim.scenario import UM, Scenario
+from sim.method.fluid import NavierStokes
+from sim.model.scenario import UM, Scenario
 from vcyto import speedsettings
 
 # the command-line tests' set-up cache goes to a directory of this session, never the user's (vcyto/cache.py)
@@ -35,14 +35,14 @@ def coarse_scenario():
 @pytest.fixture(scope="session")
 def rom_plant(paper_scenario, paper_solver):
     """The rom plant of the paper's device (its flows from the session's paper solver)."""
-    from sim.rom import RomFlows, RomPlant
+    from sim.plants.rom import RomFlows, RomPlant
     return RomPlant(paper_scenario, flows=RomFlows.of(paper_scenario, fluid=paper_solver))
 
 
 @pytest.fixture
 def cache(tmp_path):
     """A set-up cache of its own (``vcyto.cache.DiskCache`` in ``tmp_path``) installed for ``sim`` during the test."""
-    from sim import store
+    from sim.fast import store
     from vcyto.cache import DiskCache
     disk = DiskCache(tmp_path / "cache")
     previous = store.install(disk)

@@ -1,4 +1,4 @@
-"""Time steps chosen by a tolerance (sim/adaptive.py, --tolerance): the level rules, and Scenario I, II and the
+"""Time steps chosen by a tolerance (sim/method/adaptive.py, --tolerance): the level rules, and Scenario I, II and the
 default stream keep their outlets and stay within the tolerance of the dt = 2.5 us reference paths in the same time
 scheme (bdf2; centroid distance at the adaptive run's times, as the tradeoff measures it)."""
 
@@ -9,10 +9,10 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from sim import speed
-from sim.adaptive import LEVELS, LOOK_AHEAD, AdaptiveSteps
-from sim.scenario import UM, Scenario
-from vcyto.paper import paper_scenario, run_paper
+from sim.fast import speed
+from sim.method.adaptive import LEVELS, LOOK_AHEAD, AdaptiveSteps
+from sim.model.scenario import UM, Scenario
+from vcyto.studies.paper import paper_scenario, run_paper
 
 
 def steps_of(scenario):
@@ -20,12 +20,12 @@ def steps_of(scenario):
 
 
 def cell(kind, key, scenario):
-    from sim.feib import new_cell
+    from sim.method.feib import new_cell
     return new_cell(scenario, scenario.cell_type(kind), key, 0.0, warn=False)
 
 
 def test_levels_new_cells_empty_channel_and_the_stability_cap():
-    from sim.steplimit import limit_of
+    from sim.method.steplimit import limit_of
     scenario = Scenario().with_numerics(tolerance=1e-6, time_scheme="euler")   # paper mesh, dt0 2.5 us
     steps = steps_of(scenario)
     state = SimpleNamespace(time=0.0)
@@ -58,8 +58,8 @@ def test_levels_new_cells_empty_channel_and_the_stability_cap():
 def test_a_cell_types_stability_cap_is_a_level_when_it_falls_between_two():
     """The levels are dt0 x 1, 2, 4, 8, 16 and, per cell type, the largest multiple of dt0 within its limit when that
     lies between two of them: the stability limit, not the powers of two, holds a capped cell's steps."""
-    from sim.adaptive import level_multiples
-    from sim.steplimit import limit_of
+    from sim.method.adaptive import level_multiples
+    from sim.method.steplimit import limit_of
     bdf2 = Scenario().with_numerics(tolerance=1e-6)                              # dt0 2.5 us
     melanoma = bdf2.cell_type("melanoma")
     for scenario in (bdf2, bdf2.with_numerics(time_scheme="euler"), bdf2.with_numerics(dt=1e-6),
@@ -85,9 +85,9 @@ def test_next_level_against_the_finest_level():
 def test_the_second_order_scheme_has_its_own_stability_cap():
     """bdf2 has its own measured limits (its force at extrapolated points is less stable than euler's); the cap,
     the coarse level and the failure hint follow the law of the run's scheme."""
-    from sim.adaptive import COARSE_SHARE
-    from sim.health import HealthLimits, membrane_time_step
-    from sim.steplimit import limit_of
+    from sim.method.adaptive import COARSE_SHARE
+    from sim.method.health import HealthLimits, membrane_time_step
+    from sim.method.steplimit import limit_of
     scenario = Scenario().with_numerics(tolerance=1e-6)                  # bdf2
     euler_scenario = scenario.with_numerics(time_scheme="euler")
     melanoma = scenario.cell_type("melanoma")
@@ -114,7 +114,7 @@ def test_the_second_order_scheme_has_its_own_stability_cap():
 
 
 def test_milne_factor_follows_the_steps():
-    from sim.adaptive import _milne
+    from sim.method.adaptive import _milne
     assert _milne(3.0, 0.0, 1.0, 2.0) == pytest.approx(2 / 11)                 # equal steps
     # one level up: the parabola from steps of 1 extrapolated over 2 errs by 4*3*2/6 = 4, BDF2 by 2/9 * 8
     assert _milne(4.0, 0.0, 1.0, 2.0) == pytest.approx((16 / 9) / (4 + 16 / 9))
@@ -128,7 +128,7 @@ def test_a_cell_without_an_estimate_holds_the_level_and_reset_forgets():
     steps = steps_of(scenario)
     estimates = iter([[0.01, None], [0.01, 0.01], [6.0, None]])      # 6 at level 2: level 1 at 6/16 x 3 > 1
     steps._ratio_bdf2 = lambda cell, time: next(current)
-    steps.plant = SimpleNamespace(fixed_step=lambda state, actuation, fluid, ahead=True: state, scenario=scenario)
+    steps.plant = SimpleNamespace(step=lambda state, actuation, dt, fluid, ahead=True: state, scenario=scenario)
     steps.fluid = lambda level: None
     steps._fluids = {}                # no solver: nothing to compute ahead (``_prefetch``)
     cells = [cell("RBC", k, scenario) for k in (1, 2)]
@@ -187,23 +187,23 @@ def test_no_coarse_step_across_a_predicted_redistribution():
 def test_a_coarse_step_that_redistributes_is_retaken_at_the_finest_level():
     """A redistribution the trend did not predict (here: no trend yet, the points spread past the band) happens in a
     step above the finest: that step is dropped and retaken at the finest level, and the summary counts it."""
-    from sim.feib import ImmersedBoundary
+    from sim.method.feib import ImmersedBoundary
     scenario = Scenario().with_numerics(mesh_h=10 * UM / 3, tolerance=1e-6)    # the RBC's spacing inside the band
     plant = ImmersedBoundary(scenario)
     rbc = cell("RBC", 1, scenario)
     spread = replace(rbc, membrane=rbc.membrane.resampled(0.8 * scenario.numerics.mesh_h, minimum_points=4))
     assert spread.membrane.spacing().max() > 0.7 * scenario.numerics.mesh_h      # above the band (0.3-0.7 h)
     state = plant.start(cells=(spread,))
-    steps = plant.adaptive
+    steps = AdaptiveSteps(plant)                           # wraps the plant's step, choosing each dt
     steps._known, steps.level = {1}, 2                     # a known cell at 10 us: no reason to step finer
-    new = plant.step(state, 0.0)
+    new = steps.step(state, 0.0)
     assert new.cells[0].membrane.redistributions == spread.membrane.redistributions + 1
     assert math.isclose(new.time - state.time, steps.levels[0]) and steps.retaken == 1
     assert steps.steps == [1] + [0] * (len(steps.levels) - 1) and steps.summary(new.time)["retaken"] == 1
     steps.reset()                                          # the cell as born (spacing inside the band): no retake
     steps._known, steps.level = {1}, 2
     state = plant.start(cells=(rbc,))
-    new = plant.step(state, 0.0)
+    new = steps.step(state, 0.0)
     assert new.cells[0].membrane.redistributions == rbc.membrane.redistributions and steps.retaken == 0
     assert math.isclose(new.time - state.time, steps.levels[2])
     assert steps.steps == [0, 0, 1] + [0] * (len(steps.levels) - 3)
@@ -213,15 +213,16 @@ def test_an_adaptive_run_computes_ahead_at_the_level_it_will_take(monkeypatch):
     """After each step the next one's momentum integrals start on the helper thread at the level ``choose`` will
     most likely pick (``AdaptiveSteps._prefetch``), not the level just taken: the steps find their own integrals
     computed ahead across level changes, with the same bits as when each step computes them."""
-    from sim.feib import ImmersedBoundary, State, new_cell
-    from sim.fluid import NavierStokes
+    from sim.method.feib import ImmersedBoundary, State, new_cell
+    from sim.method.fluid import NavierStokes
 
     scenario = Scenario().with_numerics(mesh_h=10 * UM / 3, tolerance=1e-6)        # the RBC resolved: levels climb
     plant = ImmersedBoundary(scenario)
+    steps = AdaptiveSteps(plant)
 
     def run(prefetch: bool):
         monkeypatch.setattr(speed, "_settings", replace(speed.current(), prefetch=prefetch))
-        plant.adaptive.reset()                                 # a new run on the same plant (its levels kept)
+        steps.reset()                                          # a new run on the same plant (its levels kept)
         used, original = [], NavierStokes._element_momentum
 
         def counted(solver, state):
@@ -229,14 +230,14 @@ def test_an_adaptive_run_computes_ahead_at_the_level_it_will_take(monkeypatch):
             used.append(pending is not None and pending[0] is state)
             return original(solver, state)
         monkeypatch.setattr(NavierStokes, "_element_momentum", counted)
-        state = plant.step(plant.start(), 0.0)                 # an empty channel: the coarsest level
+        state = steps.step(plant.start(), 0.0)                 # an empty channel: the coarsest level
         rbc = new_cell(scenario, scenario.cell_type("RBC"), 1, state.time, warn=False,
                        centre=np.array([0.4 * scenario.channel.length, 0.5 * scenario.channel.height]))
         state = State(state.flow, (rbc,), state.step)          # a new cell: the finest, then up level by level
         for _ in range(9):
-            state = plant.step(state, 0.0)
+            state = steps.step(state, 0.0)
         monkeypatch.setattr(NavierStokes, "_element_momentum", original)
-        return state, used, plant.adaptive.history
+        return state, used, steps.history
 
     ahead, used, history = run(True)
     here, used_here, history_here = run(False)
@@ -289,7 +290,7 @@ def test_no_adaptive_step_above_the_measured_limit_on_the_fine_mesh():
     """The melanoma in the jet on the 1.67 um mesh with a 1 um tolerance (bdf2, conserving): every step it takes
     lies at or below its measured stability limit there (the step record), where the old cap (3.4 x the paper's
     bound) allowed 7.5 us steps above it."""
-    from sim.steplimit import MEASURED
+    from sim.method.steplimit import MEASURED
     scenario = paper_scenario(2, Scenario().with_membrane("conserving").with_numerics(
         mesh_h=5 * UM / 3, tolerance=1e-6), dt_given=True)
     measured = [m for m in MEASURED if m.cell == "melanoma" and m.scheme == "bdf2" and m.membrane == "conserving"
@@ -319,7 +320,7 @@ class PathSink:
 
 @pytest.mark.slow
 def test_default_stream_within_tolerance():
-    from sim.arrivals import Arrivals
+    from sim.model.arrivals import Arrivals
     from vcyto.stream import StreamSettings, run_stream
     results = []
     for tolerance in (0.0, 1e-6):
@@ -371,9 +372,10 @@ class DriveSink(PathSink):
 def loop_runs():
     """The default stream on a coarse mesh at 1 um: the event-driven plant the loop builds with a tolerance, and
     the same plant stepped one control period at a time (``FeibPlant.step``)."""
-    from sim import contract, plants
-    from sim.arrivals import Arrivals
-    from sim.plant import FeibPlant
+    from sim.model.arrivals import Arrivals
+    from sim.plants import contract
+    from sim.plants import registry as plants
+    from sim.plants.feib import FeibPlant
     from vcyto.stream import StreamSettings, run_stream
     scenario = Scenario().with_numerics(mesh_h=20 * UM / 3, tolerance=1e-6)
     settings = StreamSettings(Arrivals(cells=("RBC", "melanoma")))

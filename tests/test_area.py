@@ -7,10 +7,10 @@ import numpy as np
 import pytest
 from test_feib import aspect_ratio, quiescent, relax, run_to_exit
 
-from sim.feib import ImmersedBoundary, Measures, State
-from sim.fluid import NavierStokes
-from sim.membrane import Membrane
-from sim.scenario import UM, CellType
+from sim.method.feib import ImmersedBoundary, Measures, State
+from sim.method.fluid import NavierStokes
+from sim.method.membrane import Membrane
+from sim.model.scenario import UM, CellType
 
 ELLIPSE = CellType("ellipse", 2.8e-4, 1.2e-16, (10 * UM, 6 * UM))
 

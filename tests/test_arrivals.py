@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from scipy import stats
 
-from sim.arrivals import Arrivals, dead_time_acceptance, offer
+from sim.model.arrivals import Arrivals, dead_time_acceptance, offer
 
 
 def test_admitted_gaps_follow_the_shifted_exponential_and_rejections_the_dead_time_law():

@@ -9,10 +9,10 @@ import sys
 import numpy as np
 import pytest
 
-from sim.auto import AutoPlant
-from sim.plant import FeibPlant
-from sim.scenario import UM, Scenario
-from vcyto.tradeoff import SCENES, TOLERANCE_UM, Scene, compare, run_scene
+from sim.model.scenario import UM, Scenario
+from sim.plants.auto import AutoPlant
+from sim.plants.feib import FeibPlant
+from vcyto.studies.tradeoff import SCENES, TOLERANCE_UM, Scene, compare, run_scene
 
 CLOSE_PAIR = SCENES[2]
 
@@ -40,7 +40,7 @@ def test_a_close_pair_runs_in_feib_while_close_and_is_within_tolerance_where_rom
     assert "within" in auto.switches[1][2] and "no two cells" in auto.switches[2][2]
     assert 0 < auto.feib_steps < auto.steps
     assert result["outlets_agree"] == 2 and result["path_mean_um"] < TOLERANCE_UM
-    from sim.rom import RomPlant
+    from sim.plants.rom import RomPlant
     rom = compare(run_scene(RomPlant(scenario, control_period=20e-6, flows=auto.rom.flows), CLOSE_PAIR), reference)
     assert rom["path_mean_um"] > 2 * result["path_mean_um"]
 
@@ -125,7 +125,8 @@ def test_bench_auto_compares_the_two_models_cell_by_cell(coarse):
     scenario, _, _ = coarse
     result = bench_auto(scenario, count=3, rate=1000.0, seed=1)
     outcomes = result["outcomes"]
-    # cells offered at 1000/s: the inlet's dead time may reject some (sim.arrivals); every admitted one is compared
+    # cells offered at 1000/s: the inlet's dead time may reject some (sim.model.arrivals); every admitted one is
+    # compared
     assert [o["key"] for o in outcomes] == list(range(len(outcomes))) and len(outcomes) >= 2
     assert all(o["auto"] in ("upper", "lower") and o["feib"] in ("upper", "lower") for o in outcomes)
     assert [d["key"] for d in result["outlets_differ"]] == [o["key"] for o in outcomes if o["auto"] != o["feib"]]
@@ -135,7 +136,7 @@ def test_bench_auto_compares_the_two_models_cell_by_cell(coarse):
 
 
 def test_extra_scenes_are_the_close_pair_with_another_gap_or_without_the_melanoma():
-    from vcyto.tradeoff import lone_rbc_scene, pair_scene
+    from vcyto.studies.tradeoff import lone_rbc_scene, pair_scene
     assert pair_scene(0.25e-3).arrivals == CLOSE_PAIR.arrivals and pair_scene(0.25e-3).pulses == CLOSE_PAIR.pulses
     lone = lone_rbc_scene(0.565e-3)
     assert lone.arrivals == ((0.565e-3, "RBC"),) and lone.pulses == CLOSE_PAIR.pulses
@@ -174,8 +175,8 @@ def test_an_interrupted_tradeoff_prints_its_finished_rows_as_partial_and_saves_n
     import os
     import signal
 
-    from vcyto import tradeoff
     from vcyto.cli import main
+    from vcyto.studies import tradeoff
     calls = []
 
     def fake_run(plant, scene):
@@ -204,8 +205,8 @@ def test_an_interrupt_while_tradeoff_saves_waits_for_its_files(monkeypatch, tmp_
     import os
     import signal
 
-    from vcyto import tradeoff
     from vcyto.cli import main
+    from vcyto.studies import tradeoff
     monkeypatch.setattr(tradeoff, "make_plant", lambda scenario, level, flows: None)
     monkeypatch.setattr(tradeoff, "run_scene", lambda plant, scene: {
         "wall_s": 0.5, "cells": {0: {"fate": "lower"}}, "failure": None})

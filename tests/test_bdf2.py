@@ -8,11 +8,12 @@ import sys
 import numpy as np
 import pytest
 
-from sim.feib import ImmersedBoundary
-from sim.fluid import NavierStokes, earlier_at, lagrange_weights, value_back
-from sim.membrane import Membrane
-from sim.openloop import stepping, with_cells
-from sim.scenario import UM, Scenario, ScenarioError
+from sim.method.feib import ImmersedBoundary
+from sim.method.fluid import NavierStokes
+from sim.method.membrane import Membrane
+from sim.method.openloop import stepping, with_cells
+from sim.method.timeschemes import earlier_at, lagrange_weights, value_back
+from sim.model.scenario import UM, Scenario, ScenarioError
 
 
 def final_state(scheme, dt, until=300e-6):
@@ -142,14 +143,14 @@ def test_bad_time_schemes_are_one_line_errors(arguments, message):
 
 
 def test_the_tradeoff_ladder_names_the_time_scheme():
-    from vcyto.tradeoff import LADDER, Level, tradeoff
+    from vcyto.studies.tradeoff import LADDER, Level, tradeoff
     assert Level("feib", 10 * UM / 3, 2.5e-6, tolerance=1e-6).label.endswith("tolerance=1um bdf2")
     assert Level("feib", 10 * UM / 3, 2.5e-6).label == "feib h=3.33um dt=2.5us"           # auto, fixed: euler
     assert [level.label for level in LADDER].count("feib h=3.33um dt=10us bdf2") == 1
     # --time-scheme given: every feib level whose own scheme is auto takes it, and says so
     result = tradeoff(Scenario().with_numerics(time_scheme="bdf2"), ladder=LADDER[:2], scenes=())
     assert result["reference"] == "feib h=3.33um dt=2.5us bdf2" and result["rows"] == []
-    from vcyto.tradeoff import resolved_ladder
+    from vcyto.studies.tradeoff import resolved_ladder
     labels = [level.label for level in resolved_ladder(Scenario().with_numerics(time_scheme="bdf2"), LADDER)]
     assert len(labels) == len(set(labels)) == len(LADDER) - 2       # the two bdf2 levels are now duplicates
     oseen = resolved_ladder(Scenario().with_numerics(convection="oseen"), LADDER)

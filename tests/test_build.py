@@ -1,6 +1,6 @@
-"""The README's install builds the compiled substitution kernels (sim/_substitute.c) and step kernels (sim/_kernels.c),
-optional extensions, wherever it can: a check kept apart from tests/test_supernodal.py and tests/test_c_kernels.py,
-whose tests are skipped without them."""
+"""The README's install builds the compiled substitution kernels (sim/fast/_substitute.c) and step kernels
+(sim/fast/_kernels.c), optional extensions, wherever it can: a check kept apart from tests/test_supernodal.py and
+tests/test_c_kernels.py, whose tests are skipped without them."""
 
 import platform
 import shutil
@@ -10,7 +10,7 @@ from pathlib import Path
 
 import pytest
 
-from sim import kernels, supernodal
+from sim.fast import kernels, supernodal
 
 
 def test_the_kernels_were_built_where_a_compiler_is():
@@ -20,4 +20,4 @@ def test_the_kernels_were_built_where_a_compiler_is():
             or not headers.is_file():
         pytest.skip("the check is for Linux x86_64 with a C compiler and Python's headers")
     assert supernodal.available()
-    assert kernels.compiled(), "sim._kernels was not built (or VCYTO_C_KERNELS=0 is set)"
+    assert kernels.compiled(), "sim.fast._kernels was not built (or VCYTO_C_KERNELS=0 is set)"

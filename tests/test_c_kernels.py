@@ -1,7 +1,7 @@
-"""The FE-IB step's compiled C kernels (sim/_kernels.c, called through sim.kernels) against numba's
-(sim/kernels_numba.py, the reference, itself tested against scikit-fem in tests/test_kernels.py): the same bits where
-numba's kernel is exact, round-off for the momentum kernel (numba's is compiled with fastmath); arrays the C kernels
-do not take go to numba's; and a warm FE-IB run does not import numba at all."""
+"""The FE-IB step's compiled C kernels (sim/fast/_kernels.c, called through sim.fast.kernels) against numba's
+(sim/fast/kernels_numba.py, the reference, itself tested against scikit-fem in tests/test_kernels.py): the same bits
+where numba's kernel is exact, round-off for the momentum kernel (numba's is compiled with fastmath); arrays the C
+kernels do not take go to numba's; and a warm FE-IB run does not import numba at all."""
 
 import math
 import os
@@ -15,24 +15,24 @@ import scipy.sparse as sp
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from sim import kernels
-from sim.mesh import channel_mesh
-from sim.scenario import UM, Scenario
-from sim.taylorhood import TaylorHood
-from sim.transfer import PointLocator
+from sim.fast import kernels
+from sim.method.taylorhood import TaylorHood
+from sim.method.transfer import PointLocator
+from sim.model.mesh import channel_mesh
+from sim.model.scenario import UM, Scenario
 
 pytestmark = pytest.mark.skipif(not kernels.compiled(), reason="vcyto was installed without its compiled step kernels")
-numba_kernels = pytest.importorskip("sim.kernels_numba")
+numba_kernels = pytest.importorskip("sim.fast.kernels_numba")
 C = kernels._LIBRARY
 
 
 @pytest.fixture(autouse=True)
 def c_only(request, monkeypatch):
-    """The comparisons compute with the C kernels, never numba's in their place: ``sim.kernels`` may not fall back
+    """The comparisons compute with the C kernels, never numba's in their place: ``sim.fast.kernels`` may not fall back
     (tests that are about the fallback are marked ``fallback``)."""
     if "fallback" not in request.keywords:
         def refused():
-            raise AssertionError("sim.kernels fell back to numba's kernel")
+            raise AssertionError("sim.fast.kernels fell back to numba's kernel")
         monkeypatch.setattr(kernels, "_numba", refused)
 
 
@@ -272,7 +272,7 @@ def test_inconsistent_sizes_and_indices_are_refused_with_the_kernels_name(space)
 def test_the_implementation_names_the_source_and_the_switch_uses_numbas():
     assert kernels.implementation() == "c-" + "_".join(C.source().split()) and len(C.source().split()[0]) == 64
     program = ("from vcyto import speedsettings; speedsettings.install(); "
-               "from sim import kernels; print(kernels.compiled(), kernels.implementation()[:6])")
+               "from sim.fast import kernels; print(kernels.compiled(), kernels.implementation()[:6])")
     done = subprocess.run([sys.executable, "-c", program], capture_output=True, text=True, timeout=120,
                           env={**os.environ, "VCYTO_C_KERNELS": "0"})
     assert done.returncode == 0, done.stderr

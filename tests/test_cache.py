@@ -1,4 +1,4 @@
-"""The set-up cache (vcyto/cache.py + sim/store.py): a cached start equals a cold one, a changed field misses,
+"""The set-up cache (vcyto/cache.py + sim/fast/store.py): a cached start equals a cold one, a changed field misses,
 a corrupted entry is rebuilt, concurrent writers leave a valid entry. Every test uses its own directory."""
 
 import dataclasses
@@ -9,9 +9,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from sim import store
-from sim.fluid import NavierStokes
-from sim.scenario import UM, Scenario
+from sim.fast import store
+from sim.method.fluid import NavierStokes
+from sim.model.scenario import UM, Scenario
 from vcyto.cache import DiskCache, clear, usage
 
 
@@ -49,14 +49,14 @@ def test_a_changed_scenario_field_misses(cache):
 
 
 def test_changed_solver_code_misses_and_a_module_digest_is_stable_across_processes(cache, monkeypatch):
-    """A stored flow names the code that computed it (``sim.fluid.solver_code_digest``): a changed kernel or
+    """A stored flow names the code that computed it (``sim.method.fluid.solver_code_digest``): a changed kernel or
     solver, whose bits differ, misses instead of giving a warm run a cold run's old bits (found by a reviewer:
     a cache written before the round-6 kernel was reused); the digest is the same in another process (string
     hashing differs between processes)."""
     import subprocess
     import sys
 
-    import sim.fluid as fluid_module
+    import sim.method.fluid as fluid_module
     NavierStokes(scenario()).steady(0.0)
     misses = cache.misses
     NavierStokes(scenario()).steady(0.0)
@@ -65,8 +65,9 @@ def test_changed_solver_code_misses_and_a_module_digest_is_stable_across_process
     NavierStokes(scenario()).steady(0.0)
     assert cache.misses == misses + 1
     monkeypatch.undo()
-    script = ("import sim.fluid, sim.store\ndef f(x):\n    return x in {'alpha', 'beta', 'gamma', 'delta'}\n"
-              "print(sim.fluid.solver_code_digest(), sim.store.code_digest(f))")
+    script = ("import sim.method.fluid, sim.fast.store\n"
+              "def f(x):\n    return x in {'alpha', 'beta', 'gamma', 'delta'}\n"
+              "print(sim.method.fluid.solver_code_digest(), sim.fast.store.code_digest(f))")
     digests = {subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, check=True,
                               env={**os.environ, "PYTHONHASHSEED": seed},
                               cwd=Path(__file__).resolve().parents[1]).stdout.strip() for seed in ("1", "2", "3")}
@@ -165,8 +166,8 @@ def test_cache_command_reports_and_clears_the_configured_directory(tmp_path):
 
 
 def test_constant_matrices_come_from_the_cache_bit_for_bit(cache):
-    from sim.mesh import channel_mesh
-    from sim.taylorhood import TaylorHood
+    from sim.method.taylorhood import TaylorHood
+    from sim.model.mesh import channel_mesh
     base = scenario()
     store.install(None)
     cold = TaylorHood(channel_mesh(base.channel, base.numerics.mesh_h))
@@ -235,11 +236,11 @@ def test_an_unwritable_cache_says_so_once_and_the_run_goes_on(tmp_path, caplog):
 
 
 def test_an_array_digest_hashes_dtype_shape_and_bytes_without_copying_them():
-    """``sim.store.digest`` (the key part of a matrix, a cut, a mesh) is the SHA-256 of each array's dtype, shape and
-    C-order bytes: the same for a strided view as for its copy, different when only the shape or dtype differs."""
+    """``sim.fast.store.digest`` (the key part of a matrix, a cut, a mesh) is the SHA-256 of each array's dtype, shape
+    and C-order bytes: the same for a strided view as for its copy, different when only the shape or dtype differs."""
     import hashlib
 
-    from sim.store import digest
+    from sim.fast.store import digest
 
     arrays = [np.arange(12.0).reshape(3, 4).T, np.zeros(0, np.int32), np.array([True, False]), np.array(3.0)]
     expected = hashlib.sha256()

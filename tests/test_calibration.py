@@ -1,6 +1,6 @@
 import pytest
 
-from sim.calibration import calibrate_streaming_force
+from sim.method.calibration import calibrate_streaming_force
 
 
 @pytest.mark.slow

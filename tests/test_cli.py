@@ -72,7 +72,7 @@ def test_bench_fluid_reports_every_treatment_and_the_ratio():
         assert "M factor entries" in report["default_solver"] and "M factor entries" in report["fastest_backsolve"]
     if "SplitPardiso" in report["default_solver"]:     # the matched halves beside the default
         assert report["matched_backsolve_ms"] > 0 and report["backsolve_over_matched"] > 0
-    from sim.supernodal import available
+    from sim.fast.supernodal import available
     if "SplitPardiso" in report["default_solver"] and available():   # our own substitutions against PARDISO's
         assert "our own compiled substitutions" in report["default_solver"]
         assert "our own" not in report["pardiso_substitutions_backsolve"]
@@ -177,7 +177,7 @@ def test_hints_name_commands_as_they_can_be_typed(monkeypatch, tmp_path):
     import os
     from pathlib import Path
 
-    from vcyto import runfiles
+    from vcyto.recording import runfiles
     script = Path(sys.executable).parent / "vcyto"
     assert script.is_file()
     monkeypatch.chdir(tmp_path)

@@ -6,7 +6,7 @@ from dataclasses import replace
 
 import pytest
 
-from sim.scenario import Inlet, Outlet, Scenario, ScenarioError
+from sim.model.scenario import Inlet, Outlet, Scenario, ScenarioError
 from vcyto.config import load_scenario, scenario_to_toml
 
 if sys.version_info >= (3, 11):

@@ -1,4 +1,4 @@
-"""The plant contract (``sim.contract``): its check catches what it should, and every plant passes it."""
+"""The plant contract (``sim.plants.contract``): its check catches what it should, and every plant passes it."""
 
 import random
 import subprocess
@@ -6,8 +6,9 @@ import sys
 
 import pytest
 
-from sim import plants
-from sim.contract import (
+from sim.model.scenario import UM, Scenario
+from sim.plants import registry as plants
+from sim.plants.contract import (
     CellTruth,
     CellView,
     HasDiagnostics,
@@ -19,8 +20,7 @@ from sim.contract import (
     Truth,
     check_plant,
 )
-from sim.plants import CALIBRATION_MODELS, MODELS
-from sim.scenario import UM, Scenario
+from sim.plants.registry import CALIBRATION_MODELS, MODELS
 
 ARRIVALS = [(0.0, "RBC"), (30e-6, "melanoma")]
 
@@ -81,9 +81,9 @@ def test_check_plant_flags_a_plant_that_loses_a_cell():
     assert len(problems) == 1 and problems[0].startswith("cells not conserved")
 
 
-PLANT_CLASSES = {"feib": ("sim.plant", "FeibPlant"), "streamline": ("sim.plant", "StreamlinePlant"),
-                 "rom": ("sim.rom", "RomPlant"), "oneway": ("sim.oneway", "OneWayPlant"),
-                 "auto": ("sim.auto", "AutoPlant")}
+PLANT_CLASSES = {"feib": ("sim.plants.feib", "FeibPlant"), "streamline": ("sim.plants.streamline", "StreamlinePlant"),
+                 "rom": ("sim.plants.rom", "RomPlant"), "oneway": ("sim.plants.oneway", "OneWayPlant"),
+                 "auto": ("sim.plants.auto", "AutoPlant")}
 
 
 @pytest.mark.parametrize("model", MODELS)
@@ -99,11 +99,11 @@ def test_reset_takes_the_arrivals_and_no_seed(model):
 
 
 def test_the_contract_and_the_controller_load_no_numerics_library_and_no_other_part_of_sim():
-    code = ("import sim.contract, controller.detector, controller.sorter, controller.events, sys; "
+    code = ("import sim.plants.contract, controller.detector, controller.sorter, controller.events, sys; "
             "print('skfem' in sys.modules, 'numba' in sys.modules, "
             "sorted(m for m in sys.modules if m == 'sim' or m.startswith('sim.')))")
     output = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
-    assert output.strip().split(maxsplit=2) == ["False", "False", "['sim', 'sim.contract']"]
+    assert output.strip().split(maxsplit=2) == ["False", "False", "['sim', 'sim.plants', 'sim.plants.contract']"]
 
 
 def test_the_controller_sighting_is_the_contract_cell_view():
@@ -114,8 +114,8 @@ def test_the_controller_sighting_is_the_contract_cell_view():
 @pytest.fixture(scope="module")
 def coarse():
     """The paper's device on a 5 um mesh with dt = 10 us, its fluid solver and its gridded steady flows."""
-    from sim.fluid import NavierStokes
-    from sim.rom import RomFlows
+    from sim.method.fluid import NavierStokes
+    from sim.plants.rom import RomFlows
     scenario = Scenario().with_numerics(mesh_h=5 * UM, dt=10e-6)
     fluid = NavierStokes(scenario)
     return scenario, fluid, RomFlows.of(scenario, spacing=2 * UM, fluid=fluid)
@@ -125,7 +125,7 @@ def _registry_options(model, coarse):
     """Constructor options that keep each registry entry cheap on the coarse device (shared flows)."""
     scenario, fluid, flows = coarse
     if model == "streamline":
-        from sim.fluid import NavierStokes
+        from sim.method.fluid import NavierStokes
         return {"fluid": NavierStokes(scenario.with_numerics(convection="stokes"))}
     if model in ("rom", "oneway"):
         return {"flows": flows}

@@ -9,7 +9,7 @@ import sys
 import pytest
 
 from controller.sorter import ControllerSettings
-from sim.scenario import ScenarioError
+from sim.model.scenario import ScenarioError
 from vcyto.controllerfile import controller_toml, load_controller
 
 
@@ -49,8 +49,8 @@ def test_stream_runs_with_the_file_calibrate_wrote(tmp_path):
 def test_an_interrupted_calibration_reports_what_it_measured_and_saves_nothing(monkeypatch, tmp_path, capsys):
     """Ctrl-C in the pulse search: the delay and the pulses tried so far are printed, marked PARTIAL; exit 130;
     no controller file (it needs every measurement)."""
-    from vcyto import calibrate
     from vcyto.cli import main
+    from vcyto.studies import calibrate
 
     def fake_search(plant, scenario, detector, delay, grid, required, progress=None, tried=None):
         tried.append(calibrate.PulseBand(0.02e-3, None))

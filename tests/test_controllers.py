@@ -14,7 +14,7 @@ import pytest
 from controller.events import TYPE_II, Decision, DetectorEvent
 from controller.protocol import ControllerError, DeviceFacts, PulseSchedule, check_answer
 from controller.sorter import ControllerSettings, SortController
-from sim.arrivals import Arrivals
+from sim.model.arrivals import Arrivals
 from vcyto.control import Timing
 from vcyto.stream import StreamSettings, StreamStopped, run_stream
 from vcyto.testing import SortRun, assert_outlets, assert_purity, assert_targets_sorted
@@ -189,7 +189,7 @@ def test_a_controller_of_ones_own_file_sorts_on_feib(tmp_path):
 
 def test_a_plant_of_ones_own_runs_and_the_summary_names_it(tmp_path):
     (tmp_path / "myplant.py").write_text(textwrap.dedent("""
-        from sim.rom import RomPlant
+        from sim.plants.rom import RomPlant
 
         class Mine(RomPlant):
             name = "my-plant"
@@ -253,7 +253,7 @@ def test_the_users_example_test_of_their_controller_passes_through_the_plugin():
 
 
 def test_the_python_api_uses_the_set_up_cache_by_default(tmp_path):
-    code = ("import vcyto, sim.store as s; from sim.arrivals import Arrivals; "
+    code = ("import vcyto, sim.fast.store as s; from sim.model.arrivals import Arrivals; "
             "vcyto.make_plant(vcyto.Scenario(), vcyto.StreamSettings(Arrivals(cells=('RBC',)), model='streamline'));"
             " print(type(s.installed()).__name__)")
     env = {**__import__("os").environ, "VCYTO_CACHE_DIR": str(tmp_path)}

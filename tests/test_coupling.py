@@ -6,10 +6,10 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from sim.coupling import Mobility, force_operator
-from sim.feib import ImmersedBoundary, State
-from sim.fluid import NavierStokes
-from sim.scenario import UM, Scenario, ScenarioError
+from sim.method.coupling import Mobility, force_operator
+from sim.method.feib import ImmersedBoundary, State
+from sim.method.fluid import NavierStokes
+from sim.model.scenario import UM, Scenario, ScenarioError
 
 COARSE = 20 * UM / 3
 
@@ -107,7 +107,7 @@ def test_the_implicit_coupling_needs_a_linear_fluid_step():
 def test_a_stiff_cell_is_stable_implicitly_at_a_step_the_explicit_coupling_does_not_survive():
     """The 16x stiffer melanoma on the 6.67 um mesh in its scenario's flow (``sim.stability``'s trial over 1 ms against
     a 4 us reference): explicitly unstable at 50 us (its measured limit is 24 us), implicitly stable at 100 us."""
-    from sim.stability import actuation_for, reference_energy, trial
+    from sim.method.stability import actuation_for, reference_energy, trial
     scenario = _stiff(Scenario().with_numerics(mesh_h=COARSE))
     melanoma = scenario.cell_type("melanoma")
     start = NavierStokes(scenario).steady(actuation_for(melanoma))
@@ -123,9 +123,9 @@ def test_scenario_two_on_the_fine_mesh_at_a_step_the_explicit_coupling_does_not_
     """The melanoma on the 1.67 um mesh (the paper's method, as `vcyto paper 2`): implicitly at 25 us (the explicit
     coupling's limit there is ~6 us: at 25 us it fails) to the upper outlet, its path within 1 um of the explicit
     2.5 us run's at the same abscissa, and its exit ordinate too."""
-    from sim.fluid import NumericalBlowUp
+    from sim.method.fluid import NumericalBlowUp
     from vcyto.bench.coupling import lateral_distance
-    from vcyto.paper import run_paper
+    from vcyto.studies.paper import run_paper
     base = Scenario().with_membrane("paper").with_numerics(mesh_h=5 * UM / 3)
     reference = run_paper(2, base.with_numerics(dt=2.5e-6))
     implicit = run_paper(2, base.with_numerics(dt=25e-6, membrane_coupling="implicit"))
@@ -137,8 +137,8 @@ def test_scenario_two_on_the_fine_mesh_at_a_step_the_explicit_coupling_does_not_
 
 
 def test_the_coupling_is_named_where_it_runs_and_caps_the_tolerances_steps_at_its_own_limit():
-    from sim.steplimit import LARGEST_TRIED, implicit_limit, limit_of
-    from vcyto.tradeoff import LADDER, resolved_ladder
+    from sim.method.steplimit import LARGEST_TRIED, implicit_limit, limit_of
+    from vcyto.studies.tradeoff import LADDER, resolved_ladder
     scenario = Scenario().with_numerics(mesh_h=5 * UM / 3)
     melanoma = scenario.cell_type("melanoma")
     assert limit_of(melanoma, scenario) < 10e-6

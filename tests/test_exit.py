@@ -131,7 +131,7 @@ def test_a_failed_paper_run_leaves_no_empty_png(tmp_path):
 def test_a_figure_is_saved_whole_or_not_at_all(tmp_path):
     """``figures.save_figure`` draws into a temporary file and moves it in place: a save that fails half-way
     leaves neither a truncated PNG nor the temporary file."""
-    from vcyto.figures import pyplot, save_figure
+    from vcyto.studies.figures import pyplot, save_figure
     plt = pyplot()
     figure, axis = plt.subplots()
     axis.plot([0, 1], [0, 1])
@@ -174,7 +174,7 @@ def test_an_interrupted_paper_run_says_where_and_leaves_no_png(tmp_path):
 def test_a_signal_while_a_run_creates_its_files_is_deferred_not_lost():
     """``runfiles.interrupts_deferred``: SIGINT/SIGTERM inside the block raise nothing there (a recorder's header
     is never cut in half), are noted as pending with their name, and the handlers are restored after."""
-    from vcyto.runfiles import interrupts_deferred
+    from vcyto.recording.runfiles import interrupts_deferred
     before = signal.getsignal(signal.SIGINT)
     seen = {}
     with interrupts_deferred(seen) as block:
@@ -215,7 +215,7 @@ def test_a_write_that_fails_half_way_keeps_the_old_contents_and_names_the_file(t
 def test_a_signal_the_process_was_told_to_ignore_stays_ignored():
     """A script's `vcyto ... &` starts with SIGINT ignored: the command's handlers leave it so (as every program
     does there) and still turn SIGTERM into an interrupt."""
-    from vcyto import runfiles
+    from vcyto.recording import runfiles
     previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
     seen: dict = {}
     try:
@@ -236,8 +236,8 @@ def test_a_signal_the_process_was_told_to_ignore_stays_ignored():
 
 STEPPED_SCRIPT = textwrap.dedent("""
     import sys, threading
-    from sim.fluid import NavierStokes
-    from sim.scenario import UM, Scenario
+    from sim.method.fluid import NavierStokes
+    from sim.model.scenario import UM, Scenario
     from vcyto.cli import exit_now
 
     LEFT_OPEN = open(sys.argv[1], "w")
@@ -389,7 +389,7 @@ def test_a_run_killed_with_sigkill_leaves_its_summary_and_events_readable_up_to_
     """SIGKILL once a checkpoint holds events: the summary parses, says "running" and partial and how far the run
     got (never complete); the FCS file reads with flowio, says "running" and holds the first events of the whole
     run (the same seed run to its end), in time order; the gate is written."""
-    from vcyto.fcs import read_fcs
+    from vcyto.recording.fcs import read_fcs
     killed, whole = tmp_path / "killed", tmp_path / "whole"
     killed.mkdir()
     process = subprocess.Popen([sys.executable, "-m", "vcyto", *KILLED_STREAM, "--output", str(killed)],

@@ -9,11 +9,11 @@ import logging
 import numpy as np
 import pytest
 
-from sim.feib import Cell, ImmersedBoundary
-from sim.health import HealthError, HealthLimits, check_cells, membrane_time_step, under_resolved
-from sim.membrane import Membrane
-from sim.scenario import UM, Scenario, ScenarioError
-from vcyto import extremes
+from sim.method.feib import Cell, ImmersedBoundary
+from sim.method.health import HealthError, HealthLimits, check_cells, membrane_time_step, under_resolved
+from sim.method.membrane import Membrane
+from sim.model.scenario import UM, Scenario, ScenarioError
+from vcyto.studies import extremes
 
 
 def run(name):
@@ -31,9 +31,9 @@ def test_dt_four_times_the_limit_is_stopped_with_a_smaller_dt_to_try():
     row = run("a2")
     assert row["passed"] and not row["ran"]
     # the dt suggested is the melanoma's limit on this mesh by the stability law, at or below its measured limits
-    from sim.scenario import Scenario
-    from sim.steplimit import MEASURED, limit_of
-    from vcyto.extremes import PAPER_H
+    from sim.method.steplimit import MEASURED, limit_of
+    from sim.model.scenario import Scenario
+    from vcyto.studies.extremes import PAPER_H
     scenario = Scenario().with_numerics(mesh_h=PAPER_H)
     suggested = limit_of(scenario.cell_type("melanoma"), scenario)
     melanoma = scenario.cell_type("melanoma")
@@ -128,7 +128,7 @@ def test_under_resolution_is_named_at_cell_creation(caplog):
     rbc = Scenario().cell_type("RBC")
     assert under_resolved(rbc, 3.75 * UM) is None and "fewer than two mesh cells" in under_resolved(rbc, 4 * UM)
     plant = ImmersedBoundary(Scenario().with_numerics(mesh_h=10 * UM))
-    with caplog.at_level(logging.WARNING, logger="sim.feib"):
+    with caplog.at_level(logging.WARNING, logger="sim.method.feib"):
         plant.new_cell(rbc, 4, 0.0)
     assert "cell 4: RBC is resolved by fewer than two mesh cells (diameter 7.5 um, h = 10 um)" in caplog.text
 
@@ -141,7 +141,7 @@ def test_max_stretch_is_validated():
 
 def test_an_interrupt_keeps_the_cases_already_finished(monkeypatch):
     """Ctrl-C during a case: the cases finished before it are returned (and printed as a partial table)."""
-    from vcyto import extremes
+    from vcyto.studies import extremes
     calls = []
 
     def fake(case, base, fast):
@@ -157,9 +157,9 @@ def test_an_interrupt_keeps_the_cases_already_finished(monkeypatch):
 
 
 def test_an_interrupted_stability_map_keeps_its_finished_rows(monkeypatch):
-    from sim.scenario import Scenario
-    from sim.stability import StabilityResult
-    from vcyto import stabilitymap
+    from sim.method.stability import StabilityResult
+    from sim.model.scenario import Scenario
+    from vcyto.studies import stabilitymap
     calls = []
 
     class Quiet:

@@ -1,4 +1,4 @@
-"""PARDISO factorisations kept in the set-up cache (sim.linalg.Pardiso(kept=True), vcyto.cache's directories): a
+"""PARDISO factorisations kept in the set-up cache (sim.fast.linalg.Pardiso(kept=True), vcyto.cache's directories): a
 restored factor solves to the bits of a fresh one, in this process and in another; a changed matrix misses; a
 damaged file is detected and the entry rebuilt; clear and usage see the directories; an unwritable cache warns
 once and the factorisation goes on."""
@@ -14,8 +14,8 @@ import numpy as np
 import pytest
 import scipy.sparse as sp
 
-from sim import speed, store
-from sim.linalg import Pardiso, pardiso_available
+from sim.fast import speed, store
+from sim.fast.linalg import Pardiso, pardiso_available
 from vcyto.cache import DiskCache, clear, usage
 
 pytestmark = pytest.mark.skipif(not pardiso_available(), reason="MKL PARDISO is not installed")
@@ -93,8 +93,8 @@ _CHILD = """
 import hashlib, json, sys
 import numpy as np
 sys.path.insert(0, {tests!r})
-from sim import store
-from sim.linalg import Pardiso
+from sim.fast import store
+from sim.fast.linalg import Pardiso
 from test_factor_cache import saddle_matrix
 from vcyto.cache import DiskCache
 store.install(DiskCache({directory!r}))
@@ -142,10 +142,10 @@ def test_the_split_solve_restores_both_halves_to_the_same_bits(cache, own, monke
     """The fluid's default solver (two halves factored on two threads) on a mesh large enough for the split, with our
     own substitutions and with PARDISO's: a second set-up restores both halves, and its back-solves give the bits of a
     set-up without a cache."""
-    from sim.fluid import NavierStokes
-    from sim.scenario import UM, Scenario
-    from sim.splitsolve import SplitPardiso
-    from sim.supernodal import SupernodalLDL, available
+    from sim.fast.splitsolve import SplitPardiso
+    from sim.fast.supernodal import SupernodalLDL, available
+    from sim.method.fluid import NavierStokes
+    from sim.model.scenario import UM, Scenario
     if own == "1" and not available():
         pytest.skip("vcyto was installed without its compiled substitution kernels")
     monkeypatch.setattr(speed, "_settings", replace(speed.current(), own_substitutions=own == "1"))
@@ -163,8 +163,8 @@ def test_the_split_solve_restores_both_halves_to_the_same_bits(cache, own, monke
 
 
 def test_bench_fluid_measures_the_kept_factorisation():
-    from sim.fluid import NavierStokes
-    from sim.scenario import UM, Scenario
+    from sim.method.fluid import NavierStokes
+    from sim.model.scenario import UM, Scenario
     from vcyto.bench.fluid import _kept_factorisation
     scenario = Scenario().with_numerics(mesh_h=5 * UM)
     previous = store.install(None)

@@ -8,11 +8,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from sim.arrivals import Arrivals
-from sim.scenario import Scenario
+from sim.model.arrivals import Arrivals
+from sim.model.scenario import Scenario
 from vcyto import __version__
-from vcyto.fcs import CHANNELS, write_fcs
-from vcyto.gatingml import GATE_IDS, write_gatingml
+from vcyto.recording.fcs import CHANNELS, write_fcs
+from vcyto.recording.gatingml import GATE_IDS, write_gatingml
 from vcyto.stream import StreamSettings, run_stream
 
 USAGE = Path(__file__).resolve().parent.parent / "docs" / "usage.md"
@@ -74,7 +74,7 @@ def test_scatter_is_scatter_and_fluorescence_is_the_detectors_value(exported):
 def test_fcs_time_ticks_are_exact_over_ten_thousand_seconds(tmp_path):
     """Detection times up to 10^4 s come back from the file within half a tick (0.05 us), where float32
     milliseconds lose ~0.5 ms; FlowKit reads the same times (ticks x $TIMESTEP)."""
-    from vcyto.fcs import TIMESTEP, read_fcs
+    from vcyto.recording.fcs import TIMESTEP, read_fcs
     rng = np.random.default_rng(1)
     times_s = np.sort(np.concatenate([[1e4 - 1.234567e-6, 9999.9999999], rng.uniform(0, 1e4, 200)]))
     cells = [{"detected_class": "I", "detection_time_ms": t * 1e3, "fluorescence": 0.1, "scatter": 80.0,

@@ -6,10 +6,10 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from sim.feib import Cell, ImmersedBoundary, State, new_cell
-from sim.health import HealthError
-from sim.membrane import Membrane
-from sim.scenario import UM, CellType, Scenario
+from sim.method.feib import Cell, ImmersedBoundary, State, new_cell
+from sim.method.health import HealthError
+from sim.method.membrane import Membrane
+from sim.model.scenario import UM, CellType, Scenario
 
 
 def quiescent(h, dt, convection="stokes", membrane="paper"):
@@ -112,8 +112,8 @@ def test_a_step_far_beyond_the_stable_dt_is_stopped_with_a_diagnosis():
     assert error.cell_id == 7 and error.step >= 1
     assert "cell 7 at step" in str(error) and "try dt =" in str(error)
     # the dt to try is one that runs: the melanoma's limit on this mesh by the stability law fitted to measured
-    # limits (sim.steplimit), not a quarter of 1 ms
-    from sim.steplimit import limit_of
+    # limits (sim.method.steplimit), not a quarter of 1 ms
+    from sim.method.steplimit import limit_of
     suggested = limit_of(scenario.cell_type("melanoma"), scenario)
     assert f"try dt = {suggested * 1e6:.4g} us" in error.hint and suggested < 1e-3 / 4
     runs = scenario.with_numerics(dt=suggested)
@@ -127,7 +127,7 @@ def test_a_step_far_beyond_the_stable_dt_is_stopped_with_a_diagnosis():
 def test_a_torn_membrane_at_a_far_too_large_dt_blames_dt_first():
     """A tear at a dt far above the stable one names the smaller dt first, the inflow (Remark 2.4) second; at a
     dt well below the membrane's explicit limit it names only the inflow."""
-    from sim.health import HealthLimits, check_cell
+    from sim.method.health import HealthLimits, check_cell
     melanoma = Scenario().cell_type("melanoma")
     for dt, first in ((1e-3, "the time step dt = 1 ms"), (1e-8, "the flow is too fast")):
         scenario = Scenario().with_numerics(dt=dt)
@@ -171,6 +171,6 @@ def test_paper_scenario_2_melanoma_leaves_by_the_upper_outlet(paper_scenario):
 @pytest.mark.slow
 def test_measured_stable_dt_of_the_melanoma_brackets_the_papers_step(paper_scenario):
     """The melanoma's stability limit at the paper's mesh (about 40 us) lies above the paper's 25 us."""
-    from sim.stability import stable_dt
+    from sim.method.stability import stable_dt
     result = stable_dt(paper_scenario, paper_scenario.cell_type("melanoma"))
     assert 25e-6 <= result.stable_dt < result.unstable_dt < 100e-6

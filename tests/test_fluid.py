@@ -6,10 +6,10 @@ import numpy as np
 import pytest
 from skfem import Basis, ElementTriP1, ElementTriP2, FacetBasis, Functional, LinearForm, asm
 
-from sim import speed
-from sim.boundary import inlet_flux
-from sim.fluid import NavierStokes
-from sim.scenario import UM, Channel, Inlet, Outlet, Scenario
+from sim.fast import speed
+from sim.method.fluid import NavierStokes
+from sim.model.boundary import inlet_flux
+from sim.model.scenario import UM, Channel, Inlet, Outlet, Scenario
 
 # ---------------------------------------------------------------- manufactured solution
 # stream function psi = A sin(a x) sin(b y): u = psi_y, v = -psi_x (divergence free), p = P0 cos(a x) cos(b y)
@@ -207,10 +207,10 @@ def test_implicit_treatment_solves_its_nonlinear_system(transients):
 
 @pytest.mark.parametrize("numerics", [{"dt": 2.5e-6}, {"dt": 20e-6, "time_scheme": "bdf2"}, {"dt": 1e-3}])
 def test_the_gathered_constant_matrix_is_the_block_assembly_bit_for_bit(numerics):
-    """The constant treatments' matrix of a step (``sim.fluid._Structure``: gathered from the positions of its
-    entries, as every --tolerance level builds its own) has the block assembly's entries, order and bits, so its
+    """The constant treatments' matrix of a step (``sim.fast.gathered.GatheredMatrix``: gathered from the positions of
+    its entries, as every --tolerance level builds its own) has the block assembly's entries, order and bits, so its
     factorisation, its kept entry in the cache and every solve are the same; the pressure scale too."""
-    from sim.fluid import _structure
+    from sim.method.fluid import _structure
     fluid = NavierStokes(Scenario().with_numerics(mesh_h=20 * UM / 3, **numerics))
     a = fluid.mass_coefficient * fluid.space.mass + fluid.stiffness
     assembled = fluid._assembled(a, a)
@@ -287,8 +287,8 @@ def test_the_helper_finishes_its_tasks_when_stopped_and_then_refuses_new_ones():
     import threading
     import time
 
-    from sim.fluid import _Helper
-    helper = _Helper()
+    from sim.fast.helper import Helper
+    helper = Helper()
     started = threading.Event()
     slow = helper.submit(lambda: (started.set(), time.sleep(0.2), "done")[2])
     started.wait(5)

@@ -5,10 +5,10 @@ import math
 import numpy as np
 import pytest
 
-from sim.drive import lag_decay, lagged
-from sim.feib import new_cell
-from sim.geometry import MESH_INSET, clip_to_channel, injection_point, injection_y
-from sim.scenario import UM, Scenario
+from sim.method.feib import new_cell
+from sim.model.drive import lag_decay, lagged
+from sim.model.geometry import MESH_INSET, clip_to_channel, injection_point, injection_y
+from sim.model.scenario import UM, Scenario
 
 
 def test_the_lag_is_the_exact_solution_of_its_equation():

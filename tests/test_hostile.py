@@ -184,7 +184,7 @@ def test_a_json_message_nested_100000_deep_is_one_line(sandbox):
 
 
 def test_a_json_message_at_the_depth_limit_is_read():
-    from vcyto.replay import MAX_JSON_DEPTH, _decode
+    from vcyto.recording.replay import MAX_JSON_DEPTH, _decode
     depth = MAX_JSON_DEPTH
     assert _decode("/loop/step", b"[" * depth + b"]" * depth) is not None
 
@@ -212,7 +212,7 @@ def test_a_chunk_that_decompresses_to_gigabytes_is_not_decompressed(sandbox):
 
     import zstandard
 
-    from vcyto.replay import MAX_CHUNK_BYTES
+    from vcyto.recording.replay import MAX_CHUNK_BYTES
     compressor = zstandard.ZstdCompressor(level=1).compressobj()
     block = b"\0" * (16 << 20)
     count = 4 * MAX_CHUNK_BYTES // len(block)
@@ -257,7 +257,7 @@ def test_replay_memory_does_not_grow_with_the_recordings_length(sandbox):
     being the Rerun view's batches and what other threads of the test process allocate meanwhile)."""
     import tracemalloc
 
-    from vcyto.replay import replay
+    from vcyto.recording.replay import replay
     def cells(step):          # twenty cells in the channel, each for twenty steps, then it leaves
         return json.dumps({"time": step * 1e-4, "cells": [
             {"key": key, "type": "RBC", "x_um": float(step - key), "y_um": 1.0, "fate": "in_channel",
@@ -330,8 +330,8 @@ def test_controller_files_beyond_sense_are_one_line(sandbox, line, words):
 def test_a_pulse_far_shorter_than_the_drives_spin_up_is_said(sandbox):
     """A pulse the SAW drive cannot follow (a tenth of its spin-up time or less) is accepted, with a note."""
     from controller.sorter import ControllerSettings
-    from sim.arrivals import Arrivals
-    from sim.scenario import Scenario
+    from sim.model.arrivals import Arrivals
+    from sim.model.scenario import Scenario
     from vcyto.options import short_pulse_note
     from vcyto.stream import StreamSettings
     scenario = Scenario()

@@ -40,14 +40,29 @@ def _contracts() -> list[dict]:
     return tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["importlinter"]["contracts"]
 
 
-def test_the_machinery_contract_covers_every_module_of_sim_and_no_cycle_is_waived():
-    """A new module of sim is either machinery, the plain data the machinery may import, or forbidden to it; and
-    the no-cycle contract ignores nothing (no waiver)."""
-    machinery = next(c for c in _contracts() if c["name"].startswith("the machinery"))
-    plain_data = {"sim.speed", "sim.store"}
-    modules = {f"sim.{path.stem}" for path in (ROOT / "sim").glob("*.py") if path.stem != "__init__"}
-    named = set(machinery["source_modules"]) | set(machinery["forbidden_modules"])
-    assert named | plain_data == modules, sorted(modules ^ (named | plain_data))
-    assert not set(machinery["source_modules"]) & set(machinery["forbidden_modules"])
+def test_every_module_of_sim_lies_in_a_wing_of_the_layers_and_no_cycle_is_waived():
+    """A module of sim belongs to one wing (the plants, the method, the model, the machinery), so the layers contract
+    covers it; and the no-cycle contract ignores nothing (no waiver)."""
+    wings = next(c for c in _contracts() if c.get("containers") == ["sim"])
+    assert wings["type"] == "layers" and wings["layers"][-1] == "fast"
+    outside = [str(path.relative_to(ROOT)) for path in (ROOT / "sim").rglob("*.py")
+               if path.parent == ROOT / "sim" and path.name != "__init__.py"
+               or path.parent != ROOT / "sim" and path.relative_to(ROOT / "sim").parts[0] not in wings["layers"]]
+    assert outside == []
     acyclic = next(c for c in _contracts() if c["type"] == "acyclic_siblings")
     assert "ignore_imports" not in acyclic
+    assert all("ignore_imports" not in c for c in _contracts() if c.get("containers") == ["sim"])
+
+
+def test_the_machinery_importing_the_model_breaks_the_layers(tmp_path):
+    """The layers contract is not vacuous: a copy of sim whose machinery imports the scenario fails it."""
+    import shutil
+    shutil.copytree(ROOT / "sim", tmp_path / "sim", ignore=shutil.ignore_patterns("*.so", "__pycache__"))
+    (tmp_path / "sim" / "fast" / "late.py").write_text("from ..model import scenario\n")
+    contract = next(c for c in _contracts() if c.get("containers") == ["sim"])
+    (tmp_path / "pyproject.toml").write_text(
+        '[tool.importlinter]\nroot_packages = ["sim"]\n\n[[tool.importlinter.contracts]]\nname = "wings"\n'
+        f'type = "layers"\ncontainers = ["sim"]\nlayers = {contract["layers"]!r}\n'.replace("'", '"'))
+    result = _lint_imports(tmp_path, env={**os.environ, "PYTHONPATH": str(tmp_path)})
+    assert result.returncode != 0, result.stdout
+    assert "BROKEN" in result.stdout and "sim.fast.late" in result.stdout

@@ -1,4 +1,4 @@
-"""The step's kernels (``sim.kernels``: the C ones where built, else numba's) against scikit-fem's own assembly and
+"""The step's kernels (``sim.fast.kernels``: the C ones where built, else numba's) against scikit-fem's own assembly and
 evaluation (the oracles); numba's own are held to the C ones' results in tests/test_c_kernels.py."""
 
 import numpy as np
@@ -6,10 +6,10 @@ import pytest
 from skfem import LinearForm, asm
 from skfem.helpers import grad
 
-from sim.mesh import channel_mesh
-from sim.scenario import UM, Scenario
-from sim.taylorhood import TaylorHood
-from sim.transfer import PointLocator
+from sim.method.taylorhood import TaylorHood
+from sim.method.transfer import PointLocator
+from sim.model.mesh import channel_mesh
+from sim.model.scenario import UM, Scenario
 
 
 @pytest.fixture(scope="module", params=[10 / 3, 7.0], ids=["paper-grid", "graded-grid"])
@@ -102,10 +102,10 @@ def test_linearised_convection_kernel_matches_scikit_fem_forms(space, newton):
 def test_element_integrals_are_the_same_bits_on_one_thread_or_all(space, weights):
     """The fluid step computes the next step's element integrals ahead on one helper thread, or here on all of
     numba's: each block of elements is computed alone, so the two give the same bits (numba's kernel, called
-    directly: ``sim.kernels`` runs the C one where it is built, on the calling thread whatever is asked)."""
+    directly: ``sim.fast.kernels`` runs the C one where it is built, on the calling thread whatever is asked)."""
     import numba
 
-    from sim import kernels_numba
+    from sim.fast import kernels_numba
     rng = np.random.default_rng(5)
     velocity, first, second = (rng.standard_normal((2, space.N)) for _ in range(3))
     back = None if weights is None else (weights, (first, second))
@@ -117,5 +117,5 @@ def test_element_integrals_are_the_same_bits_on_one_thread_or_all(space, weights
     assert numba.get_num_threads() == threads                   # the caller's setting restored
     kernels_numba.element_momentum(*arguments, every, back)
     assert np.array_equal(one, every) and np.abs(every).max() > 0
-    space.element_momentum(velocity, 3.0, 2.0, here, back, threads=1)     # whichever kernels sim.kernels runs
+    space.element_momentum(velocity, 3.0, 2.0, here, back, threads=1)     # whichever kernels sim.fast.kernels runs
     assert np.abs(here - every).max() <= 1e-13 * np.abs(every).max()

@@ -2,8 +2,8 @@ import numpy as np
 import pytest
 import scipy.sparse as sp
 
-from sim.linalg import Pardiso, SolverError, SuperLU, pardiso_available
-from sim.solvers import factorize
+from sim.fast.linalg import Pardiso, SolverError, SuperLU, pardiso_available
+from sim.fast.solvers import factorize
 
 
 def saddle_point(n=60, m=20, seed=0):

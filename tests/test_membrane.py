@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 from scipy.interpolate import CubicSpline
 
-from sim.membrane import Membrane, ellipse_by_arc_length
-from sim.scenario import MELANOMA, RBC, CellType
+from sim.method.membrane import Membrane, ellipse_by_arc_length
+from sim.model.scenario import MELANOMA, RBC, CellType
 
 ELLIPSE = CellType("test", kappa_e=1e-5, kappa_b=1e-17, semi_axes=(6e-6, 3e-6))
 
@@ -29,7 +29,7 @@ def test_spline_interpolation_of_an_ellipse_converges_at_fourth_order():
 
 
 def independent_energy(membrane, points):
-    """E_h from scipy's periodic cubic spline and dense quadrature (no shared code with sim.membrane)."""
+    """E_h from scipy's periodic cubic spline and dense quadrature (no shared code with sim.method.membrane)."""
     q = np.arange(membrane.count + 1) * membrane.dq
     closed = np.vstack([points, points[:1]])
     spline = CubicSpline(q, closed, bc_type="periodic")

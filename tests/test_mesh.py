@@ -4,9 +4,9 @@ import numpy as np
 import pytest
 from guard import vcyto_inline
 
-from sim.mesh import MESH_H_SLACK, MeshSize, channel_mesh
-from sim.scenario import UM, Scenario
-from sim.taylorhood import TaylorHood
+from sim.method.taylorhood import TaylorHood
+from sim.model.mesh import MESH_H_SLACK, MeshSize, channel_mesh
+from sim.model.scenario import UM, Scenario
 
 
 def test_paper_resolution_has_the_papers_dofs(paper_solver):

@@ -1,4 +1,4 @@
-"""Mixed precision (sim/linalg.py MixedPrecision): single-precision factors refined to the double solve's
+"""Mixed precision (sim/fast/linalg.py MixedPrecision): single-precision factors refined to the double solve's
 answer within the stated tolerance, one correction a step when the flow changes slowly, a clear error when
 refinement fails; and no OpenMP thread left spinning after a step (docs/numerics.md, "Linear solvers")."""
 
@@ -10,10 +10,10 @@ import numpy as np
 import pytest
 from test_linalg import saddle_point
 
-from sim.fluid import NavierStokes
-from sim.linalg import MixedPrecision, Pardiso, SolverError, pardiso_available
-from sim.scenario import UM, Scenario, ScenarioError
-from sim.solvers import factorize
+from sim.fast.linalg import MixedPrecision, Pardiso, SolverError, pardiso_available
+from sim.fast.solvers import factorize
+from sim.method.fluid import NavierStokes
+from sim.model.scenario import UM, Scenario, ScenarioError
 
 pytestmark = pytest.mark.skipif(not pardiso_available(), reason="mixed precision runs on MKL PARDISO")
 ROOT = Path(__file__).resolve().parents[1]
@@ -73,7 +73,7 @@ def test_unknown_precision_is_a_clear_error():
 
 
 def test_split_solve_in_single_precision_refined(fluid):
-    from sim.splitsolve import SplitPardiso
+    from sim.fast.splitsolve import SplitPardiso
     matrix = fluid.constant_matrix()
     split = SplitPardiso(matrix, fluid.free_x, single=True)
     assert all(half.dinv is not None for half in split.halves)   # D is diagonal in single precision too
@@ -112,8 +112,8 @@ SPIN = """
 import time
 from vcyto import speedsettings
 speedsettings.install()                     # as the vcyto command does, before MKL loads
-from sim.fluid import NavierStokes
-from sim.scenario import UM, Scenario
+from sim.method.fluid import NavierStokes
+from sim.model.scenario import UM, Scenario
 fluid = NavierStokes(Scenario().with_numerics(mesh_h=10 * UM))
 state = fluid.steady(0.0)
 for _ in range(3):

@@ -10,11 +10,11 @@ import numpy as np
 import pytest
 from test_feib import run_to_exit
 
-from sim.feib import ImmersedBoundary, reshape
-from sim.fluid import NavierStokes
-from sim.membrane import Membrane
-from sim.scenario import UM, CellType, Scenario, ScenarioError
-from sim.transfer import PointLocator
+from sim.method.feib import ImmersedBoundary, reshape
+from sim.method.fluid import NavierStokes
+from sim.method.membrane import Membrane
+from sim.method.transfer import PointLocator
+from sim.model.scenario import UM, CellType, Scenario, ScenarioError
 from vcyto.restored import RESTORED_LIMIT, Restored, restored_warning
 
 KEPT = "pressure+multiplier"             # the multiplier without the projection: nothing corrects the area after
@@ -136,8 +136,8 @@ def test_recording_and_summary_carry_each_cells_restored_area(tmp_path):
     per-cell ``area_corrected`` and ``statistics.area_restored`` agree with it."""
     from mcap.reader import make_reader
 
-    from sim.arrivals import Arrivals
-    from vcyto.recording import McapRecorder
+    from sim.model.arrivals import Arrivals
+    from vcyto.recording.mcap import McapRecorder
     from vcyto.stream import StreamSettings, run_stream
 
     scenario = Scenario().with_numerics(mesh_h=10 * UM, dt=10e-6)
@@ -157,8 +157,8 @@ def test_recording_and_summary_carry_each_cells_restored_area(tmp_path):
 
 
 def test_pressures_that_move_no_area_are_a_numerical_failure_with_its_cause():
-    from sim.fluid import NumericalBlowUp
-    from sim.multiplier import Update, _solve_areas
+    from sim.method.fluid import NumericalBlowUp
+    from sim.method.multiplier import Update, _solve_areas
 
     membrane = Membrane.of(CellType("c", 2.8e-4, 1.2e-16, (8 * UM, 8 * UM)), (0, 0), 1.6 * UM)
     shrunk = 0.99 * membrane.points

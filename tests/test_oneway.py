@@ -6,10 +6,10 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from sim.oneway import OneWayPlant, stokeslet_velocities
-from sim.plant import check_plant
-from sim.rom import RomFlows
-from sim.scenario import UM, CellType, Scenario
+from sim.model.scenario import UM, CellType, Scenario
+from sim.plants.feib import check_plant
+from sim.plants.oneway import OneWayPlant, stokeslet_velocities
+from sim.plants.rom import RomFlows
 
 ETA = 6e-3
 

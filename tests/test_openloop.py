@@ -1,8 +1,9 @@
-"""The one open-loop stepping helper (``sim.openloop``) the paper, extremes, stability and trade-off runs share."""
+"""The one open-loop stepping helper (``sim.method.openloop``) the paper, extremes, stability and trade-off runs
+share."""
 
 from dataclasses import dataclass
 
-from sim.openloop import stepping
+from sim.method.openloop import stepping
 
 
 @dataclass(frozen=True)

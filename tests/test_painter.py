@@ -1,4 +1,4 @@
-"""vcyto.painter: a figure drawn by a helper process started early. The same bytes as drawn in the process
+"""vcyto.studies.painter: a figure drawn by a helper process started early. The same bytes as drawn in the process
 itself; every way the helper can fail falls back to drawing here, which reports errors as before; the helper
 never outlives its command."""
 
@@ -9,8 +9,8 @@ import sys
 import numpy as np
 import pytest
 
-from vcyto import painter
-from vcyto.painter import Painter
+from vcyto.studies import painter
+from vcyto.studies.painter import Painter
 
 
 def spec():
@@ -56,15 +56,15 @@ def test_close_stops_a_waiting_helper_and_a_helper_whose_command_went_away_exits
     assert process.poll() is not None and helper._process is None
     helper.close()                                    # twice is harmless
     # the command's end closes the helper's standard input: it exits by itself, status 1, quietly
-    orphan = subprocess.Popen([sys.executable, "-m", "vcyto.painter"], stdin=subprocess.PIPE,
+    orphan = subprocess.Popen([sys.executable, "-m", "vcyto.studies.painter"], stdin=subprocess.PIPE,
                               stderr=subprocess.PIPE)
     _, err = orphan.communicate(b"", timeout=120)
     assert orphan.returncode == 1 and b"Traceback" not in err and b"vcyto painter" not in err
 
 
 def test_a_helper_that_fails_to_draw_says_why_on_its_stderr():
-    done = subprocess.run([sys.executable, "-m", "vcyto.painter"], input=painter.pickle.dumps(("nothing", "x.png", {})),
-                          capture_output=True, timeout=120)
+    done = subprocess.run([sys.executable, "-m", "vcyto.studies.painter"],
+                          input=painter.pickle.dumps(("nothing", "x.png", {})), capture_output=True, timeout=120)
     last = done.stderr.decode().strip().splitlines()[-1]
     assert done.returncode == 1 and last == "vcyto painter: KeyError: 'nothing'"
 

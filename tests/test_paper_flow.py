@@ -2,8 +2,8 @@
 
 import pytest
 
-from sim.calibration import injection_streamline
-from sim.scenario import UM
+from sim.method.calibration import injection_streamline
+from sim.model.scenario import UM
 
 
 @pytest.mark.parametrize("model", ["paper", "envelope", "streaming"])
@@ -17,7 +17,7 @@ def test_injection_streamline_is_sorted_by_the_idt(paper_scenario, model):
     assert on.outlet == "upper"
     if model in ("paper", "envelope"):
         assert on.exit_y == pytest.approx(141 * UM, abs=1.5 * UM)
-    else:       # calibrated to the jet's exit ordinate (sim.calibration), within the bisection tolerance
+    else:       # calibrated to the jet's exit ordinate (sim.method.calibration), within the bisection tolerance
         assert on.exit_y == pytest.approx(141 * UM, abs=3 * UM)
 
 

@@ -13,11 +13,11 @@ from mcap.reader import make_reader
 from mcap.records import Channel, Message
 from mcap.stream_reader import StreamReader
 
-from sim.arrivals import Arrivals
-from sim.plant import StreamlinePlant
-from sim.scenario import Scenario
-from vcyto.recording import PER_STEP, McapRecorder
-from vcyto.sinks import BackgroundSinks
+from sim.model.arrivals import Arrivals
+from sim.model.scenario import Scenario
+from sim.plants.streamline import StreamlinePlant
+from vcyto.recording.mcap import PER_STEP, McapRecorder
+from vcyto.recording.sinks import BackgroundSinks
 from vcyto.stream import StreamSettings, StreamStopped, run_stream
 
 
@@ -141,7 +141,7 @@ def test_a_deferred_sink_is_built_on_the_sinks_thread_and_writes_the_same_messag
     a sink that cannot be built stops the run with its error, as a failing sink does."""
     import threading
 
-    from vcyto.sinks import Deferred
+    from vcyto.recording.sinks import Deferred
     settings = StreamSettings(Arrivals(cells=("melanoma", "RBC", "melanoma")), model="streamline")
     built_on = []
 

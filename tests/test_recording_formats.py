@@ -15,13 +15,13 @@ from mcap.reader import make_reader
 from mcap_protobuf.decoder import DecoderFactory
 from rerun.chunk import RrdReader
 
-from sim.arrivals import Arrivals
-from sim.plant import FeibPlant
-from sim.scenario import Scenario
+from sim.model.arrivals import Arrivals
+from sim.model.scenario import Scenario
+from sim.plants.feib import FeibPlant
 from vcyto.classes import CLASS_IDS
 from vcyto.outcomes import outcome_class
-from vcyto.recording import McapRecorder
-from vcyto.rerunlog import RerunSink
+from vcyto.recording.mcap import McapRecorder
+from vcyto.recording.rerunlog import RerunSink
 from vcyto.stream import StreamSettings, run_stream
 
 FOXGLOVE = {"/foxglove/scene": "foxglove.SceneUpdate", "/foxglove/membranes": "foxglove.PointCloud",
@@ -255,7 +255,7 @@ def test_the_flow_colours_are_matplotlibs_viridis_and_a_warm_process_needs_no_ma
     without importing matplotlib."""
     from matplotlib import colormaps
 
-    from vcyto.rerunlog import viridis
+    from vcyto.recording.rerunlog import viridis
     values = np.concatenate([np.linspace(0.0, 1.0, 20_001), np.arange(257) / 256, (np.arange(256) + 0.999) / 256,
                              [-0.5, 1.5, np.nan, 1 - 1e-12]])
     expected = (colormaps["viridis"](values)[:, :3] * 255).astype(np.uint8)
@@ -264,9 +264,9 @@ def test_the_flow_colours_are_matplotlibs_viridis_and_a_warm_process_needs_no_ma
     black = viridis(float("nan"))            # a single value: its own array, the table untouched
     black[...] = 255
     assert np.array_equal(viridis(values), expected) and viridis(0.0).tolist() == expected[0].tolist()
-    script = ("import sys; import vcyto.cache as c; c.install_default(); from sim.scenario import Scenario; "
-              "from vcyto.rerunlog import RerunLogger; from controller.detector import DetectorSettings; "
-              "from vcyto.recording import velocity_field; import numpy as np; "
+    script = ("import sys; import vcyto.cache as c; c.install_default(); from sim.model.scenario import Scenario; "
+              "from vcyto.recording.rerunlog import RerunLogger; from controller.detector import DetectorSettings; "
+              "from vcyto.recording.mcap import velocity_field; import numpy as np; "
               "logger = RerunLogger(Scenario(), DetectorSettings().window, ('save', sys.argv[1])); "
               "x, y = np.linspace(0, 300e-6, 4), np.linspace(0, 220e-6, 3); X, Y = np.meshgrid(x, y); "
               "logger.field(velocity_field(np.array([X.ravel(), Y.ravel()]), np.ones((2, 12)) * 0.05, np.zeros(12), "
@@ -280,12 +280,12 @@ def test_the_flow_colours_are_matplotlibs_viridis_and_a_warm_process_needs_no_ma
 def test_a_rerun_recording_does_not_import_pandas_and_pandas_stays_usable(tmp_path):
     """In the vcyto command's own process (``spare_pandas_import``, which ``vcyto.cli.run`` calls) opening a Rerun
     recording (its blueprint is pyarrow's first conversion) leaves pandas unimported where it is installed
-    (``vcyto.viewer.import_rerun``: 0.2-0.3 s of a recorded run); pandas then imports as usual, and pyarrow converts
-    to and from it; a process that had imported pandas keeps it. A Python user's process is left alone: pyarrow
+    (``vcyto.recording.viewer.import_rerun``: 0.2-0.3 s of a recorded run); pandas then imports as usual, and pyarrow
+    converts to and from it; a process that had imported pandas keeps it. A Python user's process is left alone: pyarrow
     imports pandas as usual and converts a categorical Series to a dictionary array."""
     script = ("import sys\nif sys.argv[2] == 'first': import pandas\n"
-              "from vcyto import viewer\nif sys.argv[3] == 'command': viewer.spare_pandas_import()\n"
-              "from sim.scenario import Scenario; from vcyto.rerunlog import RerunLogger\n"
+              "from vcyto.recording import viewer\nif sys.argv[3] == 'command': viewer.spare_pandas_import()\n"
+              "from sim.model.scenario import Scenario; from vcyto.recording.rerunlog import RerunLogger\n"
               "from controller.detector import DetectorSettings\n"
               "logger = RerunLogger(Scenario(), DetectorSettings().window, ('save', sys.argv[1]))\n"
               "logger.text('hello'); logger.close(); print('pandas' in sys.modules)\n"

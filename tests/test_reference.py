@@ -1,25 +1,25 @@
-"""The fast FE-IB step (``sim.feib``, ``sim.fluid``, ``sim.kernels``) held to the plain one (``sim.reference``): the
-same steps, Euler and BDF2, to round-off; and each fast kernel, the C ones and numba's, held to what the reference
-computes in its place (scikit-fem's assembly, ``basis.probes``, numpy expressions)."""
+"""The fast FE-IB step (``sim.method.feib``, ``sim.method.fluid``, ``sim.fast.kernels``) held to the plain one
+(``sim.method.reference``): the same steps, Euler and BDF2, to round-off; and each fast kernel, the C ones and numba's,
+held to what the reference computes in its place (scikit-fem's assembly, ``basis.probes``, numpy expressions)."""
 
 from dataclasses import replace
 
 import numpy as np
 import pytest
 
-from sim import kernels, speed
-from sim.feib import ImmersedBoundary, State, new_cell
-from sim.reference import Level, ReferenceStep
-from sim.scenario import UM, Scenario
-from sim.taylorhood import TaylorHood
-from sim.transfer import PointLocator
+from sim.fast import kernels, speed
+from sim.method.feib import ImmersedBoundary, State, new_cell
+from sim.method.reference import Level, ReferenceStep
+from sim.method.taylorhood import TaylorHood
+from sim.method.transfer import PointLocator
+from sim.model.scenario import UM, Scenario
 
 STEPS = 3
 
 
 def scenario_of(scheme: str, area_constraint: str = "pressure") -> Scenario:
     """A coarse mesh, double precision (the default mixed precision refines to a tolerance, not to round-off),
-    no redistribution or projection (they follow the step: ``sim.feib.settle``)."""
+    no redistribution or projection (they follow the step: ``sim.method.feib.settle``)."""
     return Scenario().with_numerics(mesh_h=10 * UM, time_scheme=scheme, precision="double",
                                     area_constraint=area_constraint, redistribute=False)
 
@@ -36,7 +36,7 @@ def test_the_fast_step_is_the_reference_step_to_round_off(scheme, area_constrain
     state = State(start.flow, (cell,))
     levels = [Level(start.flow.time, start.flow.velocity, start.flow.pressure, (cell.membrane.points,))]
     for _ in range(STEPS):
-        state = plant.fixed_step(state, actuation=1.0)
+        state = plant.step(state, actuation=1.0)
         before = levels[-2] if len(levels) > 1 else None
         levels.append(reference.step(levels[-1], [cell.membrane], actuation=1.0, before=before))
         fast, plain = state.flow, levels[-1]
@@ -56,7 +56,7 @@ def test_the_reference_is_a_different_step_when_the_scheme_differs():
     reference = ReferenceStep(scenario_of("euler"))
     start = plant.start(0.0)
     first = Level(start.flow.time, start.flow.velocity, start.flow.pressure, ())
-    fast = plant.fixed_step(plant.fixed_step(start, 1.0), 1.0).flow
+    fast = plant.step(plant.step(start, 1.0), 1.0).flow
     plain = reference.step(reference.step(first, [], 1.0), [], 1.0, before=first)
     assert np.abs(fast.velocity - plain.velocity).max() > 1e-6 * np.abs(plain.velocity).max()
 

@@ -10,9 +10,9 @@ import numpy as np
 import pytest
 from guard import vcyto_inline
 
-from sim.scenario import UM
+from sim.model.scenario import UM
 from vcyto.config import load_scenario
-from vcyto.relaxation import aspect_ratio, observed_order, relaxation, relaxation_time
+from vcyto.studies.relaxation import aspect_ratio, observed_order, relaxation, relaxation_time
 
 SCENARIO = Path(__file__).parent.parent / "examples" / "scenarios" / "relaxation.toml"
 QUIET = SimpleNamespace(note=lambda message: None)

@@ -164,7 +164,7 @@ def test_bench_gym_counts_every_event_as_a_step(paper_scenario, rom_plant):
 @pytest.mark.slow
 def test_the_environment_runs_on_feib(paper_scenario):
     """The same environment on the FE-IB plant (1-3 min): the gate's policy sorts a melanoma and passes an RBC."""
-    from sim.arrivals import Arrivals
+    from sim.model.arrivals import Arrivals
     from vcyto.stream import StreamSettings
 
     settings = StreamSettings(Arrivals(cells=("RBC", "melanoma"), rate=500.0), model="feib")

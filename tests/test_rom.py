@@ -12,13 +12,13 @@ import pytest
 from controller.detector import DetectorSettings
 from controller.events import TYPE_II
 from controller.sorter import ControllerSettings
-from sim.arrivals import Arrivals
-from sim.fluid import NavierStokes
-from sim.plant import StreamlinePlant
-from sim.rom import JET_RESPONSE_TIME, RomFlows, RomPlant, area_mean_rule, measure_response_time
-from sim.scenario import UM, Scenario
-from sim.streamline import trace
-from sim.transfer import PointLocator
+from sim.method.fluid import NavierStokes
+from sim.method.streamline import trace
+from sim.method.transfer import PointLocator
+from sim.model.arrivals import Arrivals
+from sim.model.scenario import UM, Scenario
+from sim.plants.rom import JET_RESPONSE_TIME, RomFlows, RomPlant, area_mean_rule, measure_response_time
+from sim.plants.streamline import StreamlinePlant
 from vcyto.outcomes import SORTED_OUTLET
 from vcyto.stream import StreamSettings, run_stream
 
@@ -260,7 +260,7 @@ def test_rom_and_feib_agree_on_the_outlet_of_every_isolated_cell_scene():
     """Each cell type alone with the IDT off, on, and in the closed loop (passed, sorted, a misclassified RBC
     sorted): the same outlet from both plants, and at a constant drive exit ordinates within 1 um
     (measured: 0.3-0.8 um; exit times within 2 %)."""
-    from sim.plant import FeibPlant
+    from sim.plants.feib import FeibPlant
     scenario = Scenario().with_numerics(dt=10e-6)        # stable for both cell types (docs/results.md, stability)
     feib = FeibPlant(scenario)
     rom = RomPlant(scenario, flows=RomFlows.of(scenario, fluid=feib.ib.fluid))

@@ -3,10 +3,10 @@
 import numpy as np
 import pytest
 
-from sim.fluid import NavierStokes
-from sim.rom import RomFlows, RomPlant
-from sim.rom_transient import TRANSIENT_LAGS, fit_modes, step_response, transient_scenario
-from sim.scenario import UM
+from sim.method.fluid import NavierStokes
+from sim.model.scenario import UM
+from sim.plants.rom import RomFlows, RomPlant
+from sim.plants.rom_transient import TRANSIENT_LAGS, fit_modes, step_response, transient_scenario
 
 
 def test_the_fit_recovers_a_sum_of_exponentials():

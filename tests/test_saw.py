@@ -6,9 +6,9 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from sim.boundary import cutoff, saw_jet_factor
-from sim.fluid import NavierStokes
-from sim.scenario import Saw, Scenario
+from sim.method.fluid import NavierStokes
+from sim.model.boundary import cutoff, saw_jet_factor
+from sim.model.scenario import Saw, Scenario
 
 # steps that are not multiples of the 10 ns carrier period: the paper's formula, sampled at them, gave
 # cos = +1, -1 alternating at 3.125 us and other values at every other one
@@ -73,7 +73,7 @@ def test_scenario_two_leaves_by_the_upper_outlet_at_any_step():
     """Scenario II (the paper's method) at the paper's step, at steps that are not multiples of the carrier's
     period (3.125 us sampled cos = -1 every other step and sent the melanoma lower) and at coarser ones: the
     upper outlet every time, the exit ordinates within 1 um of each other."""
-    from vcyto.paper import run_paper
+    from vcyto.studies.paper import run_paper
     base = Scenario().with_numerics(area_constraint="none", redistribute=False)
     exits = []
     for dt in (2.5e-6, 3.125e-6, 7e-6, 12.5e-6, 25e-6):

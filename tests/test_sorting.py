@@ -10,10 +10,10 @@ import pytest
 
 from controller.detector import DetectorSettings
 from controller.sorter import ControllerSettings
-from sim.arrivals import Arrivals
-from vcyto.calibrate import Grid, calibrate
+from sim.model.arrivals import Arrivals
 from vcyto.sortreport import sort_report_lines
 from vcyto.stream import StreamSettings, run_stream
+from vcyto.studies.calibrate import Grid, calibrate
 
 
 def test_purity_mode_at_1000_events_per_second_over_10000_events(paper_scenario, rom_plant, tmp_path):
@@ -153,7 +153,7 @@ def test_a_pulse_reliable_alone_but_not_after_another_pulse_is_not_reliable(pape
     """The rom calibration once chose 0.32 ms (lead 0.245 ms), which sorts a lone melanoma; a stream lost 39 of
     84 melanomas sorted within ~1.6 ms after another to the divider. The search now asks for pulse trains too:
     that pulse fails after another target's pulse 1 ms before, the shipped one (0.40 ms, 0.30 ms) never does."""
-    from vcyto.calibrate import _sorted, measure_delay
+    from vcyto.studies.calibrate import _sorted, measure_delay
     detector = DetectorSettings()
     delay = measure_delay(rom_plant, paper_scenario, detector)
     assert _sorted(rom_plant, "melanoma", delay, 0.32e-3, 0.245e-3, detector)
@@ -186,8 +186,8 @@ def test_rom_and_feib_envelopes_at_a_handful_of_offsets(paper_scenario, rom_plan
     Agreement within the calibration's offset step (0.02 ms): at every offset where feib has an outcome and
     which is more than one step from rom's edges, the fates agree; rom's edges lie in the intervals feib's
     outcomes bracket, widened by one step."""
-    from sim.plant import FeibPlant
-    from vcyto.calibrate import deflected, envelope_of, measure_delay
+    from sim.plants.feib import FeibPlant
+    from vcyto.studies.calibrate import deflected, envelope_of, measure_delay
     shipped, grid = ControllerSettings(), Grid(offset_step=0.02e-3, offset_range=0.6e-3, resolution=2.5e-6)
     offsets = (-0.28e-3, -0.24e-3, -0.2e-3, 0.0, 0.08e-3, 0.16e-3, 0.2e-3, 0.24e-3, 0.28e-3)
     delay = measure_delay(rom_plant, paper_scenario, DetectorSettings())

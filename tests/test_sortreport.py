@@ -6,15 +6,15 @@ import math
 import numpy as np
 import pytest
 
-from sim.arrivals import Arrivals
-from sim.scenario import Scenario
+from sim.model.arrivals import Arrivals
+from sim.model.scenario import Scenario
 from vcyto import celltable, sortreport
 from vcyto.stream import StreamSettings, run_stream, statistics_of
 
 
 @pytest.fixture(scope="module")
 def rom_plant():
-    from sim.plants import build
+    from sim.plants.registry import build
     return build("rom", Scenario())
 
 
@@ -43,7 +43,7 @@ def test_every_admitted_cell_has_one_row_and_the_aggregates_are_the_tables(long_
     for record in records:                                  # pandas gives NaN for null numbers
         record.update({k: None for k, v in record.items() if isinstance(v, float) and math.isnan(v)})
     records.sort(key=lambda r: r["key"])
-    from sim.arrivals import offer
+    from sim.model.arrivals import offer
     rejected = [name for _, name in offer(settings.arrivals, np.random.default_rng(settings.seed).spawn(2)[0]).rejected]
     recomputed = statistics_of(records, result["simulated_time_ms"] * 1e-3, rejected=rejected, scenario=Scenario(),
                                controller_settings=settings.controller)
@@ -115,7 +115,7 @@ def test_a_rare_cell_sort_reports_its_figures(rom_plant):
 
 def test_the_fcs_of_a_long_run_is_read_from_its_table(long_run):
     """A summary without cells: the FCS events come from the table, the same as from the records."""
-    from vcyto.fcs import event_table
+    from vcyto.recording.fcs import event_table
     result, table, _ = long_run
     records = sorted(celltable.records(table), key=lambda r: r["key"])
     assert np.array_equal(event_table(result), event_table({"cells": records}))

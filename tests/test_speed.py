@@ -11,9 +11,9 @@ import numpy as np
 import pytest
 import scipy.sparse as sp
 
-from sim import kernels, speed
-from sim.linalg import Pardiso, pardiso_available
-from sim.speed import SpeedSettings
+from sim.fast import kernels, speed
+from sim.fast.linalg import Pardiso, pardiso_available
+from sim.fast.speed import SpeedSettings
 from vcyto.speedsettings import from_environment
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -46,7 +46,7 @@ def test_the_settings_are_frozen_and_only_settings_are_installed():
 
 
 def test_no_module_of_sim_reads_or_writes_the_environment():
-    offending = [f"{path.name}:{number}" for path in sorted((ROOT / "sim").glob("*.py"))
+    offending = [f"{path.name}:{number}" for path in sorted((ROOT / "sim").rglob("*.py"))
                  for number, line in enumerate(path.read_text().splitlines(), 1)
                  if "os.environ" in line or "getenv" in line or "putenv" in line]
     assert offending == []
@@ -55,8 +55,8 @@ def test_no_module_of_sim_reads_or_writes_the_environment():
 def test_sim_alone_ignores_the_variables_and_leaves_the_environment_as_it_was():
     """Imported without vcyto, with every variable set to its 'off', sim runs with the defaults and sets no
     KMP_BLOCKTIME while it loads MKL."""
-    program = ("import os, scipy.sparse as sp; from sim import kernels, speed; from sim.linalg import Pardiso, "
-               "pardiso_available\n"
+    program = ("import os, scipy.sparse as sp; from sim.fast import kernels, speed; "
+               "from sim.fast.linalg import Pardiso, pardiso_available\n"
                "if pardiso_available(): Pardiso(sp.identity(3, format='csr'), symmetric=True).solve([1.0, 2, 3])\n"
                "print(speed.current() == speed.SpeedSettings(), 'KMP_BLOCKTIME' in os.environ)")
     environment = {"PATH": "/usr/bin:/bin", "VCYTO_C_KERNELS": "0", "VCYTO_PREFETCH": "0", "VCYTO_SPLIT_SOLVE": "0",
@@ -79,8 +79,8 @@ def test_the_command_installs_the_settings_of_its_environment(monkeypatch, tmp_p
 
 @pytest.mark.skipif(not pardiso_available(), reason="the split solve runs on MKL PARDISO")
 def test_split_solve_off_factors_one_sequential_pardiso(monkeypatch):
-    from sim.solvers import factorize
-    from sim.splitsolve import MIN_UNKNOWNS, SplitPardiso
+    from sim.fast.solvers import factorize
+    from sim.fast.splitsolve import MIN_UNKNOWNS, SplitPardiso
     n = MIN_UNKNOWNS + 10
     matrix = sp.diags([-1.0, 2.5, -1.0], [-1, 0, 1], shape=(n, n), format="csr")
     coordinates = np.linspace(0.0, 1.0, n)

@@ -1,4 +1,4 @@
-"""The split solve (sim/splitsolve.py): exact to round-off, a true separator, and bit-for-bit reproducible
+"""The split solve (sim/fast/splitsolve.py): exact to round-off, a true separator, and bit-for-bit reproducible
 across processes, down to the recordings of a stream with the default numerics."""
 
 import json
@@ -12,10 +12,10 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from sim.fluid import NavierStokes
-from sim.linalg import Pardiso, pardiso_available
-from sim.scenario import UM, Scenario
-from sim.splitsolve import moved_parts
+from sim.fast.linalg import Pardiso, pardiso_available
+from sim.fast.splitsolve import moved_parts
+from sim.method.fluid import NavierStokes
+from sim.model.scenario import UM, Scenario
 
 pytestmark = pytest.mark.skipif(not pardiso_available(), reason="the split solve runs on MKL PARDISO")
 ROOT = Path(__file__).resolve().parents[1]
@@ -27,7 +27,7 @@ def fluid():
 
 
 def test_split_solve_equals_the_sequential_solve_to_round_off(fluid):
-    from sim.splitsolve import SplitPardiso
+    from sim.fast.splitsolve import SplitPardiso
     matrix = fluid.constant_matrix()
     split = SplitPardiso(matrix, fluid.free_x)
     left, right, separator = split.parts
@@ -46,7 +46,7 @@ def test_halves_without_matching_move_their_perturbed_unknowns_to_the_separator(
     """Without weighted matching (a smaller factor) PARDISO perturbs the pivot of a pressure unknown at a channel
     corner (two free velocities in its row); the split moves such an unknown into the separator and factors the
     rest again: no perturbed pivot is left, the factor is smaller than the matched one, the solve is exact."""
-    from sim.splitsolve import SplitPardiso
+    from sim.fast.splitsolve import SplitPardiso
     matrix = fluid.constant_matrix().tocsr()
     split = SplitPardiso(matrix, fluid.free_x)
     left, right, separator = split.parts
@@ -68,7 +68,7 @@ def test_halves_without_matching_move_their_perturbed_unknowns_to_the_separator(
 
 
 def test_a_half_that_stays_perturbed_falls_back_to_matching(fluid, monkeypatch):
-    import sim.splitsolve as splitsolve
+    import sim.fast.splitsolve as splitsolve
     monkeypatch.setattr(splitsolve, "MAX_MOVES", 0)
     matrix = fluid.constant_matrix()
     split = splitsolve.SplitPardiso(matrix, fluid.free_x)
@@ -81,8 +81,8 @@ def test_a_half_that_stays_perturbed_falls_back_to_matching(fluid, monkeypatch):
 def test_the_moved_unknowns_are_kept_by_the_store_and_reused(fluid, monkeypatch):
     """A second split of the same matrix with the store installed factors each half once, with the stored
     unknowns moved (no search), and solves to the same bits."""
-    import sim.splitsolve as splitsolve
-    from sim import store
+    import sim.fast.splitsolve as splitsolve
+    from sim.fast import store
 
     class Memory:
         def __init__(self):
@@ -136,7 +136,7 @@ def test_a_split_solver_dropped_before_its_first_solve_is_freed(fluid):
     import gc
     import weakref
 
-    from sim.splitsolve import SplitPardiso
+    from sim.fast.splitsolve import SplitPardiso
     split = SplitPardiso(fluid.constant_matrix(), fluid.free_x)
     split._both(lambda: None, lambda held=split: held.shape)    # the worker's last task holds the solver
     worker, alive = split._worker, weakref.ref(split)
@@ -148,10 +148,10 @@ def test_a_split_solver_dropped_before_its_first_solve_is_freed(fluid):
 
 
 def test_refinement_in_place_equals_the_correction_added(fluid):
-    """``refine`` (each half's residual rows, solve and update on its own thread, ``sim.kernels``) gives the
+    """``refine`` (each half's residual rows, solve and update on its own thread, ``sim.fast.kernels``) gives the
     bits of the whole residual computed by scipy, solved, and added to the solution; it reports the largest
     |correction| and |solution|, and NaN for a blow-up."""
-    from sim.splitsolve import SplitPardiso
+    from sim.fast.splitsolve import SplitPardiso
     matrix = fluid.constant_matrix()
     rng = np.random.default_rng(3)
     rhs, guess = rng.standard_normal((2, matrix.shape[0]))
@@ -172,7 +172,7 @@ def test_an_interrupt_while_waiting_for_the_other_half_leaves_the_solver_in_step
     import signal
     import threading
 
-    from sim.splitsolve import SplitPardiso
+    from sim.fast.splitsolve import SplitPardiso
     split = SplitPardiso(fluid.constant_matrix(), fluid.free_x)
     rhs = np.random.default_rng(5).standard_normal(split.shape[0])
     expected = split.solve(rhs)
@@ -200,7 +200,7 @@ def test_split_solve_vector_kernels_give_scipys_bits():
     32- or 16-bit indices."""
     import scipy.sparse as sp
 
-    from sim import kernels, splitsolve
+    from sim.fast import kernels, splitsolve
     rng = np.random.default_rng(4)
     a = sp.random(301, 400, density=0.05, format="csr", random_state=5)
     rows = rng.permutation(500)[:301]
@@ -236,8 +236,8 @@ def test_split_solve_vector_kernels_give_scipys_bits():
 
 SCRIPT = """
 import hashlib, numpy as np
-from sim.fluid import NavierStokes
-from sim.scenario import UM, Scenario
+from sim.method.fluid import NavierStokes
+from sim.model.scenario import UM, Scenario
 fluid = NavierStokes(Scenario().with_numerics(mesh_h=5 * UM))
 state = fluid.steady(0.0)
 for _ in range(5):

@@ -1,4 +1,4 @@
-"""The stability law (sim/steplimit.py): fitted to the measured limits, never above any of them, and recovering a
+"""The stability law (sim/method/steplimit.py): fitted to the measured limits, never above any of them, and recovering a
 known law from its own values."""
 
 import math
@@ -6,8 +6,8 @@ from dataclasses import replace
 
 import pytest
 
-from sim.scenario import UM, Scenario
-from sim.steplimit import LAW, MEASURED, Law, Measured, implicit_limit, limit_of
+from sim.method.steplimit import LAW, MEASURED, Law, Measured, implicit_limit, limit_of
+from sim.model.scenario import UM, Scenario
 
 
 def test_the_law_lies_at_or_below_every_measured_limit_and_close_to_those_reached():

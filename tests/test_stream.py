@@ -9,9 +9,9 @@ import pytest
 
 from controller.detector import DetectorSettings
 from controller.sorter import ControllerSettings
-from sim.arrivals import Arrivals, schedule
-from sim.plant import StreamlinePlant
-from sim.scenario import Scenario
+from sim.model.arrivals import Arrivals, schedule
+from sim.model.scenario import Scenario
+from sim.plants.streamline import StreamlinePlant
 from vcyto.stream import StreamSettings, run_stream, statistics_of
 
 
@@ -155,7 +155,7 @@ def test_stream_rejects_bad_input_in_one_line(args, words):
 
 
 def test_fcs_export_round_trips(scenario, streamline_plant, tmp_path):
-    from vcyto.fcs import CHANNELS, read_fcs, write_fcs
+    from vcyto.recording.fcs import CHANNELS, read_fcs, write_fcs
     result = stream(scenario, streamline_plant, ("melanoma", "RBC", "melanoma"))
     path = write_fcs(tmp_path / "events.fcs", result, {"VCYTO_NOTE": "test"})
     names, events, keywords = read_fcs(path)

@@ -1,6 +1,6 @@
-"""Our own substitutions for the split solve's halves (sim/supernodal.py, sim/_substitute.c): they solve to single
-precision like PARDISO's, give the same bits for the same input on either thread, refuse a factor they cannot take,
-and the split solve falls back to PARDISO's without them."""
+"""Our own substitutions for the split solve's halves (sim/fast/supernodal.py, sim/fast/_substitute.c): they solve to
+single precision like PARDISO's, give the same bits for the same input on either thread, refuse a factor they cannot
+take, and the split solve falls back to PARDISO's without them."""
 
 import threading
 from dataclasses import replace
@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 import scipy.sparse as sp
 
-from sim import kernels, speed, supernodal
-from sim.linalg import Pardiso, SolverError, pardiso_available
-from sim.scenario import UM, Scenario
+from sim.fast import kernels, speed, supernodal
+from sim.fast.linalg import Pardiso, SolverError, pardiso_available
+from sim.model.scenario import UM, Scenario
 
 pytestmark = pytest.mark.skipif(not supernodal.available(),
                                 reason="vcyto was installed without its compiled substitution kernels or MKL")
@@ -93,7 +93,7 @@ def test_bad_vectors_are_refused():
 
 @pytest.fixture(scope="module")
 def fluid():
-    from sim.fluid import NavierStokes
+    from sim.method.fluid import NavierStokes
     return NavierStokes(Scenario().with_numerics(mesh_h=10 * UM, linear_solver="pardiso"))
 
 
@@ -102,7 +102,7 @@ def fluid():
 def test_the_split_solve_uses_them_or_pardisos(fluid, monkeypatch, way):
     """Single precision, halves without matching: our substitutions, solving like PARDISO's; with
     ``SpeedSettings.own_substitutions`` off, without the compiled kernels, or with a factor they refuse: PARDISO's."""
-    import sim.splitsolve as splitsolve
+    import sim.fast.splitsolve as splitsolve
     if way == "switched off":
         monkeypatch.setattr(speed, "_settings", replace(speed.current(), own_substitutions=False))
     elif way == "not built":
@@ -140,8 +140,8 @@ def test_both_kinds_of_row_index_give_the_same_bits():
 def test_pardisos_half_factors_are_kept_only_where_they_are_used(fluid, own):
     """Our own factor replaces PARDISO's unmatched halves, so a store keeps ours and not theirs (a time step's cache
     ~30 MB instead of ~80); with PARDISO's substitutions it keeps PARDISO's halves, as before."""
-    import sim.splitsolve as splitsolve
-    from sim import store
+    import sim.fast.splitsolve as splitsolve
+    from sim.fast import store
 
     class Memory:
         def __init__(self):
@@ -182,7 +182,7 @@ def test_a_library_built_from_another_source_is_not_used(monkeypatch, caplog):
     monkeypatch.setattr(ctypes, "CDLL", Stale)
     supernodal._kernels.cache_clear()
     try:
-        with caplog.at_level("WARNING", logger="sim.supernodal"):
+        with caplog.at_level("WARNING", logger="sim.fast.supernodal"):
             assert not supernodal.available()
         assert "pip install -e ." in caplog.text and f"this code reads {supernodal.LAYOUT}" in caplog.text
     finally:
@@ -194,7 +194,7 @@ def test_a_library_built_from_another_source_is_not_used(monkeypatch, caplog):
 def test_stored_flows_name_the_substitutions_that_computed_them(monkeypatch):
     """Ours and PARDISO's give other last bits, so a flow stored by one must not be restored by the other: the key
     part of stored flows (``solver_code_digest``) names them."""
-    from sim.fluid import solver_code_digest
+    from sim.method.fluid import solver_code_digest
     ours = solver_code_digest()
     monkeypatch.setattr(speed, "_settings", replace(speed.current(), own_substitutions=False))
     theirs = solver_code_digest()

@@ -15,9 +15,10 @@ from pathlib import Path
 
 import pytest
 
-from vcyto import outputs, runfiles, sweep
+from vcyto import outputs, sweep
 from vcyto.cli import main
 from vcyto.outputs import strict_json
+from vcyto.recording import runfiles
 from vcyto.sweep.run import _chunks, report_lines
 
 # the cheap plant on a coarse mesh (1.5 s to build); a few cells per point so the metrics vary

@@ -13,9 +13,9 @@ from controller.detector import Detector, DetectorSettings
 from controller.events import Decision, Sighting
 from controller.protocol import DecisionLog
 from sim import rom as rom_module
-from sim.arrivals import Arrivals, Cells, offer
-from sim.scenario import Scenario
-from vcyto.recording import McapRecorder
+from sim.model.arrivals import Arrivals, Cells, offer
+from sim.model.scenario import Scenario
+from vcyto.recording.mcap import McapRecorder
 from vcyto.stream import StreamSettings, make_plant, run_stream
 
 SETTINGS = StreamSettings(Arrivals(count=240, mix=(("RBC", 0.8), ("melanoma", 0.2)), rate=2500.0,

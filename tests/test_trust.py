@@ -291,7 +291,7 @@ def test_a_desktop_without_a_usable_viewer_still_gets_every_file(tmp_path):
     assert summary["status"] == "complete" and [c["outlet"] for c in summary["cells"]] == ["lower", "upper"]
     from rerun.chunk import RrdReader
     assert RrdReader(str(found["rrd"][0])) is not None
-    from vcyto.fcs import read_fcs
+    from vcyto.recording.fcs import read_fcs
     channels, events, _ = read_fcs(found["fcs"][0])
     assert events.shape == (2, len(channels))
 
@@ -350,7 +350,7 @@ def test_an_interrupted_run_leaves_a_complete_record(tmp_path, signum, status):
     summary = strict_load((tmp_path / "run.json").read_text())
     assert summary["status"] == "interrupted" and name in summary["reason"]
     assert 0 < summary["simulated_time_ms"] < 10_000
-    from vcyto.fcs import read_fcs
+    from vcyto.recording.fcs import read_fcs
     _, events, keywords = read_fcs(tmp_path / "run.fcs")
     assert len(events) == sum(cell["detected_class"] is not None for cell in summary["cells"]) > 0
     assert keywords.get("vcyto_status") == "interrupted"
@@ -376,7 +376,7 @@ def test_a_disk_filling_up_mid_run_is_one_line_exit_1(tmp_path, monkeypatch):
 
     from guard import vcyto_inline
 
-    from vcyto import recording
+    from vcyto.recording import mcap as recording
     written = {"steps": 0}
     original = recording.McapRecorder.on_step
 
@@ -399,7 +399,7 @@ def test_a_disk_filling_up_mid_run_is_one_line_exit_1(tmp_path, monkeypatch):
 # --- the viewer: the installed one, bound to this machine, never breaking a run --------------------------
 
 def test_the_viewer_is_the_one_installed_with_rerun_sdk_not_the_first_on_path(tmp_path, monkeypatch):
-    from vcyto import viewer
+    from vcyto.recording import viewer
     impostor = tmp_path / "rerun"
     impostor.write_text("#!/bin/sh\nexit 7\n")
     impostor.chmod(0o755)
@@ -424,7 +424,7 @@ time.sleep(60)
 def test_a_started_viewer_listens_on_localhost_only_unless_asked(tmp_path, monkeypatch):
     import socket
 
-    from vcyto import viewer
+    from vcyto.recording import viewer
     fake, record = tmp_path / "fake-rerun", tmp_path / "args.txt"
     fake.write_text(FAKE_VIEWER.format(python=sys.executable, record=str(record)))
     fake.chmod(0o755)
@@ -461,7 +461,7 @@ def test_a_viewer_that_goes_away_mid_run_does_not_break_it(tmp_path):
     """A real Rerun gRPC server (headless) receives the run and is killed half-way: the run still finishes."""
     import socket
 
-    from vcyto import viewer
+    from vcyto.recording import viewer
     with socket.socket() as probe:
         probe.bind(("127.0.0.1", 0))
         port = probe.getsockname()[1]
@@ -493,7 +493,7 @@ def test_a_viewer_that_goes_away_mid_run_does_not_break_it(tmp_path):
 def test_no_viewer_binary_at_all_means_an_rrd(monkeypatch, capsys):
     import argparse
 
-    from vcyto import runfiles, viewer
+    from vcyto.recording import runfiles, viewer
     monkeypatch.setenv("DISPLAY", ":99")
     monkeypatch.setattr(viewer, "find_viewer", lambda: None)
     monkeypatch.setattr(viewer, "listening", lambda *args, **kwargs: False)

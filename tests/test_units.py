@@ -6,7 +6,7 @@ import typing
 
 import pytest
 
-from sim import scenario as scenario_module
+from sim.model import scenario as scenario_module
 from vcyto.config import FIELD_DIMENSIONS, load_scenario
 from vcyto.units import DIMENSIONS, QuantityError, parse_list, parse_quantity
 

@@ -42,7 +42,7 @@ def run(tmp_path_factory):
 
 
 def steps_in(mcap_path):
-    from vcyto.replay import read_recording
+    from vcyto.recording.replay import read_recording
     _, messages, _ = read_recording(mcap_path)
     return sum(len(data["step"]) for topic, data in messages if topic == "/loop/steps")
 
@@ -125,7 +125,7 @@ def test_a_display_without_a_server_is_seen_before_the_viewer_is_started(monkeyp
     import os
     import socket
 
-    from vcyto import viewer
+    from vcyto.recording import viewer
     monkeypatch.delenv("WAYLAND_DISPLAY", raising=False)
     number = 700 + os.getpid() % 200                  # a display no X server on this machine is using
     monkeypatch.setenv("DISPLAY", f":{number}")
@@ -190,8 +190,8 @@ def stalled_viewer():
 
 
 def vcyto_on_port(port: int, *args, env=None, **options):
-    """``vcyto ARGS`` in a new process whose viewer port (``vcyto.viewer.VIEWER_PORT``, 9876) is ``port``."""
-    code = (f"import sys, vcyto.viewer as v; v.VIEWER_PORT = {port}; sys.argv = ['vcyto', *sys.argv[1:]]; "
+    """``vcyto ARGS`` in a new process whose viewer port (``vcyto.recording.viewer.VIEWER_PORT``, 9876) is ``port``."""
+    code = (f"import sys, vcyto.recording.viewer as v; v.VIEWER_PORT = {port}; sys.argv = ['vcyto', *sys.argv[1:]]; "
             "from vcyto.__main__ import run; run()")
     return subprocess.Popen([sys.executable, "-c", code, *args], env=env, stdout=subprocess.PIPE,
                             stderr=subprocess.PIPE, text=True, **options)
@@ -231,7 +231,7 @@ def rerun_server():
     import socket
     import time
 
-    from vcyto import viewer
+    from vcyto.recording import viewer
     binary = viewer.find_viewer()
     if binary is None:
         pytest.skip("no Rerun viewer binary installed")
@@ -252,7 +252,7 @@ def rerun_server():
 
 def test_the_handshake_tells_a_grpc_server_from_a_deaf_port(deaf_listener, rerun_server):
     """A real gRPC server of Rerun's answers the handshake; the deaf listener does not."""
-    from vcyto import viewer
+    from vcyto.recording import viewer
     assert "did not answer" in viewer.viewer_problem("127.0.0.1", deaf_listener, timeout=0.3)
     assert viewer.viewer_problem("127.0.0.1", rerun_server) is None
 
@@ -322,7 +322,7 @@ def test_a_view_that_does_not_keep_up_drops_frames_and_never_holds_the_run(stall
     """The live view is fed through its own bounded queue: with a view made slow (20 ms a step, far slower than
     the rom loop) the run ends in the time the loop takes, not in frames x 20 ms, and the summary (JSON and its
     Rerun line) and the recording's ``run_end`` count the frames dropped."""
-    from vcyto.replay import read_metadata
+    from vcyto.recording.replay import read_metadata
     slow = 0.02
     done = subprocess.run([sys.executable, "-c", SLOW_VIEW, str(slow), "stream", "--model", "rom", "--count", "300",
                            "--mix", "RBC:0.9,melanoma:0.1", "--rate", "2000", "--output", str(tmp_path), "--name",
@@ -340,7 +340,7 @@ def test_a_view_that_does_not_keep_up_drops_frames_and_never_holds_the_run(stall
 
 def test_a_view_that_keeps_up_drops_nothing(tmp_path):
     """A sink faster than the batches it is handed: every frame is drawn, none dropped."""
-    from vcyto.sinks import LiveView
+    from vcyto.recording.sinks import LiveView
 
     class Counting:
         def __init__(self):

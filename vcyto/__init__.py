@@ -24,7 +24,7 @@ STARTED = _time.perf_counter()      # for "whole process" wall times
 __version__ = "0.1.0"
 
 _EXPORTS = {
-    "Scenario": "sim.scenario", "Arrivals": "sim.arrivals",
+    "Scenario": "sim.model.scenario", "Arrivals": "sim.model.arrivals",
     "DetectorSettings": "controller.detector", "ControllerSettings": "controller.sorter",
     "load_scenario": "vcyto.config", "scenario_from_toml": "vcyto.config", "scenario_to_toml": "vcyto.config",
     "StreamSettings": "vcyto.stream", "run_stream": "vcyto.stream", "make_plant": "vcyto.stream",
@@ -32,8 +32,9 @@ _EXPORTS = {
     "SortController": "controller.sorter", "Timing": "vcyto.control",
     "report_lines": "vcyto.stream", "StreamStopped": "vcyto.stream",
     "outcome_class": "vcyto.outcomes", "OUTCOME_CLASSES": "vcyto.outcomes",
-    "McapRecorder": "vcyto.recording", "RerunSink": "vcyto.rerunlog", "BackgroundSinks": "vcyto.sinks",
-    "write_fcs": "vcyto.fcs", "write_gatingml": "vcyto.gatingml",
+    "McapRecorder": "vcyto.recording.mcap", "RerunSink": "vcyto.recording.rerunlog",
+    "BackgroundSinks": "vcyto.recording.sinks",
+    "write_fcs": "vcyto.recording.fcs", "write_gatingml": "vcyto.recording.gatingml",
 }
 __all__ = ["__version__", *_EXPORTS]
 

@@ -15,7 +15,7 @@ import math
 import re
 import sys
 
-from sim.scenario import ScenarioError
+from sim.model.scenario import ScenarioError
 
 from .units import DIMENSIONS, QuantityError, parse_quantity, unit_factor
 

@@ -1,4 +1,4 @@
-"""The disk cache of set-up results: what ``sim`` hands over as named arrays (``sim.store``), kept between runs.
+"""The disk cache of set-up results: what ``sim`` hands over as named arrays (``sim.fast.store``), kept between runs.
 
 Where: ``$VCYTO_CACHE_DIR`` if set, else the user cache directory (``platformdirs``: ``~/.cache/vcyto`` on
 Linux, ``$XDG_CACHE_HOME/vcyto`` when that is set). ``VCYTO_CACHE=off`` turns it off; ``vcyto cache
@@ -14,7 +14,7 @@ they are read, where hashing took ~0.2 s of a tolerance run's start.) Writes go 
 temporary file in the same directory and are moved in place with ``os.replace`` (atomic): concurrent runs
 never see half an entry; the last writer wins with identical content.
 
-Files a library writes itself (PARDISO's factorisations, ``sim.linalg.Pardiso``: 24 MB per half of the paper
+Files a library writes itself (PARDISO's factorisations, ``sim.fast.linalg.Pardiso``: 24 MB per half of the paper
 mesh's split solve) are kept as a directory named like an entry, holding them and an ``entry.npz`` with the key,
 each file's size and CRC-32 and the arrays. The directory is written under a temporary name and renamed into
 place; a directory that fails its key, sizes or checksums is replaced; when another run put a valid one in
@@ -38,8 +38,8 @@ from pathlib import Path
 import numpy as np
 import platformdirs
 
-from sim import store
-from sim.store import digest
+from sim.fast import store
+from sim.fast.store import digest
 
 from . import __version__
 from .outputs import create_new
@@ -59,7 +59,7 @@ def cache_enabled() -> bool:
 
 
 class DiskCache:
-    """``sim.store.ArrayStore`` on disk; ``hits``, ``misses`` and ``rebuilt`` count what happened."""
+    """``sim.fast.store.ArrayStore`` on disk; ``hits``, ``misses`` and ``rebuilt`` count what happened."""
 
     def __init__(self, directory: Path | str | None = None):
         self.directory = Path(directory) if directory is not None else cache_directory()
@@ -129,7 +129,7 @@ class DiskCache:
         self.unwritable = True
 
 
-    # ------------------------------------------------------------------ directories (sim.store's second kind)
+    # ------------------------------------------------------------------ directories (sim.fast.store's second kind)
     def _count(self, name: str):
         with self._lock:                  # the split solve's two halves ask the store from two threads at once
             setattr(self, name, getattr(self, name) + 1)
@@ -368,8 +368,8 @@ def clear(directory: Path | None = None) -> int:
     directory = directory or cache_directory()
     removed = 0
     if directory.exists():
-        # the directory entries (sim.store's second kind, e.g. PARDISO's factorisations), named by their keys' hashes
-        # (and hidden ones being written): nothing else under the directory is touched
+        # the directory entries (sim.fast.store's second kind, e.g. PARDISO's factorisations), named by their keys'
+        # hashes (and hidden ones being written): nothing else under the directory is touched
         for entry in _entry_directories(directory):
             files = [path for path in entry.rglob("*") if path.is_file()]
             shutil.rmtree(entry, ignore_errors=True)

@@ -52,7 +52,7 @@ class CellTable:
     """Rows appended as cells leave, written a row group at a time to ``path`` (created or truncated)."""
 
     def __init__(self, path: Path, rows_per_group: int = ROWS_PER_GROUP):
-        from .viewer import ready_pyarrow
+        from .arrowshim import ready_pyarrow
         ready_pyarrow()                        # in the vcyto command's process: without importing pandas
         self.path = Path(path)
         self.failed = False

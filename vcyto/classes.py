@@ -71,7 +71,7 @@ class CellClasses:
         return provisional_class(self._detected.get(key), self._action.get(key))
 
     def settle(self, cell) -> str:
-        """The outcome class of a cell (``sim.plant.CellTruth``) that has left; the cell is forgotten."""
+        """The outcome class of a cell (``sim.plants.feib.CellTruth``) that has left; the cell is forgotten."""
         summary = {"outlet": cell.fate if cell.fate != "in_channel" else "lost",
                    "true_class": self.true_class(cell.type),
                    "detected_class": self._detected.pop(cell.key, None), "decision": self._action.pop(cell.key, None)}

@@ -1,6 +1,6 @@
 """Scenario files and command-line overrides turned into a validated ``Scenario``.
 
-A scenario file is TOML whose tables mirror the dataclasses of ``sim.scenario``: [channel],
+A scenario file is TOML whose tables mirror the dataclasses of ``sim.model.scenario``: [channel],
 [[channel.inlets]], [[channel.outlets]], [channel.saw_window], [fluid], [saw], [numerics]. Omitted keys
 keep their defaults; a [[channel.inlets]] or [[channel.outlets]] array replaces the default list.
 An override is ``dotted.path=value`` (``numerics.dt=25us``, ``channel.inlets.1.v_hat=0.02``,
@@ -33,7 +33,7 @@ if sys.version_info >= (3, 11):
 else:  # pragma: no cover - exercised on Python 3.10 only
     import tomli as tomllib
 
-from sim.scenario import Scenario, ScenarioError, as_dict
+from sim.model.scenario import Scenario, ScenarioError, as_dict
 
 from . import units
 from .scenariotoml import _init_fields, _join, scenario_to_toml  # noqa: F401 (scenario_to_toml: re-exported)

@@ -11,7 +11,7 @@ import os
 from pathlib import Path
 
 from controller.sorter import ControllerSettings
-from sim.scenario import ScenarioError
+from sim.model.scenario import ScenarioError
 
 from .config import _build, read_toml
 

@@ -14,8 +14,7 @@ import argparse
 from pathlib import Path
 
 from controller.sorter import MODES, ControllerSettings
-from sim import plants
-from sim.scenario import (
+from sim.model.scenario import (
     CONVECTIONS,
     COUPLINGS,
     LINEAR_SOLVERS,
@@ -24,12 +23,13 @@ from sim.scenario import (
     TIME_SCHEMES,
     ScenarioError,
 )
+from sim.plants import registry as plants
 
 from . import arguments as limits
 from . import units
 from .arguments import Integer, Number, Quantity
 from .config import load_scenario
-from .runfiles import say
+from .recording.runfiles import say
 
 SHIPPED = ControllerSettings()      # the shipped calibration: the defaults --help names
 MAX_TOLERANCE = 50e-6               # a path error per transit of --tolerance (the paper's outlets are 80 um wide)
@@ -99,9 +99,9 @@ def scenario_from(args, membrane: str | None = None):
 
 
 def as_built(scenario):
-    """``scenario`` with ``numerics.mesh_h`` the largest spacing of the mesh it builds (``sim.mesh.MeshSize``)
+    """``scenario`` with ``numerics.mesh_h`` the largest spacing of the mesh it builds (``sim.model.mesh.MeshSize``)
     and the note saying so, or None when the mesh is uniform with the size asked."""
-    from sim.mesh import MeshSize
+    from sim.model.mesh import MeshSize
     size = MeshSize.of(scenario.channel, scenario.numerics.mesh_h)
     return (scenario.with_numerics(mesh_h=size.largest) if size.snapped else scenario), size.note()
 
@@ -290,7 +290,7 @@ def plugin_spec(args, name: str) -> str | None:
 
 def arrivals_settings(args):
     """The ``Arrivals`` of the arrival options in ``args``; an error names the options it concerns."""
-    from sim.arrivals import Arrivals
+    from sim.model.arrivals import Arrivals
     if args.cells is not None and (args.count or args.mix):
         raise UsageError("--cells: lists the cells one by one, so it goes without --count and --mix; give either "
                          "--cells RBC,melanoma or --count N --mix RBC:0.9,melanoma:0.1")
@@ -464,7 +464,8 @@ def _sorting_options(parser: argparse.ArgumentParser):
 def _plant_options(parser: argparse.ArgumentParser):
     parser.add_argument("--plant-from", metavar="FILE.py:NAME",
                         help="your plant instead of --model: NAME (a class or factory in FILE.py, or MODULE:NAME) is "
-                             "called with the scenario and returns a plant (sim.contract.Plant; docs/controllers.md)")
+                             "called with the scenario and returns a plant (sim.plants.contract.Plant; "
+                             "docs/controllers.md)")
     parser.add_argument("--model", choices=plants.MODELS, default="feib",
                         help="plant: full FE-IB (default); auto (rom, switching to feib while a melanoma "
                              "shares the channel or cells are close together); oneway (membranes deforming in "

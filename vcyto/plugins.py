@@ -2,8 +2,8 @@
 
 ``NAME`` is a class or a factory. A controller's is called with the controller settings
 (``controller.sorter.ControllerSettings``: the calibration, mode and options of the run) and returns an object
-implementing ``controller.protocol.Controller``; a plant's is called with the scenario (``sim.scenario.Scenario``)
-and returns a plant (``sim.contract.Plant``). A file is loaded as a module of its own (its folder is not put on
+implementing ``controller.protocol.Controller``; a plant's is called with the scenario (``sim.model.scenario.Scenario``)
+and returns a plant (``sim.plants.contract.Plant``). A file is loaded as a module of its own (its folder is not put on
 ``sys.path``); a module is imported as Python imports it. Whatever goes wrong (no such file, a syntax error in it,
 no such name, a factory that raises or returns something that is not a controller or a plant) is one line.
 """
@@ -99,12 +99,12 @@ def controller(spec: str, settings):
 
 def plant(spec: str, scenario):
     """The plant that ``spec``'s class or factory builds for ``scenario`` (checked against the plant contract)."""
-    from sim.contract import Plant
+    from sim.plants.contract import Plant
     built = _build(load(spec), scenario, "plant", spec)
     if not isinstance(built, Plant):
         missing = [name for name in ("reset", "step", "observe", "truth", "done", "control_period")
                    if not hasattr(built, name)]
-        raise PluginError(f"{spec}: built a {type(built).__name__}, which is not a plant (sim.contract.Plant): "
+        raise PluginError(f"{spec}: built a {type(built).__name__}, which is not a plant (sim.plants.contract.Plant): "
                           f"it lacks {', '.join(missing) or 'the contract'}")
     period = getattr(built, "control_period", None)
     if not (isinstance(period, (int, float)) and 0 < period < 1):

@@ -42,8 +42,8 @@ from gymnasium import spaces
 
 from controller.events import TYPE_II, Decision
 from controller.protocol import DeviceFacts
-from sim.arrivals import Arrivals
-from sim.scenario import Scenario
+from sim.model.arrivals import Arrivals
+from sim.model.scenario import Scenario
 
 from .control import Reply
 from .outcomes import DEFAULT_OUTLET, SORTED_OUTLET
@@ -136,8 +136,8 @@ class _Departures:
 class SortEnv(gymnasium.Env):
     """The sorting loop as a Gymnasium environment (module docstring).
 
-    ``model``: a plant of the registry (``sim.plants``), built once (``plant``: one already built). The sample of
-    an episode: ``count`` cells of ``mix`` offered at ``rate`` cells/s (``process``, the inlet's dead time
+    ``model``: a plant of the registry (``sim.plants.registry``), built once (``plant``: one already built). The sample
+    of an episode: ``count`` cells of ``mix`` offered at ``rate`` cells/s (``process``, the inlet's dead time
     ``min_spacing``), or ``settings`` (a ``vcyto.stream.StreamSettings``: arrivals, detector, controller
     calibration, model; its seed is replaced by each episode's). ``reward``: one of ``REWARDS``.
     """

@@ -1,6 +1,6 @@
 """A ``Scenario`` written as a TOML document that ``vcyto.config.load_scenario`` reads back to the same scenario.
 
-The tables mirror the dataclasses of ``sim.scenario`` (``vcyto.config``'s docstring); numbers are plain SI,
+The tables mirror the dataclasses of ``sim.model.scenario`` (``vcyto.config``'s docstring); numbers are plain SI,
 floats written as the shortest text that reads back to the same float. ``vcyto scenario`` prints it, the
 recordings and the sweep's point identities store it.
 """
@@ -10,7 +10,7 @@ from __future__ import annotations
 import dataclasses
 import numbers
 
-from sim.scenario import Scenario
+from sim.model.scenario import Scenario
 
 
 def scenario_to_toml(scenario: Scenario) -> str:

@@ -2,7 +2,7 @@
 
 Statistics (``statistics_of``), over the sample offered to the inlet:
 - events: cells detected; offered: cells in the sample; rejected_at_inlet: cells the inlet's dead time turned
-  away (``sim.arrivals``); sorted: sort decisions kept; aborted: sorts cancelled for coincidence;
+  away (``sim.model.arrivals``); sorted: sort decisions kept; aborted: sorts cancelled for coincidence;
 - purity: true targets among the cells that left by the sorted outlet;
 - yield: targets that left by the sorted outlet over the targets offered (rejected ones included);
 - abort_rate: aborts over type-II detections; co_deflected: correctly detected type-I cells that left by the
@@ -53,7 +53,7 @@ SORTED_MODES = {"purity": True, "single": True, "enrichment": False}
 
 
 def true_class(cell_type) -> str:
-    """The class a cell of ``cell_type`` (``sim.scenario.CellType``) should be sorted as."""
+    """The class a cell of ``cell_type`` (``sim.model.scenario.CellType``) should be sorted as."""
     return TYPE_II if cell_type.target else TYPE_I
 
 
@@ -77,7 +77,7 @@ class SortLedger:
                  checkpoint=None):
         from .celltable import CellTable
         self.sample, self.scenario, self.settings = sample, scenario, settings
-        self.checkpoint = checkpoint          # the summary and events written as the run goes (vcyto.checkpoint)
+        self.checkpoint = checkpoint          # the summary and events as the run goes (vcyto.recording.checkpoint)
         self.predicted_arrival = predicted_arrival
         self.table = CellTable(table) if table is not None else None
         self.keep = KEEP_CELLS if keep == "default" else keep
@@ -232,8 +232,8 @@ class SortLedger:
 
 
 def mesh_record(scenario) -> dict:
-    """The mesh a run's flows are computed on: its size, squares and Taylor-Hood DOFs (``sim.mesh.MeshSize``)."""
-    from sim.mesh import MeshSize
+    """The mesh a run's flows are computed on: its size, squares and Taylor-Hood DOFs (``sim.model.mesh.MeshSize``)."""
+    from sim.model.mesh import MeshSize
     size = MeshSize.of(scenario.channel, scenario.numerics.mesh_h)
     return {"h_um": size.largest * 1e6, "squares": list(size.squares), "dofs": size.dofs, "uniform": size.uniform,
             "description": size.describe()}
@@ -628,7 +628,7 @@ def sort_report_lines(result: dict) -> list[str]:
     if result.get("mesh"):
         lines.append(f"mesh: {result['mesh']['description']}")
     if (result.get("time_steps") or {}).get("levels_us"):
-        from .paper import time_step_line
+        from .studies.paper import time_step_line
         lines += [line.strip() for line in time_step_line(result["time_steps"])]
     if result.get("status", "complete") != "complete":
         lines.append(f"PARTIAL RESULT ({result['status']}): {result['reason']}")

@@ -1,4 +1,4 @@
-"""The simulator's speed settings (``sim.speed.SpeedSettings``) from the environment: the application reads it, the
+"""The simulator's speed settings (``sim.fast.speed.SpeedSettings``) from the environment: the application reads it, the
 simulator never does.
 
 | variable | setting | default |
@@ -18,8 +18,8 @@ from __future__ import annotations
 import os
 from collections.abc import Mapping
 
-from sim import speed
-from sim.speed import SpeedSettings
+from sim.fast import speed
+from sim.fast.speed import SpeedSettings
 
 
 def from_environment(environment: Mapping[str, str] = os.environ) -> SpeedSettings:
@@ -39,7 +39,7 @@ def from_environment(environment: Mapping[str, str] = os.environ) -> SpeedSettin
 
 def install() -> SpeedSettings:
     """Run the simulator with this process's settings: ``KMP_BLOCKTIME=0`` unless the user set it (before MKL and
-    its OpenMP runtime load: ``sim.linalg``'s measurement of spinning threads), then ``from_environment``."""
+    its OpenMP runtime load: ``sim.fast.linalg``'s measurement of spinning threads), then ``from_environment``."""
     os.environ.setdefault("KMP_BLOCKTIME", "0")
     settings = from_environment()
     speed.use(settings)

@@ -1,6 +1,6 @@
 """How long a ``vcyto`` command takes to reach its first FE-IB step: ``python -m vcyto.startprobe [--steps N] ARGS...``.
 
-Runs ``vcyto ARGS`` in this process with ``sim.feib.ImmersedBoundary.step`` replaced by a stop, so what is
+Runs ``vcyto ARGS`` in this process with ``sim.method.feib.ImmersedBoundary.step`` replaced by a stop, so what is
 timed is the start: Python's imports, the set-up (mesh, matrices, factorisation, from the cache or not), the
 steady start flow and the first cell. ``--steps N`` lets N steps run before the stop: with 1, the start through
 the first step. Prints one JSON line: the wall time since this module started and the process's CPU time
@@ -26,7 +26,7 @@ def probe(arguments: list[str], steps: int = 0) -> dict:
     """Run ``vcyto arguments`` up to its plant step ``steps`` + 1 (0: the first); its start-up times (seconds)."""
     from vcyto.__main__ import load_command_line
     main = load_command_line().main          # imported as the executable imports it (the collector off)
-    import sim.feib as feib
+    import sim.method.feib as feib
     step, taken = feib.ImmersedBoundary.step, []
 
     def stop(self, *args, **kwargs):

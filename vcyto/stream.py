@@ -22,11 +22,12 @@ from controller.detector import Detector, DetectorSettings
 from controller.events import Sighting
 from controller.protocol import ControllerError, DeviceFacts
 from controller.sorter import ControllerSettings, SortController
-from sim import contract, plants
-from sim.arrivals import Arrivals, offer
-from sim.fluid import NumericalBlowUp
-from sim.linalg import SolverError
-from sim.scenario import Scenario
+from sim.fast.linalg import SolverError
+from sim.method.fluid import NumericalBlowUp
+from sim.model.arrivals import Arrivals, offer
+from sim.model.scenario import Scenario
+from sim.plants import contract
+from sim.plants import registry as plants
 
 from . import sortreport
 from .control import Control, InProcess, Timing, describe
@@ -40,10 +41,10 @@ STATUSES = ("complete", "truncated", "interrupted", "failed")
 
 class StreamStopped(Exception):
     """A run that did not finish: ``status`` is "interrupted" (KeyboardInterrupt, which SIGTERM is turned into
-    by the CLI) or "failed" (a numerical failure: ``sim.fluid.NumericalBlowUp`` or ``sim.linalg.SolverError``;
-    or a controller that broke the protocol: ``controller.protocol.ControllerError``, or lost its connection).
-    ``result`` is the summary of what ran up to then (its "status" and "reason" say why it is partial);
-    ``__cause__`` is the original exception."""
+    by the CLI) or "failed" (a numerical failure: ``sim.method.fluid.NumericalBlowUp`` or
+    ``sim.fast.linalg.SolverError``; or a controller that broke the protocol: ``controller.protocol.ControllerError``,
+    or lost its connection). ``result`` is the summary of what ran up to then (its "status" and "reason" say why it is
+    partial); ``__cause__`` is the original exception."""
 
     def __init__(self, status: str, reason: str, result: dict):
         super().__init__(reason)
@@ -62,7 +63,7 @@ class StreamSettings:
     seed: int = 0
     control_period: float | None = None       # default: the plant's natural period (dt for feib)
     max_time: float | None = None             # an explicit cap on simulated time (None: until the sample ends)
-    window_mesh_h: float | None = None        # auto: mesh of its feib windows (None: sim.auto's default)
+    window_mesh_h: float | None = None        # auto: mesh of its feib windows (None: sim.plants.auto's default)
     drain_time: float = DRAIN_TIME
     record_interval: float = RECORD_INTERVAL
     controller_from: str | None = None        # FILE.py:NAME or MODULE:NAME of a controller (vcyto.plugins)
@@ -86,8 +87,9 @@ class StreamSettings:
 
 
 def make_plant(scenario: Scenario, settings: StreamSettings):
-    """A fresh plant of ``settings.model`` (the registry ``sim.plants``). Set-up results (steady flows, matrices,
-    factorisations) come from the disk cache, as on the command line (``vcyto.cache``; ``VCYTO_CACHE=off``)."""
+    """A fresh plant of ``settings.model`` (the registry ``sim.plants.registry``). Set-up results (steady flows,
+    matrices, factorisations) come from the disk cache, as on the command line (``vcyto.cache``;
+    ``VCYTO_CACHE=off``)."""
     if settings.plant_from is not None:
         from . import plugins
         return plugins.plant(settings.plant_from, scenario)
@@ -114,7 +116,7 @@ def run_stream(scenario: Scenario, settings: StreamSettings, progress=None, plan
     ``settings_controller``: the built-in ``SortController`` unless ``controller_from`` names one), a class of
     one (built from ``settings.controller``), or a port
     to one in another process (``vcyto.wire``); the loop reaches it only through the protocol. ``plant``: a
-    plant of one's own (``sim.contract.Plant``; default: a fresh one of ``settings.model``). ``timing``:
+    plant of one's own (``sim.plants.contract.Plant``; default: a fresh one of ``settings.model``). ``timing``:
     lock-step (default) or paced real time (``vcyto.control``). The summary names the controller and the plant
     that ran.
 
@@ -130,7 +132,8 @@ def run_stream(scenario: Scenario, settings: StreamSettings, progress=None, plan
 
     The sort report is built as cells leave (``sortreport.SortLedger``, memory bounded by the cells in the
     channel); ``table``: the path of the per-cell table it writes (Parquet, ``vcyto.celltable``), or None;
-    ``checkpoint``: a ``vcyto.checkpoint.Checkpoint`` that writes the summary and events as the run goes, or None.
+    ``checkpoint``: a ``vcyto.recording.checkpoint.Checkpoint`` that writes the summary and events as the run goes,
+    or None.
     """
     port = None
     if controller is None and settings.controller_wire is not None:     # opened here, closed when the run ends
@@ -166,7 +169,7 @@ def _run(loop: Loop) -> dict:
 
 
 def model_name(plant) -> str:
-    """What a summary says ran: a registered model's name (``sim.plants``), else the plant's own name."""
+    """What a summary says ran: a registered model's name (``sim.plants.registry``), else the plant's own name."""
     model = getattr(type(plant), "model", None)
     if isinstance(model, str) and model in MODELS and type(plant).__module__.startswith("sim."):
         return model
@@ -418,7 +421,7 @@ def _sightings(observation) -> list[Sighting]:
 
 
 def _field_payload(plant):
-    from .recording import velocity_field
+    from .recording.mcap import velocity_field
 
     def payload():
         vertices, velocity, pressure, grid_x, grid_y = plant.fields()

@@ -2,7 +2,7 @@
 
 Installed with vcyto, it gives every test in the environment these fixtures:
 
-- ``vcyto_scenario``: the paper's device (``sim.scenario.Scenario()``); override the fixture for another;
+- ``vcyto_scenario``: the paper's device (``sim.model.scenario.Scenario()``); override the fixture for another;
 - ``vcyto_plant``: ``vcyto_plant(model)`` builds a plant of a registered model once per test session and hands
   out fresh ones (``reset`` makes them so);
 - ``sort_run``: ``sort_run(controller, cells=... | count=..., mix=..., rate=..., model="rom", ...)`` runs the closed
@@ -106,7 +106,7 @@ def assert_no_missed_deadlines(run: SortRun) -> None:
 @pytest.fixture
 def vcyto_scenario():
     """The paper's device; override this fixture in your conftest.py for another scenario."""
-    from sim.scenario import Scenario
+    from sim.model.scenario import Scenario
     return Scenario()
 
 
@@ -121,7 +121,7 @@ def vcyto_plant(vcyto_scenario, _vcyto_plants):
     def plant(model: str = "rom"):
         key = (model, vcyto_scenario)
         if key not in _vcyto_plants:
-            from sim.arrivals import Arrivals
+            from sim.model.arrivals import Arrivals
             from vcyto.stream import StreamSettings, make_plant
             _vcyto_plants[key] = make_plant(vcyto_scenario, StreamSettings(Arrivals(cells=("RBC",)), model=model))
         return _vcyto_plants[key]
@@ -140,7 +140,7 @@ def sort_run(vcyto_scenario, vcyto_plant):
             arrivals: str = "regular", min_spacing: float = 0.5e-3, model: str = "rom", seed: int = 0,
             realtime: float | None = None, **controller_options) -> SortRun:
         from controller.sorter import ControllerSettings
-        from sim.arrivals import Arrivals
+        from sim.model.arrivals import Arrivals
         from vcyto.control import Timing
         from vcyto.stream import StreamSettings, run_stream
         settings = StreamSettings(Arrivals(cells=() if count else tuple(cells), count=count, mix=tuple(mix),

@@ -270,7 +270,7 @@ class _UnitMemo:
 def _rule_digest() -> str:
     """A short digest of what the remembered answers depend on besides pint: the dimensions and this module's
     reading of pint's answer (a changed rule starts a new memo)."""
-    from sim.store import code_digest
+    from sim.fast.store import code_digest
     return hashlib.sha256(repr((DIMENSIONS, code_digest(_pint_si_factor, _describe))).encode()).hexdigest()[:16]
 
 

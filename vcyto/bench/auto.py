@@ -5,14 +5,14 @@ from __future__ import annotations
 
 import numpy as np
 
-from sim.scenario import Scenario
+from sim.model.scenario import Scenario
 
 
 def bench_auto(scenario: Scenario, count: int = 100, rate: float = 500.0, mix=(("RBC", 0.8), ("melanoma", 0.2)),
                seed: int = 0, progress=None) -> dict:
     """The same mixed Poisson stream with ``--model auto`` and ``--model feib``: outcomes cell by cell, and
     the wall time of each (set-up apart)."""
-    from sim.arrivals import Arrivals
+    from sim.model.arrivals import Arrivals
 
     from ..stream import StreamSettings, StreamStopped, run_stream
 

@@ -17,7 +17,7 @@ import time
 
 import numpy as np
 
-from sim.scenario import UM, Scenario
+from sim.model.scenario import UM, Scenario
 
 from .tolerance import path_distance
 
@@ -31,10 +31,10 @@ def lateral_distance(path, reference_path) -> np.ndarray:
 
 def bench_coupling(base: Scenario, steps=(5e-6, 10e-6, 25e-6, 50e-6, 100e-6), repeats: int = 3,
                    cost_steps: int = 20, progress=lambda message: None) -> dict:
-    from sim.fluid import NumericalBlowUp
-    from sim.health import HealthError
+    from sim.method.fluid import NumericalBlowUp
+    from sim.method.health import HealthError
 
-    from ..paper import paper_scenario, run_paper
+    from ..studies.paper import paper_scenario, run_paper
     base = base.with_numerics(tolerance=0.0, time_scheme="euler")
     reference_dt = base.numerics.dt
     progress(f"reference: explicit, dt = {reference_dt * 1e6:g} us")
@@ -73,9 +73,9 @@ def _row(coupling, dt, run, reference) -> dict:
 def per_step_costs(scenario: Scenario, repeats: int, steps: int, progress=lambda message: None) -> dict:
     """{coupling: [wall time per step (ms), one per repeat]}: interleaved runs of ``steps`` steps of Scenario II's
     melanoma from its start (after one step, which builds what the coupling needs once), one fluid solver shared."""
-    from sim.feib import ImmersedBoundary
-    from sim.fluid import NavierStokes
-    from sim.openloop import with_cells
+    from sim.method.feib import ImmersedBoundary
+    from sim.method.fluid import NavierStokes
+    from sim.method.openloop import with_cells
     fluid = NavierStokes(scenario)
     start = fluid.steady(1.0)
     costs = {"explicit": [], "implicit": []}

@@ -25,8 +25,8 @@ def floor_probe(rounds: int = ROUNDS) -> dict:
     """The back-solves of the fluid's matrix (ms, medians over ``rounds`` blocks each), the floor (the median over
     the rounds of each round's fastest of them: on a busy host any of them can be the fastest) and the default's,
     the fastest reproducible one."""
-    from sim.fluid import NavierStokes
-    from sim.scenario import Scenario
+    from sim.method.fluid import NavierStokes
+    from sim.model.scenario import Scenario
 
     from .fluid import _block_ms, _describe, _fastest_backsolves, _hot_block_ms
 

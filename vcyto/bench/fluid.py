@@ -14,14 +14,14 @@ import time
 
 import numpy as np
 
-from sim import store
-from sim.fluid import NavierStokes
-from sim.linalg import Pardiso, SuperLU, pardiso_available, spinning_openmp_threads
-from sim.mesh import channel_mesh
-from sim.scenario import UM, Scenario
-from sim.splitsolve import SplitPardiso
-from sim.supernodal import SupernodalLDL
-from sim.taylorhood import TaylorHood
+from sim.fast import store
+from sim.fast.linalg import Pardiso, SuperLU, pardiso_available, spinning_openmp_threads
+from sim.fast.splitsolve import SplitPardiso
+from sim.fast.supernodal import SupernodalLDL
+from sim.method.fluid import NavierStokes
+from sim.method.taylorhood import TaylorHood
+from sim.model.mesh import channel_mesh
+from sim.model.scenario import UM, Scenario
 
 STEPS = {"imex": 40, "stokes": 40, "oseen": 4, "implicit": 4}
 BLOCK_S = 0.5
@@ -169,7 +169,7 @@ def _load_ms(base: NavierStokes, state, repeats: int) -> dict:
 
 
 def _kept_factorisation(scenario: Scenario, space, base: NavierStokes, rhs) -> dict:
-    """What a warm start pays for the default factorisation (``sim.linalg.Pardiso(kept=True)``): the set-up's
+    """What a warm start pays for the default factorisation (``sim.fast.linalg.Pardiso(kept=True)``): the set-up's
     factorisation time in a run that keeps it (a temporary cache of its own) and in the next, which restores it,
     and whether the restored one solves to the bits of the benchmark's own."""
     import tempfile
@@ -210,7 +210,7 @@ def _block_ms(function) -> float:
 
 def _hot_block_ms(function) -> float:
     """``_block_ms`` with Intel OpenMP's threads spinning between calls (200 ms), the parallel substitution's
-    best setting; vcyto otherwise runs with KMP_BLOCKTIME=0 (``sim.linalg._mkl_runtime``)."""
+    best setting; vcyto otherwise runs with KMP_BLOCKTIME=0 (``sim.fast.linalg._mkl_runtime``)."""
     with spinning_openmp_threads(200):
         return _block_ms(function)
 
@@ -265,7 +265,7 @@ def _matched_default(base: NavierStokes):
 
 def _pardiso_substitutions_default(base: NavierStokes):
     """The default's back-solve with PARDISO's substitutions in its halves instead of our own, or
-    None when the default does not use our own (``sim.supernodal``)."""
+    None when the default does not use our own (``sim.fast.supernodal``)."""
     return _split_variant(base, lambda split: split.own, own=False)
 
 

@@ -6,7 +6,7 @@ from __future__ import annotations
 import statistics
 import time
 
-from sim.scenario import Scenario
+from sim.model.scenario import Scenario
 
 TARGET_STEPS_PER_S = 1e4
 

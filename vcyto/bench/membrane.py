@@ -6,16 +6,16 @@ from __future__ import annotations
 
 import statistics
 
-from sim.scenario import UM, Scenario
+from sim.model.scenario import UM, Scenario
 
 
 def bench_membrane(scenario: Scenario, repeats: int = 2, progress=None) -> dict:
     """The paper's literal membrane method against the conserving ones (docs/numerics.md, "Cells that keep their
     size"): a melanoma at rest in the shut device for 5 ms, and the paper's scenarios I and II, in interleaved runs;
     area kept, point spacing, outlets and the cost per step (median of ``repeats``)."""
-    from sim.feib import ImmersedBoundary, State
+    from sim.method.feib import ImmersedBoundary, State
 
-    from ..paper import paper_scenario, run_paper
+    from ..studies.paper import paper_scenario, run_paper
 
     note = progress.note if progress else (lambda message: None)
     methods = ("paper", "conserving", "multiplier")

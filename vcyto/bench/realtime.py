@@ -6,7 +6,7 @@ from __future__ import annotations
 import statistics
 import time
 
-from sim.scenario import UM, Scenario
+from sim.model.scenario import UM, Scenario
 
 
 def bench_realtime(scenario: Scenario, rate: float = 1000.0, duration: float = 1.0,
@@ -19,7 +19,7 @@ def bench_realtime(scenario: Scenario, rate: float = 1000.0, duration: float = 1
     stream runs ``repeats`` times on that plant. Loop wall = the run's wall time minus its own set-up
     (schedule, reset); real-time factor = device time simulated / loop wall; the median over repeats.
     """
-    from sim.arrivals import Arrivals
+    from sim.model.arrivals import Arrivals
 
     from ..stream import StreamSettings, make_plant, run_stream
 

@@ -7,22 +7,22 @@ import time
 
 import numpy as np
 
-from sim.scenario import Scenario
+from sim.model.scenario import Scenario
 
 
 def bench_recording(scenario: Scenario, cells=("RBC", "melanoma"), repeats: int = 3, progress=None) -> dict:
     """The same FE-IB stream without and with the default recording (MCAP + Rerun .rrd, written on the
-    background thread of ``vcyto.sinks``), in ``repeats`` interleaved pairs: the median overhead."""
+    background thread of ``vcyto.recording.sinks``), in ``repeats`` interleaved pairs: the median overhead."""
     import tempfile
     from pathlib import Path
 
     from controller.detector import DetectorSettings
-    from sim.arrivals import Arrivals
-    from sim.plant import FeibPlant
+    from sim.model.arrivals import Arrivals
+    from sim.plants.feib import FeibPlant
 
-    from ..recording import McapRecorder
-    from ..rerunlog import RerunSink
-    from ..sinks import BackgroundSinks
+    from ..recording.mcap import McapRecorder
+    from ..recording.rerunlog import RerunSink
+    from ..recording.sinks import BackgroundSinks
     from ..stream import StreamSettings, run_stream
 
     settings = StreamSettings(Arrivals(cells=tuple(cells)))

@@ -11,9 +11,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from sim.scenario import UM, Scenario
+from sim.model.scenario import UM, Scenario
 
-from ..paper import paper_scenario, run_paper
+from ..studies.paper import paper_scenario, run_paper
 
 
 def path_distance(times, path, reference_times, reference_path) -> np.ndarray:

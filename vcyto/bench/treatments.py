@@ -8,10 +8,10 @@ import time
 
 import numpy as np
 
-from sim.fluid import NavierStokes
-from sim.mesh import channel_mesh
-from sim.scenario import UM, Scenario
-from sim.taylorhood import TaylorHood
+from sim.method.fluid import NavierStokes
+from sim.method.taylorhood import TaylorHood
+from sim.model.mesh import channel_mesh
+from sim.model.scenario import UM, Scenario
 
 
 def bench_treatments(scenario: Scenario, steps: int = 20, progress=lambda message: None) -> dict:
@@ -55,7 +55,7 @@ def treatment_lines(result: dict) -> list[str]:
 def bench_paper_treatments(number: int, scenario: Scenario, treatments=("imex", "implicit"), progress=None) -> dict:
     """Run paper scenario ``number`` with each convection treatment; outlet, exit time and path differences
     from the first listed as the reference is the last (the fully implicit one by default)."""
-    from ..paper import paper_scenario, run_paper
+    from ..studies.paper import paper_scenario, run_paper
     runs = {}
     for treatment in treatments:
         if progress:

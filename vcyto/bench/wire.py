@@ -15,7 +15,7 @@ import statistics
 import sys
 import time
 
-from sim.scenario import Scenario
+from sim.model.scenario import Scenario
 
 LOCKSTEP_TARGET = 5.0          # real-time factor over the wire, lock-step
 LAG_TARGET_MS = 1.0            # the plant's lag behind the wall clock, p99, paced real time
@@ -32,7 +32,7 @@ def bench_wire(scenario: Scenario, rate: float = 1000.0, duration: float = 1.0, 
     """Lock-step runs of ``duration`` (in process, then over the wire, ``repeats`` times each) and one paced
     real-time run of ``realtime_duration`` at 1x over the wire; ``client``: the controller's command (started
     by ``vcyto.wire.launch``; default the built-in controller served by ``vcyto.wire.serve``)."""
-    from sim.arrivals import Arrivals
+    from sim.model.arrivals import Arrivals
 
     from .. import wire
     from ..control import Timing

@@ -15,14 +15,15 @@ import sys
 import threading
 import traceback
 
-from sim.fluid import NumericalBlowUp
-from sim.linalg import SolverError
-from sim.scenario import ScenarioError
+from sim.fast.linalg import SolverError
+from sim.method.fluid import NumericalBlowUp
+from sim.model.scenario import ScenarioError
 
-from .. import runfiles, units
+from .. import units
 from ..arguments import Parser
 from ..cache import CacheSettingError
 from ..cache import install_default as install_cache
+from ..recording import runfiles
 from ..speedsettings import install as install_speed_settings
 from ..stream import StreamStopped
 from . import (
@@ -132,8 +133,8 @@ def _main(args) -> int:
 def run() -> None:
     """The ``vcyto`` executable (and ``python -m vcyto``): ``main``, then ``exit_now`` with its status (argparse's
     exits for --help, --version and bad usage included). This process is the command's own, so the Rerun sink may
-    keep pyarrow from importing pandas (``vcyto.viewer.spare_pandas_import``)."""
-    from ..viewer import spare_pandas_import
+    keep pyarrow from importing pandas (``vcyto.recording.viewer.spare_pandas_import``)."""
+    from ..arrowshim import spare_pandas_import
     spare_pandas_import()
     try:
         status = main()

@@ -11,9 +11,9 @@ import numpy as np
 
 from controller.protocol import ControllerError
 from controller.sorter import MODES
-from sim import plants
+from sim.plants import registry as plants
 
-from .. import outputs, runfiles, units
+from .. import outputs, units
 from ..arguments import Number, Quantity
 from ..options import (
     controller_settings,
@@ -25,6 +25,7 @@ from ..options import (
     wire_options,
 )
 from ..outputs import strict_json
+from ..recording import runfiles
 from .common import (
     EXIT_NUMERICAL,
     SMALL_FILES_BYTES,
@@ -93,8 +94,8 @@ CHECK_CELLS = ("RBC", "melanoma", "RBC", "melanoma")
 
 
 def command_calibrate(args):
-    from .. import calibrate
     from ..controllerfile import controller_toml
+    from ..studies import calibrate
     scenario = scenario_from(args)
     output = output_directory(args.output, min_free=SMALL_FILES_BYTES)
     base = controller_settings(args)
@@ -157,7 +158,8 @@ def command_calibrate(args):
 
 def _plant(scenario, model: str, plant_from: str | None):
     """The plant the calibration cells go through: ``--model``'s, or the user's (a broken one: a usage error)."""
-    from .. import calibrate, plugins
+    from .. import plugins
+    from ..studies import calibrate
     if plant_from is None:
         return calibrate.make_calibration_plant(scenario, model)
     try:
@@ -174,7 +176,7 @@ def _model_name(plant) -> str:
 def _check(scenario, plant, detector, settings, controller_from: str | None, reached=None) -> dict:
     """The user's controller (``controller_from``'s, built from the new calibration, or one in another process,
     ``reached``: it gets the new calibration's device facts) on ``CHECK_CELLS``: where each cell went."""
-    from sim.arrivals import Arrivals
+    from sim.model.arrivals import Arrivals
 
     from .. import plugins
     from ..stream import StreamSettings, run_stream
@@ -200,7 +202,7 @@ def _check_line(check: dict) -> str:
 
 
 def _calibration_grid(args):
-    from ..calibrate import Grid
+    from ..studies.calibrate import Grid
     values = units.parse_list(args.pulse_range, "time", "ms", field="--pulse-range")
     if len(values) != 2 or not 0 < values[0] <= values[1] <= 10e-3:
         raise UsageError(f"--pulse-range: wants LO,HI with 0 < LO <= HI <= 10 ms, e.g. 0.02,2 "

@@ -18,8 +18,8 @@ def add_command(commands):
 
 
 def command_extremes(args):
-    from .. import extremes
     from ..progress import Progress
+    from ..studies import extremes
     base = scenario_from(args)
     names = [name.strip() for name in args.case.split(",") if name.strip()] if args.case is not None else None
     known = [case.name for case in extremes.CASES]

@@ -18,7 +18,7 @@ def add_command(commands):
 
 
 def command_flow(args):
-    from .. import flowtool
+    from ..studies import flowtool
     scenario = scenario_from(args)
     if args.calibrate_streaming and args.png:
         raise UsageError("--png: --calibrate-streaming draws no figure; drop --png (or run vcyto flow without "

@@ -34,13 +34,13 @@ def add_command(commands):
 
 
 def command_paper(args):
-    from .. import runfiles
-    from ..painter import Painter, core_idle
     from ..progress import Progress
+    from ..recording import runfiles
+    from ..studies.painter import Painter, core_idle
     # the PNG's helper process starts first where a core is idle: it imports matplotlib while this one imports the
-    # plant and runs (vcyto.painter); leaving this block (an error, Ctrl-C) stops it
+    # plant and runs (vcyto.studies.painter); leaving this block (an error, Ctrl-C) stops it
     with Painter(start=not args.no_png and core_idle()) as painter:
-        from .. import paper
+        from ..studies import paper
         # with --tolerance the finest level is --dt or 2.5 us, the step the tolerance is stated against
         scenario = paper.paper_scenario(args.number, scenario_from(args, membrane="paper"),
                                         dt_given=args.dt is not None or args.tolerance is not None)

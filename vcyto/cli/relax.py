@@ -26,8 +26,8 @@ def add_command(commands):
 
 
 def command_relax(args):
-    from .. import relaxation
     from ..progress import Progress
+    from ..studies import relaxation
     if args.scenario is None:
         raise UsageError(f"--scenario: the benchmark needs a scenario with every inlet shut, e.g. {DEFAULT_SCENARIO}")
     scenario = scenario_from(args)

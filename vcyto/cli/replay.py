@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from sim.scenario import ScenarioError
+from sim.model.scenario import ScenarioError
 
 from .. import outputs
 from .common import UsageError, emit, output_options
@@ -21,8 +21,8 @@ def add_command(commands):
 
 
 def command_replay(args):
-    from .. import runfiles
-    from ..replay import ReplayError, replay
+    from ..recording import runfiles
+    from ..recording.replay import ReplayError, replay
     path = Path(args.file)
     if not path.is_file():
         raise UsageError(f"FILE: the recording {args.file} does not exist or is not a file; give the path of an "

@@ -35,8 +35,8 @@ def mesh_sizes(text: str, scenario) -> list[float]:
 
 
 def command_stability(args):
-    from .. import stabilitymap
     from ..progress import Progress
+    from ..studies import stabilitymap
     scenario = scenario_from(args)
     cells = [name.strip() for name in args.cells.split(",") if name.strip()]
     if not cells:

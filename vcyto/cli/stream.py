@@ -163,7 +163,7 @@ def command_stream(args):
 
 def _stream_with(args, scenario, settings, output, loop: dict):
     """The run with its files, once the controller, plant and timing (``loop``) are built."""
-    from .. import runfiles
+    from ..recording import runfiles
     signals_seen.clear()
     view = runfiles.choose_view(args, output is not None, spawn_by_default=True, error=UsageError)
     files = None
@@ -187,10 +187,10 @@ def _stream_with(args, scenario, settings, output, loop: dict):
 def _open_sinks(args, scenario, settings, view, files):
     """The MCAP and Rerun sinks of the run, on a background thread (their work overlaps the plant's solve), or
     None."""
-    from ..sinks import BackgroundSinks, Deferred
+    from ..recording.sinks import BackgroundSinks, Deferred
     sinks = []
     if files is not None and files.path("mcap") is not None:
-        from ..recording import McapRecorder
+        from ..recording.mcap import McapRecorder
         sinks.append(McapRecorder(files.path("mcap"), _run_metadata(scenario, settings),
                                   flush_every=args.flush_every, field_every=args.field_every))
     if view.kind is not None and (view.kind == "connect" or view.path or files is not None):
@@ -205,8 +205,9 @@ def _run_with_sinks(args, scenario, settings, view, files, background, interrupt
     failure or a write that failed (a full disk) returns its partial summary. ``interrupted``: a signal came
     while the files and sinks were created; the run stops before its first step. ``loop``: the
     controller, plant and timing for ``run_stream``."""
-    from .. import runfiles, stream
+    from .. import stream
     from ..progress import Progress
+    from ..recording import runfiles
     progress = Progress(quiet=args.quiet or args.json)
     stopped, failed, unwritten = None, True, None
     try:
@@ -256,7 +257,7 @@ def _run_with_sinks(args, scenario, settings, view, files, background, interrupt
 
 def _frames(background) -> dict | None:
     """The frames of the live view (``vcyto.sinks.LiveView``): handed to it and dropped; None without one."""
-    from ..sinks import LiveView
+    from ..recording.sinks import LiveView
     live = [sink for sink in (background.sinks if background is not None else ()) if isinstance(sink, LiveView)]
     return {"frames": live[0].frames, "frames_dropped": live[0].dropped} if live else None
 
@@ -265,7 +266,7 @@ def _close_run(progress, background, files, failed: bool) -> tuple[list[str], OS
     """Close the progress line and the sinks (a full disk surfaces here too); (notes on a viewer that went away,
     the OSError of a file that could not be written or None). Files reserved but never written are removed if
     the run or the closing failed otherwise."""
-    from .. import runfiles
+    from ..recording import runfiles
     progress.close()
     try:
         return runfiles.close_quietly(background, files and files.path("mcap")), None
@@ -282,9 +283,9 @@ def _close_run(progress, background, files, failed: bool) -> tuple[list[str], OS
 def _rerun_sink(args, scenario, settings, view, files) -> list:
     """The Rerun sink of ``view``; if Rerun refuses it (a viewer gone between the check and the connection, a
     file it cannot create), one line says so and the view goes to a new .rrd, else there is none."""
-    from .. import runfiles
-    from ..rerunlog import POINT_LIKE, RerunSink
-    from ..sinks import LiveView
+    from ..recording import runfiles
+    from ..recording.rerunlog import POINT_LIKE, RerunSink
+    from ..recording.sinks import LiveView
     try:
         sink = RerunSink(scenario, settings.detector.window, view.target(files and files.path("rrd")),
                          field_every=args.field_every, membranes=settings.model not in POINT_LIKE)
@@ -303,7 +304,7 @@ def _rerun_sink(args, scenario, settings, view, files) -> list:
 def _report_write_failure(args, result, unwritten: OSError, view, files, settings, scenario):
     """A run stopped because one of its files could not be written (a full disk): what can be written is, one
     line names the file, the cause and what was kept, and the exit status is 1 (``RunStopped``)."""
-    from .. import runfiles
+    from ..recording import runfiles
     kept, lost = files.finish_what_can(result, settings, scenario) if files is not None else ([], [])
     if view.kind == "save" and view.path is not None and view.path.exists() and view.path.stat().st_size > 0:
         kept.append(str(view.path))
@@ -321,7 +322,8 @@ def _report_write_failure(args, result, unwritten: OSError, view, files, setting
 def _report_stream(args, result, stopped, view, files, settings, scenario):
     """Write the FCS events and the summary (partial ones marked), print the report and the paths; a stopped
     run then ends with its exit status (130 SIGINT, 143 SIGTERM, 1 numerical failure)."""
-    from .. import runfiles, stream
+    from .. import stream
+    from ..recording import runfiles
     if stopped is not None and stopped.status == "interrupted":
         result["reason"] = f"interrupted by {signals_seen.get('last', 'SIGINT')}"
     lines = stream.report_lines(result) if "statistics" in result and "events" in result["statistics"] else []

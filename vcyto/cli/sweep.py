@@ -35,8 +35,9 @@ def add_command(commands):
 
 
 def command_sweep(args):
-    from .. import runfiles, sweep
+    from .. import sweep
     from ..progress import Progress
+    from ..recording import runfiles
     try:
         if args.scheduler is not None:
             sweep.check_scheduler(args.scheduler)

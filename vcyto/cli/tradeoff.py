@@ -4,8 +4,9 @@ from __future__ import annotations
 
 import dataclasses
 
-from .. import outputs, runfiles, units
+from .. import outputs, units
 from ..options import scenario_from, scenario_options
+from ..recording import runfiles
 from .common import (
     SMALL_FILES_BYTES,
     UsageError,
@@ -55,8 +56,8 @@ def _times_before_pulse_end(text: str, option: str, example: str, what: str) -> 
 
 
 def command_tradeoff(args):
-    from .. import tradeoff
     from ..progress import Progress
+    from ..studies import tradeoff
     scenario = scenario_from(args)
     made = []
     output = output_directory(args.output, min_free=SMALL_FILES_BYTES, made=made)

@@ -18,8 +18,8 @@ from .model import SweepError, one_line
 SCHEDULER_SCHEMES = ("tcp", "tls", "ucx", "ws", "wss")
 CONNECT_TIMEOUT_S = 10
 # one thread per worker process: the libraries' thread pools, and no helper thread for the next fluid step's
-# momentum integrals (``VCYTO_PREFETCH``, ``sim.fluid``: 0 computes them in the step); idle OpenMP threads sleep at
-# once, as in the command's own process (``vcyto.speedsettings.install``)
+# momentum integrals (``VCYTO_PREFETCH``, ``sim.method.fluid``: 0 computes them in the step); idle OpenMP threads sleep
+# at once, as in the command's own process (``vcyto.speedsettings.install``)
 THREAD_VARIABLES = {"OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1",
                     "NUMBA_NUM_THREADS": "1", "VCYTO_PREFETCH": "0", "KMP_BLOCKTIME": "0"}
 STOP_WAIT_S = 2.0               # how long terminated workers get to end before they are killed

@@ -34,7 +34,7 @@ class Parameter:
 @dataclass(frozen=True)
 class Point:
     values: tuple                      # ((parameter name, value as given), ...)
-    scenario: object                   # sim.scenario.Scenario
+    scenario: object                   # sim.model.scenario.Scenario
     settings: object                   # vcyto.stream.StreamSettings
     id: str                            # digest of the inputs and of the code (version, schema)
     inputs: str = ""                   # digest of the inputs alone (scenario TOML and settings)

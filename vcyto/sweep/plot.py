@@ -15,7 +15,7 @@ from .model import Sweep, float_or_nan
 def save_plot(path: Path, sweep: Sweep, rows: list[dict]) -> None:
     """The plotted metric over the first parameter (a line) or the first two (a heat map; random sampling: a
     scatter coloured by the metric); other parameters are averaged over. Failed points are left out."""
-    from ..figures import pyplot, save_figure
+    from ..studies.figures import pyplot, save_figure
     plt = pyplot()
     values = {point.id: dict(point.values) for point in sweep.points}
     names = [parameter.name for parameter in sweep.parameters][:2]

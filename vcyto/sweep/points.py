@@ -12,7 +12,7 @@ import hashlib
 import json
 from pathlib import Path
 
-from sim.plants import MODELS
+from sim.plants.registry import MODELS
 
 from ..arguments import Integer, Quantity
 from ..config import scenario_to_toml
@@ -162,7 +162,7 @@ def _file_digest(spec: str | None) -> str | None:
 def code_identity() -> str:
     """The vcyto version and a digest of the scenario and stream-settings schema (field names and types):
     part of every point's id, so results of other code are not taken for this code's."""
-    from sim.scenario import Scenario
+    from sim.model.scenario import Scenario
 
     from .. import __version__
     from ..stream import StreamSettings

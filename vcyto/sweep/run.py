@@ -127,7 +127,7 @@ def _submit(executor, *call) -> Future:
 def _append_whole(table: ResultTable, finished: list[dict], rows: dict, tracker: _Tracker):
     """Append ``finished`` (a chunk's rows) to the table whole: a SIGINT or SIGTERM meanwhile waits until they
     are written, then is raised again for the handler outside (the command line's: exit 130 or 143)."""
-    from ..runfiles import signals_held
+    from ..recording.runfiles import signals_held
     with signals_held():
         table.append(finished)
         rows.update((row["point"], row) for row in finished)

@@ -10,7 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
-from sim.scenario import ScenarioError
+from sim.model.scenario import ScenarioError
 
 from .. import units
 from ..arguments import MAX_SWEEP_POINTS, Quantity

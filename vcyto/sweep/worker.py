@@ -7,7 +7,7 @@ import threading
 import time
 from collections import OrderedDict
 
-from sim import speed
+from sim.fast import speed
 
 from ..speedsettings import from_environment
 from ..stream import make_plant, run_stream

@@ -23,7 +23,7 @@ LAG_TARGET_MS = 1.0            # the plant's lag behind the wall clock, p99, pac
 
 def served_command() -> str:
     """The local Python client: the built-in controller served by ``vcyto.wire.serve``, one run."""
-    return shlex.join([sys.executable, "-m", "vcyto.wire.serve", "--once"])
+    return shlex.join([sys.executable, "-m", "vcyto.wire.serve", "--once", "--spin", "0.005"])
 
 
 def bench_wire(scenario: Scenario, rate: float = 1000.0, duration: float = 1.0, realtime_duration: float = 100.0,
@@ -78,7 +78,8 @@ def bench_wire(scenario: Scenario, rate: float = 1000.0, duration: float = 1.0, 
     factor_local = statistics.median(r["real_time_factor"] for r in in_process)
     return {
         "model": "rom", "rate_per_s": rate, "mix": [list(pair) for pair in mix], "min_spacing_ms": min_spacing * 1e3,
-        "seed": seed, "client": client, "client_name": result["controller_name"], "transport": "unix socket",
+        "seed": seed, "client": client, "client_name": result["controller_name"],
+        "transport": "unix socket in lock-step, TCP loopback in paced real time",
         "load_average": {"before": list(load_before), "after": list(os.getloadavg())}, "cpus": os.cpu_count(),
         "lockstep": {"duration_s": duration, "events": result_events(over_wire), "in_process": in_process,
                      "over_wire": over_wire, "real_time_factor": factor_wire,

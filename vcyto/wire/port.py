@@ -218,6 +218,23 @@ class WireController:
         return launch(self.target, self.timeout, timing)
 
 
+SPIN = 100e-6      # s a lock-step wait polls for the answer before it sleeps, where a processor is idle
+
+
+def _spin_default() -> float:
+    """``SPIN`` where the machine has a processor to spare (load average below its processors less one half),
+    else 0. Polling first spares the two wake-ups of a sleep, which on a virtual machine's idle processor can cost
+    tens of microseconds to milliseconds (the lock-step loop over the wire was 4.8x real time sleeping, 5.8x
+    polling first on a quiet 2-core host); on a busy one it would take the processor the controller needs (2.2x
+    against 1.7x at load 10). It changes how fast a run goes, never its result."""
+    processors = os.cpu_count() or 1
+    try:
+        load = os.getloadavg()[0]
+    except OSError:
+        return 0.0
+    return SPIN if processors >= 2 and load < processors - 0.5 else 0.0
+
+
 def _check_timeout(timeout: float) -> None:
     if not (isinstance(timeout, (int, float)) and math.isfinite(timeout) and 0 < timeout <= 3600):
         raise ValueError(f"the controller timeout must be a time in (0, 3600] s (got {timeout!r})")
@@ -232,6 +249,7 @@ class WirePort:
         self.address, self.timeout, self.timing = address, timeout, timing
         self.name = f"wire controller at {address}"
         self.capabilities: tuple[str, ...] = ()
+        self.spin = _spin_default()    # s of busy waiting for an answer before sleeping on the socket
         self.drives = False            # whether the controller sets the drive itself (the ``drive`` capability)
         self._level = 0.0              # the drive level it last set
         self._periods: dict[float, float] = {}        # period start -> wall time its ``period`` was sent
@@ -397,6 +415,10 @@ class WirePort:
         if self._reader is not None:
             return self._inbox.get(timeout=wait) if wait > 0 else self._inbox.get_nowait()
         end = time.perf_counter() + wait
+        if self.spin > 0 and wait > 0:      # a short busy wait first: an answer that comes soon costs no sleep
+            spun = min(end, time.perf_counter() + self.spin)
+            while time.perf_counter() < spun and not _readable(self._sock, 0.0):
+                pass
         while self._inbox.empty():
             if self._failure is not None:
                 raise self._failure

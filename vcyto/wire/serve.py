@@ -13,8 +13,10 @@ from __future__ import annotations
 import argparse
 import math
 import os
+import select
 import socket
 import sys
+import time
 
 from controller.events import DetectorEvent
 from controller.protocol import DeviceFacts, Drives, Starts
@@ -47,21 +49,34 @@ def _decision(decision) -> dict:
             "reason": decision.reason}
 
 
-def _messages(sock: socket.socket):
+def _messages(sock: socket.socket, spin: float = 0.0):
+    """The messages off ``sock``; ``spin``: seconds to poll for the next one before sleeping in ``recv``."""
     frames = Frames()
     while True:
         while (message := frames.pop()) is not None:
             yield message
+        if spin > 0:
+            _poll(sock, spin)
         data = sock.recv(1 << 16)
         if not data:
             return
         frames.feed(data)
 
 
-def serve_connection(sock: socket.socket, make) -> None:
-    """One run: answer the hello, then each event with ``make(facts)``'s decisions, until ``end``."""
+def _poll(sock: socket.socket, spin: float) -> None:
+    """Busy-wait up to ``spin`` s for ``sock`` to have something to read: a processor that never idles wakes at
+    once (a virtual machine's idle processor can take milliseconds to be scheduled again)."""
+    end = time.perf_counter() + spin
+    while time.perf_counter() < end:
+        if select.select((sock,), (), (), 0.0)[0]:
+            return
+
+
+def serve_connection(sock: socket.socket, make, spin: float = 0.0) -> None:
+    """One run: answer the hello, then each event with ``make(facts)``'s decisions, until ``end`` (``spin``: see
+    ``_poll``)."""
     controller = None
-    for message in _messages(sock):
+    for message in _messages(sock, spin):
         kind = message["type"]
         if kind == "hello":
             if message.get("protocol") != PROTOCOL or message.get("version") != VERSION:
@@ -121,6 +136,9 @@ def main(argv=None) -> int:
     parser.add_argument("--controller", metavar="FILE.py:NAME", help="a controller of one's own (default: built-in)")
     parser.add_argument("--mode", choices=MODES, default="purity", help="the built-in controller's mode")
     parser.add_argument("--once", action="store_true", help="exit after one run")
+    parser.add_argument("--spin", type=float, default=0.0, metavar="SECONDS",
+                        help="after each answer, poll for the next message this long before sleeping (default 0): "
+                             "keeps the processor awake for paced real time, at the cost of a busy core")
     args = parser.parse_args(argv)
     try:
         server = listen(args.listen)
@@ -134,7 +152,7 @@ def main(argv=None) -> int:
             connection.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
         with connection:
             try:
-                serve_connection(connection, make)
+                serve_connection(connection, make, args.spin)
             except (OSError, WireError, KeyError, TypeError, ValueError) as error:
                 print(f"vcyto.wire.serve: {type(error).__name__}: {error}", file=sys.stderr)
         if args.once:

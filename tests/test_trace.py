@@ -1,5 +1,5 @@
 """Recording an event-driven plant without stopping it: the rom plant traces its cells every record interval in
-its kernel (``sim.contract.Traces``) and the loop hands the recorded steps over as columns (``vcyto.trace``). The
+its kernel (``sim.plants.contract.Traces``) and the loop hands the recorded steps over as columns (``vcyto.trace``). The
 recording and the outcomes must be those of the loop that stopped the plant at every recorded step; the run's
 memory must not keep what it no longer needs (the sample as arrays, bounded decision logs, the detector's cells)."""
 
@@ -12,9 +12,9 @@ from mcap.reader import make_reader
 from controller.detector import Detector, DetectorSettings
 from controller.events import Decision, Sighting
 from controller.protocol import DecisionLog
-from sim import rom as rom_module
 from sim.model.arrivals import Arrivals, Cells, offer
 from sim.model.scenario import Scenario
+from sim.plants import rom as rom_module
 from vcyto.recording.mcap import McapRecorder
 from vcyto.stream import StreamSettings, make_plant, run_stream
 

@@ -2,7 +2,7 @@
 more than a safety net (docs/numerics.md, "Cells that keep their size").
 
 The projection (``numerics.area_constraint`` with ``projection``) moves a membrane along its normal after each step
-to restore the area it was born with; ``sim.feib.Measures.area_corrected`` sums what it restored (|dA| / A0 per
+to restore the area it was born with; ``sim.method.feib.Measures.area_corrected`` sums what it restored (|dA| / A0 per
 step) over the cell's transit. With the multiplier the step itself keeps the area and the projection restores
 round-off; without it the projection may be re-inflating a leaking cell every step. Above ``RESTORED_LIMIT`` a run
 says so.

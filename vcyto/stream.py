@@ -125,7 +125,7 @@ def run_stream(scenario: Scenario, settings: StreamSettings, progress=None, plan
     periods (``step_until``, the rom plant) is stepped up to the next moment the loop must look: a cell crossing
     the end of the detection window, the next pulse edge, an unanswered event's deadline (real time), the cap,
     and with recording sinks every ``record_interval`` unless the plant traces its cells at that cadence itself
-    (``sim.contract.Traces``: the recorded steps reach the sinks as columns, ``vcyto.trace``, the plant runs on
+    (``sim.plants.contract.Traces``: the recorded steps reach the sinks as columns, ``vcyto.trace``, the plant runs on
     between the loop's own stops); the detector is fed the cells that crossed an edge of its window,
     one period before and at the crossing. It reacts to nothing else and the controller to nothing but its
     events, so the outcome is the same as stepping period by period (tested), at a fraction of the cost.

@@ -3,7 +3,7 @@
 An event-driven plant (``rom``) steps from one moment the loop must look to the next (a detector crossing, a pulse
 edge), often many control periods. Recordings want the cells every record interval; instead of stopping the plant
 that often and building a record each time, the plant traces its cells in the channel at those moments itself
-(``sim.contract.Traces``: period indices that are multiples of the cadence, vectorised in the plant's kernel) and
+(``sim.plants.contract.Traces``: period indices that are multiples of the cadence, vectorised in the plant's kernel) and
 the loop hands the rows over with its next record (``StepRecord.trace``), one ``Trace`` per record: a batch of
 recorded steps as arrays. The steps are those the loop would have shown had it stopped at each of them: the same
 period indices, the same positions (``tests/test_trace.py``).

@@ -290,7 +290,7 @@ class RomPlant:
         return self.observe()
 
     def _schedule(self, arrivals):
-        """Arrival times and type indices in time order: read from the arrays of ``sim.arrivals.Cells`` (in time
+        """Arrival times and type indices in time order: read from the arrays of ``sim.model.arrivals.Cells`` (in time
         order, no ties), else sorted from (time, name) pairs. Unknown names fail here, as in the other plants."""
         index = {name: k for k, name in enumerate(self._names)}
         if isinstance(arrivals, Cells) and not np.any(np.diff(arrivals.times) <= 0):

@@ -48,8 +48,8 @@ def test_the_step_solves_the_coupled_system_built_with_the_exact_mobility(method
     implicit.coupling.iterations = 30
     state = _start(explicit, scenario)
     points = state.cells[0].membrane.points
-    moved_explicitly = explicit.fixed_step(state, 1.0, ahead=False).cells[0].membrane.points
-    moved = implicit.fixed_step(state, 1.0, ahead=False).cells[0].membrane.points
+    moved_explicitly = explicit.step(state, 1.0, ahead=False).cells[0].membrane.points
+    moved = implicit.step(state, 1.0, ahead=False).cells[0].membrane.points
 
     elements, reference = implicit.locator.locate(points)
     columns = []
@@ -89,7 +89,7 @@ def test_at_small_steps_the_implicit_step_approaches_the_explicit_one_at_first_o
         for plant in (explicit, implicit):
             state = start
             for _ in range(round(40e-6 / dt)):
-                state = plant.fixed_step(state, 1.0, ahead=False)
+                state = plant.step(state, 1.0, ahead=False)
             ends.append(state.cells[0].membrane.points)
         travelled = np.abs(ends[0] - start.cells[0].membrane.points).max()
         gaps.append(np.abs(ends[1] - ends[0]).max())

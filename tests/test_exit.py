@@ -334,7 +334,7 @@ def test_a_signal_inside_the_import_systems_own_code_waits_until_it_is_out(monke
     swallows exceptions) the interrupt could leave the import lock held, and the sinks' thread would wait for it
     for ever (seen once in twenty SIGTERMs of a 100,000-cell run's start): there the handler raises the signal
     again instead, to be handled at the next instruction; anywhere else it interrupts."""
-    from vcyto import runfiles
+    from vcyto.recording import runfiles
     again = []
     monkeypatch.setattr(signal, "raise_signal", again.append)
     seen: dict = {}

@@ -142,7 +142,7 @@ def test_the_cells_not_yet_due_when_a_long_run_stops_have_the_rows_one_by_one_wo
 
 
 def test_the_fcs_events_of_a_long_run_read_from_its_table_are_those_of_its_cells(long_run):
-    from vcyto import fcs
+    from vcyto.recording import fcs
     result, table, _ = long_run
     cells = list(celltable.records(table))
     from_table = fcs.event_table(result)

@@ -306,7 +306,7 @@ def test_a_real_rerun_server_takes_the_whole_run_without_a_note(rerun_server, tm
 
 SLOW_VIEW = """
 import sys, time
-from vcyto import rerunlog
+from vcyto.recording import rerunlog
 step, delay = rerunlog.RerunSink.on_step, float(sys.argv[1])
 def slow_step(self, record):
     time.sleep(delay)

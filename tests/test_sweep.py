@@ -201,11 +201,11 @@ metrics = ["yield", "outlet.upper"]
 """
 
 
-def _sweep_with_rows(spec, output, workers: int, rows: int) -> subprocess.Popen:
+def _sweep_with_rows(spec, output, workers: int, rows: int, *options) -> subprocess.Popen:
     """``vcyto sweep SPEC`` started in a session of its own, returned once its table has ``rows`` rows."""
     table = output / "results.csv"
     command = [sys.executable, "-m", "vcyto.cli", "sweep", spec, "--output", str(output), "--workers", str(workers),
-               "--chunk", "1", "--quiet"]
+               "--chunk", "1", "--quiet", *options]
     process = subprocess.Popen(command, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
     deadline = time.monotonic() + 120
     while time.monotonic() < deadline and process.poll() is None and (
@@ -257,11 +257,13 @@ def _descendants(pid: int) -> set[int]:
 
 
 @pytest.mark.skipif(not Path("/proc/self/stat").exists(), reason="reads the process table from /proc")
-def test_a_sweep_killed_with_sigkill_leaves_no_process_behind(tmp_path):
-    """SIGKILL to the sweep's own process alone (it can stop nothing): its pool workers and the resource tracker
-    end within a few seconds, not holding their memory for ever."""
+@pytest.mark.parametrize("options", [(), ("--scheduler", "local")], ids=["process pool", "dask local cluster"])
+def test_a_sweep_killed_with_sigkill_leaves_no_process_behind(tmp_path, options):
+    """SIGKILL to the sweep's own process alone (it can stop nothing): its workers (a process pool's and its
+    resource tracker, or a Dask local cluster's nannies and workers) end within a few seconds, not holding their
+    memory for ever."""
     spec = write_spec(tmp_path / "killed.toml", KILLED_SPEC)
-    process = _sweep_with_rows(spec, tmp_path / "out", workers=2, rows=1)
+    process = _sweep_with_rows(spec, tmp_path / "out", 2, 1, *options)
     try:
         helpers = _descendants(process.pid)
         assert len(helpers) >= 2, "the sweep's workers did not start"

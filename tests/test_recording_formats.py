@@ -356,7 +356,8 @@ def test_foxglove_scene_is_in_metres_with_lifetimes(sort):
 def test_the_per_cell_table_of_the_command_does_not_import_pandas(tmp_path):
     """The per-cell table's writer makes pyarrow's first conversion of a run without a view (its first row group,
     or a short run's exit: 0.26 s measured): in the command's process pandas stays unimported there too."""
-    script = ("import sys\nfrom vcyto.recording import viewer\nif sys.argv[2] == 'command': viewer.spare_pandas_import()\n"
+    script = ("import sys\nfrom vcyto.recording import viewer\n"
+              "if sys.argv[2] == 'command': viewer.spare_pandas_import()\n"
               "from vcyto.celltable import CellTable\n"
               "table = CellTable(sys.argv[1])\ntable.append_columns({'key': [1], 'outlet': 'lower'}, 1)\n"
               "table.close()\n"

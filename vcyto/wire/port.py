@@ -79,7 +79,7 @@ def _socket(address: tuple, timeout: float) -> socket.socket:
         raise ConnectionError(f"cannot connect to the controller at {shown}: {_reason(error)}") from None
 
 
-def _readable(sock: socket.socket, wait: float) -> bool:
+def readable(sock: socket.socket, wait: float) -> bool:
     """Whether ``sock`` has something to read within ``wait`` s: ``select`` waits to the microsecond (a socket's
     own timeout, ``poll``, rounds a wait up to the next millisecond, which would pace a real-time loop badly)."""
     try:
@@ -417,7 +417,7 @@ class WirePort:
         end = time.perf_counter() + wait
         if self.spin > 0 and wait > 0:      # a short busy wait first: an answer that comes soon costs no sleep
             spun = min(end, time.perf_counter() + self.spin)
-            while time.perf_counter() < spun and not _readable(self._sock, 0.0):
+            while time.perf_counter() < spun and not readable(self._sock, 0.0):
                 pass
         while self._inbox.empty():
             if self._failure is not None:
@@ -477,7 +477,7 @@ class WirePort:
         """Read what the socket has (waiting up to ``wait`` s; None: the socket's timeout) into the inbox, each
         message stamped with the wall time it came; False once the connection has ended (the inbox says why)."""
         try:
-            if wait is not None and not _readable(self._sock, wait):
+            if wait is not None and not readable(self._sock, wait):
                 return True
             try:
                 data, received = self._receive()
@@ -494,7 +494,7 @@ class WirePort:
                     self._inbox.put((message, received))
                 if not (self._stamped and self._frames.partial):
                     return True
-                if not _readable(self._sock, 0.0):
+                if not readable(self._sock, 0.0):
                     return True
                 data, received = self._receive()   # the rest of a message begun: stamped by its last bytes
                 if not data:

@@ -13,7 +13,6 @@ from __future__ import annotations
 import argparse
 import math
 import os
-import select
 import socket
 import sys
 import time
@@ -24,7 +23,7 @@ from controller.sorter import MODES, ControllerSettings, SortController
 
 from .framing import Frames, WireError, encode
 from .messages import DRIVE, PROTOCOL, REQUIRED, VERSION
-from .port import ENV_ADDRESS, parse_address
+from .port import ENV_ADDRESS, parse_address, readable
 
 EVENT_FIELDS = ("event_id", "time", "fluorescence", "scatter", "velocity", "classification", "key")
 
@@ -68,7 +67,7 @@ def _poll(sock: socket.socket, spin: float) -> None:
     once (a virtual machine's idle processor can take milliseconds to be scheduled again)."""
     end = time.perf_counter() + spin
     while time.perf_counter() < end:
-        if select.select((sock,), (), (), 0.0)[0]:
+        if readable(sock, 0.0):
             return
 
 

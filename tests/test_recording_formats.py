@@ -366,3 +366,38 @@ def test_the_per_cell_table_of_the_command_does_not_import_pandas(tmp_path):
                                capture_output=True, text=True, timeout=120).stdout.strip()
                 for process in ("command", "library")]
     assert imported == ["False", "True"]
+
+
+def test_the_view_frames_the_channel_with_its_labels_and_draws_each_figure_as_steps_with_markers():
+    """Looked at in the viewer: the channel view's bounds hold the channel and the labels outside it (inlets,
+    outlets, SAW window, the colour bar above); purity, yield and abort rate are steps with a marker at each value
+    (a run in which one cell was sorted has one value, which a line alone does not draw); the area panel's axis is
+    fixed, so a kept area's round-off (1e-12) does not fill it."""
+    from vcyto.recording.rerunlog import AREA_RANGE, blueprint
+    view = blueprint(True, 300.0, 220.0)
+    channel, series = view.root_container.contents
+    bounds = channel.properties["VisualBounds2D"].range.as_arrow_array().to_pylist()[0]
+    x_low, x_high = bounds["x_range"]
+    y_low, y_high = bounds["y_range"]
+    assert x_low < 0 and x_high > 300 and y_low < -20 and y_high > 220      # y down in the view: the bar at y < 0
+    sort_view = next(v for v in series.contents if v.origin == "sort")
+    for entity in ("/sort/purity", "/sort/yield", "/sort/abort_rate"):
+        kinds = [type(v).__name__ for v in sort_view.visualizer_overrides[entity]]
+        assert kinds == ["SeriesLines", "SeriesPoints"], (entity, kinds)
+    area = next(v for v in series.contents if v.origin == "area")
+    assert area.properties["ScalarAxis"].range.as_arrow_array().to_pylist()[0] == list(AREA_RANGE)
+    assert [v.origin for v in blueprint(False).root_container.contents[1].contents].count("area") == 0
+
+
+def test_a_cells_log_line_says_how_much_of_its_area_the_projection_restored():
+    from vcyto.outcomes import outcome_text
+    assert outcome_text(1, "melanoma", "upper", "sorted", 0.0725) == \
+        "cell 1 (melanoma) left by: upper (sorted); the area projection restored 7.25 % of its area"
+    for nothing in (None, 0.0):
+        assert outcome_text(0, "RBC", "lower", "passed", nothing) == "cell 0 (RBC) left by: lower (passed)"
+
+
+def test_each_area_series_is_named_by_its_cell_and_type(feib):
+    _, static = rrd_rows(feib["dir"] / "live.rrd")
+    named = {entity: values["SeriesLines:names"] for entity, values in static.items() if entity.startswith("/area/")}
+    assert named == {"/area/0": ["cell 0 (melanoma)"]}, named

@@ -35,3 +35,12 @@ def outcome_class(cell: dict) -> str:
             return "sorted"
         return "aborted" if cell["decision"] == "abort" else "missed"
     return "co-deflected" if outlet == SORTED_OUTLET else "passed"
+
+
+def outcome_text(key, cell_type: str, outlet: str, class_name: str, restored: float | None = None) -> str:
+    """A cell's line in the log as it leaves; with how much of its area the projection restored over its transit
+    (``vcyto.restored``), where it restored any."""
+    text = f"cell {key} ({cell_type}) left by: {outlet} ({class_name})"
+    if restored:
+        text += f"; the area projection restored {restored * 100:.2f} % of its area"
+    return text

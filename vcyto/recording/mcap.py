@@ -61,6 +61,7 @@ from mcap_protobuf.schema import build_file_descriptor_set
 from sim.model.scenario import UM, Scenario
 
 from ..classes import CLASS_COLOURS, CLASS_IDS, CLASS_NAMES, CellClasses
+from ..outcomes import outcome_text
 from ..outputs import plain
 from ..sortreport import EVENT_NAMES, name_cells
 from ..trace import class_snapshot, extend_paths, row_classes
@@ -335,7 +336,7 @@ class McapRecorder:
         self._write("/outcome", now, {"time": now, "key": cell.key, "type": cell.type, "outlet": cell.fate,
                                       "class": name, "exit_time": cell.exit_time, "exit_y_um": cell.exit_y / UM,
                                       "area_restored": (cell.measures or {}).get("area_corrected")})
-        self._log(now, f"cell {cell.key} ({cell.type}) left by: {cell.fate} ({name})",
+        self._log(now, outcome_text(cell.key, cell.type, cell.fate, name, (cell.measures or {}).get("area_corrected")),
                   "INFO" if name in ("sorted", "passed") else "WARN")
         path = self._paths.pop(cell.key, None) or [(cell.x / UM, cell.y / UM)]
         self._scene.append(foxglove.path(self._stamp(now), cell.key, path, CLASS_COLOURS[name], f"{cell.key}: {name}"))

@@ -27,7 +27,7 @@ from sim.model.scenario import Scenario
 
 from ..classes import class_of_type, provisional_class
 from ..config import scenario_from_toml
-from ..outcomes import outcome_class
+from ..outcomes import outcome_class, outcome_text
 from .rerunlog import POINT_LIKE, RerunLogger, decision_text
 
 MEMBRANES = "/foxglove/membranes"
@@ -224,7 +224,8 @@ class _Replayer:
         elif topic == "/outcome":
             self.logger.figures.outcome(data["outlet"], self.true_class(data["type"]) == "II")
             name = data.get("class") or self._settle(data)
-            logger.outcome(data["key"], name, f"cell {data['key']} ({data['type']}) left by: {data['outlet']} ({name})")
+            logger.outcome(data["key"], name, outcome_text(data["key"], data["type"], data["outlet"], name,
+                                                                 data.get("area_restored")))
         elif topic == "/flow/velocity":
             logger.field(_checked_field(data))
 

@@ -9,13 +9,13 @@ points down. Entities:
   drawn as steps: ``SeriesLines`` with step-after interpolation, one value per edge);
 - every step shown: ``device/cells`` (every cell in the channel: its centroid, labelled with its key),
   ``device/membranes`` (the membranes of models that have them) and ``area/<key>`` (each membrane's area /
-  initial area; the area panel is in the view only for models with membranes);
+  initial area, named "cell <key> (<type>)"; the area panel is in the view only for models with membranes);
 - ``idt``: the IDT drive, one value per edge at the edge's time (the pulses the controller kept: a pulse is
   logged once its start has passed, so an aborted one never shows); ``pulses/scheduled``, ``pulses/aborted``: each
   pulse the controller scheduled, or aborted, as 1 at its start and 0 at its end;
 - ``sort/purity``, ``sort/yield``, ``sort/abort_rate``: the sort's figures so far, as an operator watches them
   (``SortFigures``: purity of the sorted outlet, targets sorted over the targets that left, aborts over type-II
-  events), updated as cells leave;
+  events), updated as cells leave, drawn as steps with a marker at each value (``blueprint``'s overrides);
 - ``device/paths/<slot>``: a cell's centroid path when it leaves, in slot ``key % PATH_SLOTS``, coloured by its
   outcome class, labelled "key: outcome class" (hidden, shown on hover: drawn, they piled up where the cells
   leave): the view shows the paths of the last ``PATH_SLOTS`` cells (the MCAP keeps them all);
@@ -48,6 +48,7 @@ import numpy as np
 from sim.model.scenario import UM, Scenario
 
 from ..classes import CLASS_COLOURS, CLASS_IDS, CLASS_NAMES, CellClasses
+from ..outcomes import outcome_text
 from ..trace import class_snapshot, extend_paths, row_classes
 from .foxglove import speed_grid
 from .viewer import finish_stream, import_rerun, speed_scale_mm_s
@@ -57,6 +58,10 @@ RECENT_EVENTS = 16                     # markers shown with each new detector ev
 PATH_SLOTS = 16                        # the paths of the last this many cells stay in the view
 BATCH_ROWS = 2000                      # rows kept before they are sent
 BATCH_SECONDS = 0.5                    # wall time after which kept rows are sent (the live view's lag)
+VIEW_MARGIN_UM = 25.0                  # the channel view's margin around the channel, for the labels outside it
+LEGEND_ROOM_UM = 20.0                  # and the room above it for the speed's colour bar
+AREA_RANGE = (0.5, 1.1)                # the area panel's axis (area / initial area)
+SORT_FIGURES = (("sort/purity", "purity"), ("sort/yield", "yield"), ("sort/abort_rate", "abort rate"))
 
 
 def viridis(scaled) -> np.ndarray:
@@ -88,21 +93,41 @@ def _viridis_table() -> np.ndarray:
     return table
 
 
-def blueprint(membranes: bool = True):
-    """The operator's view: the channel; the drive and pulses; the sort's figures; the areas (models with
-    membranes only: no empty panel); the log."""
+def blueprint(membranes: bool = True, length_um: float | None = None, height_um: float | None = None):
+    """The operator's view: the channel (framed with a margin for the labels outside it: inlets, outlets, the SAW
+    window, the speed's colour bar above); the drive and pulses; the sort's figures (0 to 1); the areas (models
+    with membranes only: no empty panel; 0.5 to 1.1, so that the round-off of a kept area does not fill the
+    panel); the log."""
     import_rerun()
     import rerun.blueprint as rrb
-    series = [rrb.TimeSeriesView(origin="/", contents=["/idt", "/pulses/**"], name="IDT drive and pulses"),
-              rrb.TimeSeriesView(origin="sort", name="purity, yield, abort rate (so far)")]
+    unit = rrb.ScalarAxis(range=(-0.02, 1.02))
+    series = [rrb.TimeSeriesView(origin="/", contents=["/idt", "/pulses/**"], name="IDT drive and pulses",
+                                 axis_y=unit),
+              rrb.TimeSeriesView(origin="sort", name="purity, yield, abort rate (so far)", axis_y=unit,
+                                 overrides=_steps_with_markers(SORT_FIGURES))]
     if membranes:
-        series.append(rrb.TimeSeriesView(origin="area", name="area / initial area"))
+        series.append(rrb.TimeSeriesView(origin="area", name="area / initial area",
+                                         axis_y=rrb.ScalarAxis(range=AREA_RANGE)))
+    bounds = None
+    if length_um is not None and height_um is not None:
+        margin = VIEW_MARGIN_UM
+        bounds = rrb.VisualBounds2D(x_range=(-margin, length_um + margin),
+                                    y_range=(-LEGEND_ROOM_UM - margin, height_um + margin))
     return rrb.Blueprint(
         rrb.Horizontal(
-            rrb.Spatial2DView(origin="/", contents="/device/**", name="channel (um, y up)"),
+            rrb.Spatial2DView(origin="/", contents="/device/**", name="channel (um, y up)", visual_bounds=bounds),
             rrb.Vertical(*series, rrb.TextLogView(origin="log", name="events and decisions")),
             column_shares=[3, 2]),
         collapse_panels=True)
+
+
+def _steps_with_markers(series) -> dict:
+    """Visualizer overrides that draw each (entity, name) of ``series`` as steps with a marker at each value: the
+    sort's figures change only as cells leave, and a lone value (a short run) shows as its marker."""
+    rr = import_rerun()
+    step_after = rr.components.InterpolationMode.StepAfter
+    return {f"/{entity}": [rr.SeriesLines(names=name, interpolation_mode=step_after),
+                           rr.SeriesPoints(names=name, marker_sizes=3.0)] for entity, name in series}
 
 
 class SortFigures:
@@ -168,7 +193,7 @@ class RerunLogger:
         self.speed_max_mm_s = speed_scale_mm_s(scenario)
         self.stream = rr.RecordingStream(application_id)
         kind = target[0]
-        view = blueprint(membranes)
+        view = blueprint(membranes, self.length_um, self.height_um)
         self.connected = kind in ("spawn", "connect")
         self.path = target[1] if kind == "save" else None
         if kind == "save":
@@ -189,6 +214,7 @@ class RerunLogger:
         self._rows, self._sent_at = 0, time.monotonic()
         self._now = (0.0, None)
         self._membranes = False
+        self._named_areas: set = set()                 # the area series named so far (membrane models: few cells)
         self._legend_shown = False
         self._pulses: dict = {}                        # event id -> [on, off, on logged] of the kept pulses
         self._drive = None                             # the drive's last logged level
@@ -213,6 +239,8 @@ class RerunLogger:
         step_after = rr.components.InterpolationMode.StepAfter
         for entity, name in (("idt", "IDT drive"), ("pulses/scheduled", "pulse scheduled"),
                              ("pulses/aborted", "pulse aborted")):
+            self.stream.log(entity, rr.SeriesLines(names=name, interpolation_mode=step_after), static=True)
+        for entity, name in SORT_FIGURES:
             self.stream.log(entity, rr.SeriesLines(names=name, interpolation_mode=step_after), static=True)
 
     def _device(self, scenario, detection_window):
@@ -300,6 +328,10 @@ class RerunLogger:
             if len(membrane):
                 membranes.append((np.vstack([membrane, membrane[:1]]), class_id))
             if cell.get("perimeter_um") is not None:            # a membrane model: how much area it keeps
+                if key not in self._named_areas:
+                    self._named_areas.add(key)
+                    name = f"cell {key}" + (f" ({cell['type']})" if cell.get("type") else "")
+                    self.stream.log(f"area/{key}", self.rr.SeriesLines(names=name), static=True)
                 self._add(f"area/{key}", cell["area_ratio"])
             self.positions[key] = (cell["x_um"], cell["y_um"])
             self.paths.setdefault(key, []).append((cell["x_um"], cell["y_um"]))
@@ -492,7 +524,8 @@ class RerunSink:
                 self._reported.add(cell.key)
                 name = classes.settle(cell)
                 figures.outcome(cell.fate, classes.true_class(cell.type) == "II")
-                logger.outcome(cell.key, name, f"cell {cell.key} ({cell.type}) left by: {cell.fate} ({name})")
+                logger.outcome(cell.key, name, outcome_text(cell.key, cell.type, cell.fate, name,
+                                                                (cell.measures or {}).get("area_corrected")))
                 left = True
         if left or decisions:
             logger.sort_figures()

@@ -149,11 +149,11 @@ def relaxation(scenario: Scenario, cell_name: str, duration: float, mesh_sizes, 
         result["orders"]["area_loss"] = [math.log(a / b) / math.log(r) if a > 0 and b > 0 else math.nan
                                          for a, b, r in zip(losses, losses[1:], ratios)]
     times = [row["relaxation_time_ms"] for row in rows]
-    triples = [(observed_order(times[k:k + 3], ratios[k]), sizes[k + 2])
-               for k in range(len(rows) - 2) if math.isclose(ratios[k], ratios[k + 1], rel_tol=1e-6)]
+    triples = [k for k in range(len(rows) - 2) if math.isclose(ratios[k], ratios[k + 1], rel_tol=1e-6)]
     if triples:
-        result["orders"]["relaxation_time_ms"] = [{"finest_um": finest / UM, "order": order, "extrapolated": limit}
-                                                  for (order, limit), finest in triples]
+        result["orders"]["relaxation_time_ms"] = [
+            dict(zip(("order", "extrapolated"), observed_order(times[k:k + 3], ratios[k])), finest_um=sizes[k + 2] / UM,
+                 increments=[times[k + 1] - times[k], times[k + 2] - times[k + 1]]) for k in triples]
     return result
 
 
@@ -178,8 +178,12 @@ def report_lines(result: dict) -> list[str]:
         largest = max(abs(1 - row["area_ratio"]) for row in result["rows"])
         lines.append(f"  area kept to round-off on every mesh (|1 - A/A0| <= {largest:.1e})")
     for entry in orders.get("relaxation_time_ms", []):
-        lines.append(f"  relaxation time to h = {entry['finest_um']:.4g} um: observed order {entry['order']:.2f}, "
-                     f"extrapolated {entry['extrapolated']:.5g} ms")
+        first, second = entry["increments"]
+        text = f"  relaxation time to h = {entry['finest_um']:.4g} um: increments {first:+.5f}, {second:+.5f} ms, "
+        if math.isfinite(entry["order"]) and entry["order"] > 0:
+            lines.append(text + f"observed order {entry['order']:.2f}, extrapolated {entry['extrapolated']:.5g} ms")
+        else:
+            lines.append(text + "not shrinking: no observed order")
     if result["interrupted"]:
         lines.append("  PARTIAL: interrupted; the rows not listed were not measured")
     return lines

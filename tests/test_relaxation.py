@@ -72,7 +72,7 @@ def test_the_relaxation_time_converges_with_an_observed_order_when_the_step_keep
     assert times[0] < times[1] < times[2] and times[1] - times[0] > times[2] - times[1] > 0
     (entry,) = result["orders"]["relaxation_time_ms"]
     assert 0.4 <= entry["order"] <= 1.2, entry
-    assert times[2] < entry["extrapolated"] < times[2] + 2 * (times[2] - times[1])
+    assert times[2] < entry["extrapolated"] < times[2] + 4 * (times[2] - times[1])     # holds for order >= 0.32
     spreads = [high - low for low, high in (row["relaxation_time_range_ms"] for row in rows)]
     assert spreads[0] > spreads[1] > spreads[2]
     assert all(row["aspect_ratio"][1] < 1.2 < 1.6 < row["aspect_ratio"][0] for row in rows)   # it relaxed

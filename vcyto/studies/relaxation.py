@@ -110,8 +110,9 @@ def relax_on_mesh(scenario: Scenario, cell_type, duration: float, finest: float)
     return {"mesh_h_um": size.largest / UM, "dofs": size.dofs, "dt_us": scenario.numerics.dt * 1e6,
             "positions": len(runs), "steps": runs[0]["steps"],
             "aspect_ratio": [float(np.mean([run["aspect_ratio"][k] for run in runs])) for k in (0, 1)],
-            "area_ratio": float(np.mean(areas)), "area_ratio_range": [min(areas), max(areas)],
-            "relaxation_time_ms": float(np.mean(times)), "relaxation_time_range_ms": [min(times), max(times)],
+            "area_ratio": float(np.mean(areas)), "area_ratio_range": [float(np.min(areas)), float(np.max(areas))],
+            "relaxation_time_ms": float(np.mean(times)),            # nan, as the range, if a position never got there
+            "relaxation_time_range_ms": [float(np.min(times)), float(np.max(times))],
             "wall_time_s": sum(run["wall_time_s"] for run in runs)}
 
 

@@ -38,6 +38,7 @@ from __future__ import annotations
 
 import array
 import bisect
+import collections
 import math
 import re
 import statistics
@@ -45,6 +46,7 @@ import statistics
 import numpy as np
 
 from controller.events import TYPE_I, TYPE_II
+from sim.model.arrivals import Cells
 
 from .outcomes import DEFAULT_OUTLET, SORTED_OUTLET, outcome_class
 from .restored import Restored
@@ -214,9 +216,9 @@ class SortLedger:
             self._record(key, None, partial)
         self.close()
         settings, scenario = self.settings, self.scenario
-        rejected = [name for at, name in self.sample.rejected if not partial or at <= time]
+        rejected = rejected_by(self.sample.rejected, time if partial else math.inf)
         stats = self.tally.statistics(time, rejected, scenario, self.unexpected if settings.controller else None)
-        stats["not_yet_due"] = self._not_due + len(self.sample.rejected) - len(rejected)
+        stats["not_yet_due"] = self._not_due + len(self.sample.rejected) - sum(rejected.values())
         stats["coincidence_possible"] = _coincidence_possible(settings)
         summary = {"statistics": stats, "yield_estimate": self.samples.estimate(scenario, settings),
                    "simulated_time_ms": time * 1e3, "model": settings.model, "seed": settings.seed,
@@ -229,6 +231,16 @@ class SortLedger:
             summary["cell_table"] = {"path": str(self.table.path), "rows": self.table.written, "format": "parquet",
                                      "order": "as the cells left (sort by key for arrival order)"}
         return summary
+
+
+def rejected_by(rejected, time: float) -> dict:
+    """The cells ``rejected`` at the inlet (``sim.model.arrivals.Cells`` or (time, name) pairs) by ``time`` (s), as
+    {name: count}: read from the arrays, so that a checkpoint's cost does not grow with the sample."""
+    if isinstance(rejected, Cells):
+        due = int(np.searchsorted(rejected.times, time, side="right"))
+        counts = np.bincount(rejected.kinds[:due], minlength=len(rejected.names)).tolist()
+        return {name: count for name, count in zip(rejected.names, counts) if count}
+    return dict(collections.Counter(name for at, name in rejected if at <= time))
 
 
 def mesh_record(scenario) -> dict:
@@ -375,13 +387,17 @@ class Tally:
             self.last_exit_ms = max(self.last_exit_ms or cell["exit_time_ms"], cell["exit_time_ms"])
 
     def statistics(self, simulated_time: float, rejected=(), scenario=None, unexpected=None) -> dict:
+        """The sort's figures; ``rejected``: the names of the cells turned away at the inlet, or {name: count}."""
         count = self.counts
-        targets_rejected = sum(1 for name in rejected if scenario is not None and scenario.cell_type(name).target)
+        rejected = rejected if isinstance(rejected, dict) else collections.Counter(rejected)
+        targets_rejected = sum(number for name, number in rejected.items()
+                               if scenario is not None and scenario.cell_type(name).target)
+        turned_away = sum(rejected.values())
         offered_targets = count["targets"] + targets_rejected
         last_exit = self.last_exit_ms
         stats = {
-            "offered": count["cells"] + len(rejected),
-            "rejected_at_inlet": len(rejected),
+            "offered": count["cells"] + turned_away,
+            "rejected_at_inlet": turned_away,
             "cells": count["cells"],
             "events": count["events"],
             "sorted": count["sorted"],

@@ -25,6 +25,7 @@ import time
 import numpy as np
 
 from .. import outputs
+from ..sortreport import rejected_by
 from . import fcs, gatingml
 
 CHECKPOINT_SECONDS = 1.0       # wall time between checkpoints
@@ -92,8 +93,8 @@ class Checkpoint:
 
     def _summary(self, ledger) -> dict:
         now = ledger.time
-        rejected = [name for at, name in ledger.sample.rejected if at <= now]
-        statistics = ledger.tally.statistics(now, rejected, self.scenario, ledger.unexpected)
+        statistics = ledger.tally.statistics(now, rejected_by(ledger.sample.rejected, now), self.scenario,
+                                             ledger.unexpected)
         return {"status": "running", "partial": True,
                 "reason": (f"the run had not finished at its last checkpoint (t = {now * 1e3:.3f} ms of simulated "
                            "time): if no vcyto process is running it, it was killed then; the figures are those of "

@@ -34,8 +34,9 @@ Cost: the logger keeps rows in memory and sends each entity's rows in one column
 per batch (``batch_rows`` rows, or ``batch_seconds`` of wall time, whichever comes first), with the Arrow arrays
 built directly from numpy. A view saved to a file (nobody watches it live) is sent in larger batches
 (``FILE_BATCH_ROWS``, ``FILE_BATCH_SECONDS``): Rerun's file writer keeps about 1 KB per chunk sent (one chunk per
-entity per batch) until the file is finished, so the batches set how that memory grows with the run. The number of entities is bounded (the slots), so a run of 10^5 cells costs a
-bounded number of calls per batch, and the state is bounded by the cells in the channel and one batch.
+entity per batch) until the file is finished, so the batches set how that memory grows with the run. The number
+of entities is bounded (the slots), so a run of 10^5 cells costs a bounded number of calls per batch, and the state
+is bounded by the cells in the channel and one batch.
 """
 
 from __future__ import annotations

@@ -527,6 +527,7 @@ class RomPlant:
 
     def diagnostics(self) -> dict:
         """Figures for logging: substep, physics steps so far, drive level, wall contacts (cell-substeps)."""
+        levels = self._level.tolist()
         return {"dt": self.control_period / self.substeps, "physics_steps": int(self._counters[kernels.PHYSICS_STEPS]),
-                "level": float(self._level.mean()), "levels": self._level.tolist(), "response_time": self.response_time,
+                "level": sum(levels) / len(levels), "levels": levels, "response_time": self.response_time,
                 "wall_contacts": int(self._counters[kernels.CONTACTS]), "health": "ok"}

@@ -62,6 +62,7 @@ def true_class(cell_type) -> str:
 KEEP_CELLS = 10_000            # per-cell records a summary lists; a longer run's are in its table only
 SORT_HORIZON = 0.1             # s: sorts kept for the co-deflection check after their predicted arrival
 EVENT_NAMES = 1 << 16          # recent detector events whose cells a decision's reason can name
+SORTS_KEPT = 1 << 12           # sorts in effect above which those past SORT_HORIZON are dropped
 
 
 class SortLedger:
@@ -126,7 +127,7 @@ class SortLedger:
             self._sorts[decision.event_id] = decision.arrival
         else:
             self._sorts.pop(decision.event_id, None)
-        if len(self._sorts) > 4096:
+        if len(self._sorts) > SORTS_KEPT:
             self._sorts = {e: t for e, t in self._sorts.items() if t >= self.time - SORT_HORIZON}
 
     def cell(self, cell):

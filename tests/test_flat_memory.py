@@ -11,6 +11,7 @@ out. ``vcyto bench sort`` checks the same at 10^5 and 10^6 events in the process
 """
 
 import collections
+import json
 
 import numpy as np
 
@@ -93,3 +94,26 @@ def test_a_long_recorded_sort_holds_no_more_in_its_second_half_than_in_its_first
     grew = {path: (first[path], size) for path, size in second.items() if size > 1.2 * first[path] + 16}
     assert not grew
     assert plant._base > 0 and len(plant._born) == 64
+
+
+def test_a_long_runs_fcs_is_finished_from_its_checkpoint_with_the_events_of_its_table(tmp_path, monkeypatch, capsys):
+    """A run longer than a summary lists (no cells in it): its FCS events are those of the checkpoints written as it
+    went and the rest, copied rather than read back, and they are the events its per-cell table gives."""
+    from vcyto import celltable
+    from vcyto.cli import main
+    from vcyto.recording import checkpoint, fcs
+    monkeypatch.setattr(sortreport, "KEEP_CELLS", 100)
+    monkeypatch.setattr(checkpoint.Checkpoint, "due", lambda self: True)          # a checkpoint at every stop
+    copied = []
+    finish = checkpoint.Checkpoint.finish_events
+    monkeypatch.setattr(checkpoint.Checkpoint, "finish_events",
+                        lambda self, *args: copied.append(self.count) or finish(self, *args))
+    assert main(["stream", "--model", "rom", "--count", "600", "--rate", "2000", "--arrivals", "poisson",
+                 "--mix", "RBC:0.8,melanoma:0.2", "--seed", "2", "--json", "--quiet", "--no-viewer",
+                 "--output", str(tmp_path)]) == 0
+    result = json.loads(capsys.readouterr().out)
+    assert "cells" not in result and copied and copied[0] > 100       # most events were in the file already
+    records = list(celltable.records(result["cell_table"]["path"]))
+    names, events, keywords = fcs.read_fcs(next(tmp_path.glob("*.fcs")))
+    assert len(events) == result["statistics"]["events"] > 250 and keywords["vcyto_status"] == "complete"
+    np.testing.assert_array_equal(events, fcs.event_table({"cells": records}))

@@ -26,7 +26,8 @@ dead time d, a Poisson sample of intensity r is admitted with probability A = 1 
 cells form a renewal process whose k-th neighbour on either side of a cell is k d + Gamma(k, r) away. A
 target is aborted if a neighbour that the mode counts (type-I; in single mode any cell) arrives at the SAW
 window at an offset inside the mode's window [L, H]; a neighbour of type j injected g after (before) the target
-arrives at g + (T_j - T_t) (-g + ...) with T the transit time to the window, measured in the run. The two
+arrives at g + (T_j - T_t) (-g + ...) with T the median transit time to the window, measured in the run (on its
+first ``TRANSIT_CELLS`` cells, so that a long run's memory does not grow with it). The two
 sides are independent (the gaps are), and each side's probability that no counted neighbour falls in its
 window is computed exactly for the renewal process by a backward recursion (``_clear_probability``); the
 estimate is A times the mix-weighted mean over target types. A neighbour detected after the target's pulse has
@@ -63,6 +64,7 @@ KEEP_CELLS = 10_000            # per-cell records a summary lists; a longer run'
 SORT_HORIZON = 0.1             # s: sorts kept for the co-deflection check after their predicted arrival
 EVENT_NAMES = 1 << 16          # recent detector events whose cells a decision's reason can name
 SORTS_KEPT = 1 << 12           # sorts in effect above which those past SORT_HORIZON are dropped
+TRANSIT_CELLS = 1 << 17        # the yield estimate's transit times: of the sample's first cells (by key)
 
 
 class SortLedger:
@@ -486,8 +488,9 @@ def yield_estimate(cells, scenario, settings) -> dict | None:
 
 class _TransitSamples:
     """Per cell type, the times from injection and from detection to the predicted arrival at the SAW window
-    (s, of the detected cells), the cells of each type and the targets: what ``yield_estimate`` needs, gathered a
-    record at a time (8 bytes a detected cell per series)."""
+    (s, of the detected cells among the sample's first ``TRANSIT_CELLS`` by key: their medians have long settled
+    by then, and a longer run keeps no more), the cells of each type and the targets: what ``yield_estimate``
+    needs, gathered a record at a time in any order (8 bytes a sampled cell per series)."""
 
     def __init__(self):
         self.transit: dict[str, array.array] = {}
@@ -499,7 +502,7 @@ class _TransitSamples:
         name = cell["type"]
         self.types[name] = self.types.get(name, 0) + 1
         self.targets += cell["true_class"] == TYPE_II
-        if cell["predicted_arrival_ms"] is not None:
+        if cell["predicted_arrival_ms"] is not None and (cell.get("key") or 0) < TRANSIT_CELLS:
             for series, since in ((self.transit, "arrival_ms"), (self.lookahead, "detection_time_ms")):
                 series.setdefault(name, array.array("d")).append((cell["predicted_arrival_ms"] - cell[since]) * 1e-3)
 

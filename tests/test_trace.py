@@ -133,3 +133,19 @@ def test_the_detector_forgets_the_cells_that_left():
     assert len(events) == 3 and len(detector._passages) == len(detector._previous) == 3
     detector.forget([0, 1, 2])
     assert not detector._passages and not detector._previous
+
+
+@pytest.mark.parametrize("window", [4, 40])
+def test_a_sample_sliding_through_a_small_window_of_cells_is_recorded_as_with_every_cell_held(both, tmp_path, window):
+    """The rom plant holds the state of ``window`` cells at once (settled cells are dropped as the sample slides
+    through): the recording, the steps and the outcomes are those of the plant that holds every cell."""
+    (held, whole), _ = both
+    plant = make_plant(Scenario(), SETTINGS)
+    plant.window = window                   # read at reset: 4 cells grow it, 40 slide many times
+    result, topics = recorded(tmp_path, plant)
+    assert plant._base > 0 and len(plant._born) < len(plant._arrival_all)
+    assert result["statistics"] == held["statistics"] and result["steps"] == held["steps"]
+    assert set(topics) == set(whole)
+    for topic, batches in whole.items():
+        strip = [{k: v for k, v in m.items() if k != "wall_time"} for m in batches]
+        assert [{k: v for k, v in m.items() if k != "wall_time"} for m in topics[topic]] == strip, topic

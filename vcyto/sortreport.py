@@ -26,7 +26,8 @@ dead time d, a Poisson sample of intensity r is admitted with probability A = 1 
 cells form a renewal process whose k-th neighbour on either side of a cell is k d + Gamma(k, r) away. A
 target is aborted if a neighbour that the mode counts (type-I; in single mode any cell) arrives at the SAW
 window at an offset inside the mode's window [L, H]; a neighbour of type j injected g after (before) the target
-arrives at g + (T_j - T_t) (-g + ...) with T the transit time to the window, measured in the run. The two
+arrives at g + (T_j - T_t) (-g + ...) with T the median transit time to the window, measured in the run (on its
+first ``TRANSIT_CELLS`` cells, so that a long run's memory does not grow with it). The two
 sides are independent (the gaps are), and each side's probability that no counted neighbour falls in its
 window is computed exactly for the renewal process by a backward recursion (``_clear_probability``); the
 estimate is A times the mix-weighted mean over target types. A neighbour detected after the target's pulse has
@@ -38,6 +39,7 @@ from __future__ import annotations
 
 import array
 import bisect
+import collections
 import math
 import re
 import statistics
@@ -45,6 +47,7 @@ import statistics
 import numpy as np
 
 from controller.events import TYPE_I, TYPE_II
+from sim.model.arrivals import Cells
 
 from .outcomes import DEFAULT_OUTLET, SORTED_OUTLET, outcome_class
 from .restored import Restored
@@ -60,6 +63,8 @@ def true_class(cell_type) -> str:
 KEEP_CELLS = 10_000            # per-cell records a summary lists; a longer run's are in its table only
 SORT_HORIZON = 0.1             # s: sorts kept for the co-deflection check after their predicted arrival
 EVENT_NAMES = 1 << 16          # recent detector events whose cells a decision's reason can name
+SORTS_KEPT = 1 << 12           # sorts in effect above which those past SORT_HORIZON are dropped
+TRANSIT_CELLS = 1 << 17        # the yield estimate's transit times: of the sample's first cells (by key)
 
 
 class SortLedger:
@@ -124,7 +129,7 @@ class SortLedger:
             self._sorts[decision.event_id] = decision.arrival
         else:
             self._sorts.pop(decision.event_id, None)
-        if len(self._sorts) > 4096:
+        if len(self._sorts) > SORTS_KEPT:
             self._sorts = {e: t for e, t in self._sorts.items() if t >= self.time - SORT_HORIZON}
 
     def cell(self, cell):
@@ -214,9 +219,9 @@ class SortLedger:
             self._record(key, None, partial)
         self.close()
         settings, scenario = self.settings, self.scenario
-        rejected = [name for at, name in self.sample.rejected if not partial or at <= time]
+        rejected = rejected_by(self.sample.rejected, time if partial else math.inf)
         stats = self.tally.statistics(time, rejected, scenario, self.unexpected if settings.controller else None)
-        stats["not_yet_due"] = self._not_due + len(self.sample.rejected) - len(rejected)
+        stats["not_yet_due"] = self._not_due + len(self.sample.rejected) - sum(rejected.values())
         stats["coincidence_possible"] = _coincidence_possible(settings)
         summary = {"statistics": stats, "yield_estimate": self.samples.estimate(scenario, settings),
                    "simulated_time_ms": time * 1e3, "model": settings.model, "seed": settings.seed,
@@ -229,6 +234,16 @@ class SortLedger:
             summary["cell_table"] = {"path": str(self.table.path), "rows": self.table.written, "format": "parquet",
                                      "order": "as the cells left (sort by key for arrival order)"}
         return summary
+
+
+def rejected_by(rejected, time: float) -> dict:
+    """The cells ``rejected`` at the inlet (``sim.model.arrivals.Cells`` or (time, name) pairs) by ``time`` (s), as
+    {name: count}: read from the arrays, so that a checkpoint's cost does not grow with the sample."""
+    if isinstance(rejected, Cells):
+        due = int(np.searchsorted(rejected.times, time, side="right"))
+        counts = np.bincount(rejected.kinds[:due], minlength=len(rejected.names)).tolist()
+        return {name: count for name, count in zip(rejected.names, counts) if count}
+    return dict(collections.Counter(name for at, name in rejected if at <= time))
 
 
 def mesh_record(scenario) -> dict:
@@ -375,13 +390,17 @@ class Tally:
             self.last_exit_ms = max(self.last_exit_ms or cell["exit_time_ms"], cell["exit_time_ms"])
 
     def statistics(self, simulated_time: float, rejected=(), scenario=None, unexpected=None) -> dict:
+        """The sort's figures; ``rejected``: the names of the cells turned away at the inlet, or {name: count}."""
         count = self.counts
-        targets_rejected = sum(1 for name in rejected if scenario is not None and scenario.cell_type(name).target)
+        rejected = rejected if isinstance(rejected, dict) else collections.Counter(rejected)
+        targets_rejected = sum(number for name, number in rejected.items()
+                               if scenario is not None and scenario.cell_type(name).target)
+        turned_away = sum(rejected.values())
         offered_targets = count["targets"] + targets_rejected
         last_exit = self.last_exit_ms
         stats = {
-            "offered": count["cells"] + len(rejected),
-            "rejected_at_inlet": len(rejected),
+            "offered": count["cells"] + turned_away,
+            "rejected_at_inlet": turned_away,
             "cells": count["cells"],
             "events": count["events"],
             "sorted": count["sorted"],
@@ -469,8 +488,9 @@ def yield_estimate(cells, scenario, settings) -> dict | None:
 
 class _TransitSamples:
     """Per cell type, the times from injection and from detection to the predicted arrival at the SAW window
-    (s, of the detected cells), the cells of each type and the targets: what ``yield_estimate`` needs, gathered a
-    record at a time (8 bytes a detected cell per series)."""
+    (s, of the detected cells among the sample's first ``TRANSIT_CELLS`` by key: their medians have long settled
+    by then, and a longer run keeps no more), the cells of each type and the targets: what ``yield_estimate``
+    needs, gathered a record at a time in any order (8 bytes a sampled cell per series)."""
 
     def __init__(self):
         self.transit: dict[str, array.array] = {}
@@ -482,7 +502,7 @@ class _TransitSamples:
         name = cell["type"]
         self.types[name] = self.types.get(name, 0) + 1
         self.targets += cell["true_class"] == TYPE_II
-        if cell["predicted_arrival_ms"] is not None:
+        if cell["predicted_arrival_ms"] is not None and (cell.get("key") or 0) < TRANSIT_CELLS:
             for series, since in ((self.transit, "arrival_ms"), (self.lookahead, "detection_time_ms")):
                 series.setdefault(name, array.array("d")).append((cell["predicted_arrival_ms"] - cell[since]) * 1e-3)
 

@@ -82,7 +82,7 @@ class AutoPlant:
         off, on = (flow.velocity for flow in rom_steady)
         flows = RomFlows.sample(scenario, fine, np.concatenate([off, on - off]), grid_spacing, {})
         flows = flows.measured_transient(scenario)          # rom's measured transient modes, as rom's own
-        self.rom = RomPlant(scenario, control_period=self.control_period, flows=flows)
+        self.rom = RomPlant(scenario, control_period=self.control_period, flows=flows, window=None)
         self._radius = {c.name: max(c.semi_axes) for c in scenario.cell_types}
         if not (stiff_capillary >= 0):
             raise ValueError(f"stiff_capillary must be >= 0 (got {stiff_capillary!r})")

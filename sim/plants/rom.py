@@ -59,6 +59,8 @@ CONTROL_PERIOD = 20e-6
 _NO_LINES = np.zeros(0)
 TRACE_ROWS = 4096              # rows of the trace buffer to start with (it grows when a traced period needs more)
 LOG_ROWS = 4096                # rows of the crossing log to start with (likewise)
+WINDOW_CELLS = 1 << 15         # cells whose state the plant holds at once (a longer sample slides through them)
+_KIND = np.int8                # a cell's type index, as the arrivals are kept (the kernel's window: int64)
 FATES = {kernels.WALL: "wall", kernels.LOST: "lost", kernels.IN_CHANNEL: "in_channel"}
 
 
@@ -219,12 +221,14 @@ class RomPlant:
 
     def __init__(self, scenario: Scenario, control_period: float | None = None, response_time: float | None = None,
                  flows: RomFlows | None = None, grid_spacing: float = 1e-6, max_substep: float = 20e-6,
-                 stall_speed: float = 1e-4, stall_time: float = 1e-3, catch_on_divider: bool = True):
+                 stall_speed: float = 1e-4, stall_time: float = 1e-3, catch_on_divider: bool = True,
+                 window: int | None = WINDOW_CELLS):
         control_period = CONTROL_PERIOD if control_period is None else control_period
         if not control_period > 0 or not max_substep > 0:
             raise ValueError("control_period and max_substep must be positive")
         self.scenario = scenario
         self.control_period = control_period
+        self.window = window
         self.response_time = default_response_time(scenario) if response_time is None else response_time
         if not self.response_time >= 0:
             raise ValueError(f"response_time must be >= 0 s (got {self.response_time!r})")
@@ -258,18 +262,10 @@ class RomPlant:
 
     # ------------------------------------------------------------------ the contract
     def reset(self, arrivals) -> Observation:
-        self._arrival, self._kind = self._schedule(arrivals)
-        n = len(self._arrival)
-        self._area_of = [self._area[kind] for kind in self._kind.tolist()]              # by key
-        self._brightness_of = [self._brightness[kind] for kind in self._kind.tolist()]
-        self._born = np.full(n, np.nan)
-        self._position = np.full((n, 2), np.nan)
-        self._fate = np.full(n, kernels.WAITING, dtype=np.int64)
-        self._exit_time = np.full(n, np.nan)
-        self._exit_y = np.full(n, np.nan)
-        self._stalled = np.zeros(n)
-        self._before = np.zeros((n, 2))
-        self._touched = np.zeros(n, dtype=np.bool_)
+        self._arrival_all, self._kind_all = self._schedule(arrivals)
+        n = len(self._arrival_all)
+        self._base = 0                      # the key of the window's first cell (``_slide``)
+        self._cell_state(n if self.window is None else min(n, self.window))
         self._log_step = np.zeros(LOG_ROWS, dtype=np.int64)
         self._log_key = np.zeros(LOG_ROWS, dtype=np.int64)
         self._log_positions = np.zeros((LOG_ROWS, 4))
@@ -279,15 +275,74 @@ class RomPlant:
         self._trace_positions = np.zeros((TRACE_ROWS, 2))
         self._level = np.zeros(len(self.lags))
         self._unreported, self._reported = 0, set()        # truth_update's position: keys below are all reported
+        self._view()
+        kernels.inject(self._start, self._kind, self._arrival, self._born, self._position, self._fate,
+                       self._counters, 0.0, 0.5 * self.control_period, self._before)
+        return self.observe()
+
+    # ------------------------------------------------------------------ the window of cells
+    # A long sample slides through a window of ``window`` cells: the kernel sees the per-cell state of the window's
+    # cells (local index = key - ``_base``) and the arrivals from its first cell on; cells that have settled and been
+    # reported (``truth_update``) are dropped from its start when it is half full of them, so the plant's memory
+    # depends on the window, not on the sample's length. The kernel is never run past the last arrival the window
+    # holds (``_horizon``), so the cells it steps are those it would step with every cell's state at hand.
+    # the per-cell state: (its shape after the cells, dtype, value of a cell not yet injected)
+    _STATE = {"_born": ((), float, np.nan), "_position": ((2,), float, np.nan),
+              "_fate": ((), np.int64, kernels.WAITING), "_exit_time": ((), float, np.nan),
+              "_exit_y": ((), float, np.nan), "_stalled": ((), float, 0.0), "_before": ((2,), float, 0.0),
+              "_touched": ((), np.bool_, False)}
+
+    def _cell_state(self, size: int):
+        for name, (shape, dtype, fill) in self._STATE.items():
+            setattr(self, name, np.full((size, *shape), fill, dtype=dtype))
+
+    def _view(self):
+        """The kernel's arguments for the window at ``_base``."""
+        end = self._base + len(self._born)
+        self._arrival = self._arrival_all[self._base:end]
+        self._kind = self._kind_all[self._base:end].astype(np.int64)
         self._arrays = (self.flows.cells, self._params, self._segments, self._dividers, self._outlets,
                         self._semi_axes, self._start, self._kind, self._arrival, self._born, self._position,
                         self._fate, self._exit_time, self._exit_y, self._stalled, self._counters, self._level,
                         self._lags, self._before, self._touched, self._log_step, self._log_key,
                         self._log_positions, self._trace_step, self._trace_key,
                         self._trace_positions)   # the kernel's arguments, in order
-        kernels.inject(self._start, self._kind, self._arrival, self._born, self._position, self._fate,
-                       self._counters, 0.0, 0.5 * self.control_period, self._before)
-        return self.observe()
+
+    def _horizon(self) -> float:
+        """How far the kernel may run: two periods before the first arrival beyond the window (inf: none)."""
+        end = self._base + len(self._arrival)
+        return math.inf if end == len(self._arrival_all) else float(self._arrival_all[end]) - 2 * self.control_period
+
+    def _make_room(self):
+        """Slide the window when half of it is settled and reported, and whenever it holds too few arrivals for the
+        next periods (growing it if no cell can be dropped): the kernel then runs at least two periods safely."""
+        while self._horizon() != math.inf:
+            counters, size = self._counters, len(self._born)
+            drop = min(int(counters[kernels.FIRST]), self._unreported - self._base)
+            cramped = self._horizon() <= self.time + 2 * self.control_period
+            if drop >= size // 2 or (cramped and drop > 0):
+                self._slide(drop)
+            elif cramped:                   # every cell of the window still in the channel or unreported
+                grown = {name: getattr(self, name) for name in self._STATE}
+                self._cell_state(2 * size)
+                for name, state in grown.items():
+                    getattr(self, name)[:size] = state
+                self._view()
+            else:
+                return
+
+    def _slide(self, drop: int):
+        """Drop the window's first ``drop`` cells (settled and reported)."""
+        for name, (_, _, fill) in self._STATE.items():
+            state = getattr(self, name)
+            state[:-drop] = state[drop:].copy()
+            state[-drop:] = fill
+        counters = self._counters
+        counters[kernels.NEXT] -= drop
+        counters[kernels.FIRST] -= drop
+        self._trace_key[:int(counters[kernels.TRACED])] -= drop      # rows not yet taken keep their keys
+        self._base += drop
+        self._view()
 
     def _schedule(self, arrivals):
         """Arrival times and type indices in time order: read from the arrays of ``sim.model.arrivals.Cells`` (in time
@@ -296,16 +351,18 @@ class RomPlant:
         if isinstance(arrivals, Cells) and not np.any(np.diff(arrivals.times) <= 0):
             for name in arrivals.names:
                 self.scenario.cell_type(name)
-            table = np.array([index.get(name, -1) for name in arrivals.names], dtype=np.int64)
-            return arrivals.times.copy(), table[arrivals.kinds] if len(table) else np.zeros(0, np.int64)
+            table = np.array([index.get(name, -1) for name in arrivals.names], dtype=_KIND)
+            # the sample's own times (the plant only reads them) and its types in a byte a cell
+            return np.asarray(arrivals.times, dtype=float), table[arrivals.kinds] if len(table) else np.zeros(0, _KIND)
         items = sorted(arrivals)
         for _, name in items:
             self.scenario.cell_type(name)
         return (np.array([t for t, _ in items], dtype=float),
-                np.array([index[name] for _, name in items], dtype=np.int64))
+                np.array([index[name] for _, name in items], dtype=_KIND))
 
     def step(self, actuation: float) -> Observation:
         """One control period at the drive ``actuation``."""
+        self._make_room()
         self._advance(actuation, math.inf, 1)
         return self.observe()
 
@@ -321,12 +378,22 @@ class RomPlant:
         lines = (stop_lines, record_lines)
         if lines != self._lines[0]:
             self._lines = (lines, *(np.asarray(group, dtype=float).reshape(-1) for group in lines))
-        periods, _ = self._advance(actuation, until, max_periods, *self._lines[1:])
-        while periods == 0 and max_periods > 0 and not self.done:
-            # the log or the trace has no room for one more period's rows (a crowd of cells; a trace not taken)
-            self._grow()
-            periods, _ = self._advance(actuation, until, max_periods, *self._lines[1:])
-        return periods, self._crossings()
+        periods, seen = 0, []
+        while True:
+            self._make_room()
+            horizon = self._horizon()
+            done, reason = self._advance(actuation, min(until, horizon), max_periods - periods, *self._lines[1:])
+            if done == 0 and reason == kernels.LIMIT and max_periods > periods and not self.done:
+                # the log or the trace has no room for one more period's rows (a crowd of cells; a trace not taken)
+                self._grow()
+                continue
+            periods += done
+            seen += self._crossings()
+            # the window's horizon reached (or its cells all settled) before ``until``: slide it and go on
+            if reason in (kernels.UNTIL, kernels.DONE) and horizon < until and not self.done and \
+                    self.time < until and periods < max_periods:
+                continue
+            return periods, seen
 
     # ------------------------------------------------------------------ the trace (recordings)
     def trace(self, interval: float) -> int:
@@ -341,7 +408,8 @@ class RomPlant:
         """(period index, key, (x, y)) rows traced since the last call, as arrays (copies), in time order."""
         rows = int(self._counters[kernels.TRACED])
         self._counters[kernels.TRACED] = 0
-        return self._trace_step[:rows].copy(), self._trace_key[:rows].copy(), self._trace_positions[:rows].copy()
+        return (self._trace_step[:rows].copy(), self._trace_key[:rows] + self._base,
+                self._trace_positions[:rows].copy())
 
     def _grow(self):
         """Twice the room in the crossing log and the trace (their rows are handed over after each call)."""
@@ -367,10 +435,10 @@ class RomPlant:
                 seen.append((step - 1, key, x0, y0))
             seen.append((step, key, x1, y1))
         seen.sort()
-        snapshots, views, area, brightness = [], [], self._area_of, self._brightness_of
+        snapshots, views, area, brightness, kind, base = [], [], self._area, self._brightness, self._kind, self._base
         for n, (step, key, x, y) in enumerate(seen):
-            if not views or views[-1].key != key:   # a cell logged twice in one period is seen once
-                views.append(CellView(key, x, y, area[key], brightness[key]))
+            if not views or views[-1].key != key + base:    # a cell logged twice in one period is seen once
+                views.append(CellView(key + base, x, y, area[kind[key]], brightness[kind[key]]))
             if n + 1 == len(seen) or seen[n + 1][0] != step:
                 snapshots.append(Observation(step * self.control_period, tuple(views)))
                 views = []
@@ -386,29 +454,33 @@ class RomPlant:
 
     @property
     def done(self) -> bool:
-        return int(self._counters[kernels.NEXT]) == len(self._arrival) and int(self._counters[kernels.ACTIVE]) == 0
+        return (self._base + int(self._counters[kernels.NEXT]) == len(self._arrival_all)
+                and int(self._counters[kernels.ACTIVE]) == 0)
 
     def observe(self) -> Observation:
         step, _, first, *_ = counters = self._counters.tolist()
         last = counters[kernels.NEXT]
-        area, brightness = self._area_of, self._brightness_of
-        views = tuple([CellView(key, x, y, area[key], brightness[key])
-                       for key, (x, y), fate in zip(range(first, last), self._position[first:last].tolist(),
-                                                    self._fate[first:last].tolist())
+        area, brightness, base = self._area, self._brightness, self._base
+        views = tuple([CellView(key + base, x, y, area[kind], brightness[kind])
+                       for key, (x, y), fate, kind in zip(range(first, last), self._position[first:last].tolist(),
+                                                          self._fate[first:last].tolist(),
+                                                          self._kind[first:last].tolist())
                        if fate == kernels.IN_CHANNEL])
         return Observation(step * self.control_period, views)
 
     def truth(self) -> Truth:
-        """Ground truth of every injected cell (its cost grows with the cells run: call it at the end)."""
-        cells = tuple(self._record(i) for i in range(int(self._counters[kernels.NEXT])))
-        return Truth(self.time, cells, len(self._arrival) - int(self._counters[kernels.NEXT]))
+        """Ground truth of every injected cell the window holds (all of them when the sample fits in it; its cost
+        grows with the cells run: call it at the end)."""
+        cells = tuple(self._record(self._base + i) for i in range(int(self._counters[kernels.NEXT])))
+        return Truth(self.time, cells, len(self._arrival_all) - self._base - int(self._counters[kernels.NEXT]))
 
     def truth_update(self) -> Truth:
         """Ground truth of the cells in the channel and of those that settled since the previous call (each
         settled cell once); its cost depends on the cells in the channel, not on how many have passed."""
-        start, upto = self._unreported, int(self._counters[kernels.NEXT])
+        base = self._base
+        start, upto = self._unreported, base + int(self._counters[kernels.NEXT])
         cells, reported, names, outlets = [], self._reported, self._names, self._outlet_names
-        window = slice(start, upto)                 # read in bulk: one conversion per array, not per value
+        window = slice(start - base, upto - base)   # read in bulk: one conversion per array, not per value
         for i, code, kind, born, exit_time, exit_y, (x, y) in zip(
                 range(start, upto), self._fate[window].tolist(), self._kind[window].tolist(),
                 self._born[window].tolist(), self._exit_time[window].tolist(), self._exit_y[window].tolist(),
@@ -422,19 +494,22 @@ class RomPlant:
         while self._unreported < upto and self._unreported in reported:
             reported.discard(self._unreported)
             self._unreported += 1
-        return Truth(self.time, tuple(cells), len(self._arrival) - upto)
+        return Truth(self.time, tuple(cells), len(self._arrival_all) - upto)
 
-    def _record(self, i: int) -> CellTruth:
+    def _record(self, key: int) -> CellTruth:
+        i = key - self._base
         code = int(self._fate[i])
         fate = self._outlet_names.get(code) or FATES[code]
-        return CellTruth(i, self._names[self._kind[i]], float(self._born[i]), fate, float(self._exit_time[i]),
+        return CellTruth(key, self._names[self._kind[i]], float(self._born[i]), fate, float(self._exit_time[i]),
                          float(self._exit_y[i]), float(self._position[i, 0]), float(self._position[i, 1]), 1.0)
 
     def adopt(self, time_s: float, level: float, cells: dict, injected: int):
         """Continue from another plant's state (the ``auto`` plant's hand-over): at ``time_s`` (a whole number
         of control periods) and drive level ``level``, the first ``injected`` arrivals injected, ``cells``
         {key: (x, y, born)} in the channel; the other injected cells count as settled elsewhere (``lost``
-        here: the caller keeps their records)."""
+        here: the caller keeps their records). The plant must hold every cell (``window`` None)."""
+        if len(self._born) < len(self._arrival_all):
+            raise ValueError("adopt needs a rom plant that holds every cell of its sample (window=None)")
         counters = self._counters
         counters[kernels.STEP] = round(time_s / self.control_period)
         counters[kernels.NEXT] = injected
@@ -452,6 +527,7 @@ class RomPlant:
 
     def diagnostics(self) -> dict:
         """Figures for logging: substep, physics steps so far, drive level, wall contacts (cell-substeps)."""
+        levels = self._level.tolist()
         return {"dt": self.control_period / self.substeps, "physics_steps": int(self._counters[kernels.PHYSICS_STEPS]),
-                "level": float(self._level.mean()), "levels": self._level.tolist(), "response_time": self.response_time,
+                "level": sum(levels) / len(levels), "levels": levels, "response_time": self.response_time,
                 "wall_contacts": int(self._counters[kernels.CONTACTS]), "health": "ok"}

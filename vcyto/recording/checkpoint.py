@@ -25,6 +25,7 @@ import time
 import numpy as np
 
 from .. import outputs
+from ..sortreport import rejected_by
 from . import fcs, gatingml
 
 CHECKPOINT_SECONDS = 1.0       # wall time between checkpoints
@@ -64,17 +65,24 @@ class Checkpoint:
         outputs.write_into(self.paths["summary"], outputs.strict_json(self._summary(ledger)) + "\n")
         self.next = time.monotonic() + max(self.interval, SPACING * (time.monotonic() - started))
 
-    def _events(self, before: float):
-        """Add to the FCS file the events detected before ``before`` (s), in time order."""
+    def finish_events(self, result: dict, keywords: dict):
+        """The run's final FCS events (all of them, ``result``'s keywords and ``keywords``): the events already in the
+        file are copied, not read back into memory, so the run's end costs no more memory for a longer run."""
+        self.keywords = keywords
+        self._events(np.inf, result, whole=True)
+
+    def _events(self, before: float, result: dict | None = None, whole: bool = False):
+        """Add to the FCS file the events detected before ``before`` (s), in time order (``whole``: rewritten even
+        with none to add)."""
         rows = np.array(self.rows, dtype="<f8").reshape(-1, len(fcs.CHANNELS))
         rows = rows[np.argsort(rows[:, 0], kind="stable")]
         ready = rows[:, 0] < round(before / fcs.TIMESTEP) if np.isfinite(before) else np.ones(len(rows), bool)
         new, self.rows = rows[ready], rows[~ready].tolist()
-        if not len(new) and self.count:
+        if not len(new) and self.count and not whole:
             return
         self.largest = np.maximum(self.largest, new.max(axis=0, initial=0.0))
-        result = {"model": self.settings.model, "seed": self.settings.seed,
-                  "wall_time_s": time.monotonic() - self.started}
+        result = result or {"model": self.settings.model, "seed": self.settings.seed,
+                            "wall_time_s": time.monotonic() - self.started}
         head = fcs.fcs_head(self.count + len(new), len(fcs.CHANNELS),
                             fcs.fcs_keywords(result, self.largest, self.keywords, self.settings, self.scenario))
         previous, size = self.paths["fcs"], self.count * len(fcs.CHANNELS) * 8
@@ -92,8 +100,8 @@ class Checkpoint:
 
     def _summary(self, ledger) -> dict:
         now = ledger.time
-        rejected = [name for at, name in ledger.sample.rejected if at <= now]
-        statistics = ledger.tally.statistics(now, rejected, self.scenario, ledger.unexpected)
+        statistics = ledger.tally.statistics(now, rejected_by(ledger.sample.rejected, now), self.scenario,
+                                             ledger.unexpected)
         return {"status": "running", "partial": True,
                 "reason": (f"the run had not finished at its last checkpoint (t = {now * 1e3:.3f} ms of simulated "
                            "time): if no vcyto process is running it, it was killed then; the figures are those of "

@@ -12,6 +12,7 @@ recording's timeline), so the 3D panel shows the recent ones, not every cell of 
 from __future__ import annotations
 
 import base64
+import functools
 import struct
 
 import numpy as np
@@ -22,6 +23,7 @@ from foxglove_schemas_protobuf.PackedElementField_pb2 import PackedElementField
 from foxglove_schemas_protobuf.Point3_pb2 import Point3
 from foxglove_schemas_protobuf.PointCloud_pb2 import PointCloud
 from foxglove_schemas_protobuf.Pose_pb2 import Pose
+from foxglove_schemas_protobuf.Quaternion_pb2 import Quaternion
 from foxglove_schemas_protobuf.RawImage_pb2 import RawImage
 from foxglove_schemas_protobuf.SceneEntity_pb2 import SceneEntity
 from foxglove_schemas_protobuf.SceneUpdate_pb2 import SceneUpdate
@@ -47,6 +49,8 @@ METRE = 1e-6                                     # metres per micrometre: what t
 MARKER_LIFETIME = Duration(nanos=2_000_000)      # 2 ms of simulated time
 PATH_LIFETIME = Duration(nanos=10_000_000)       # 10 ms
 _CLASS_RGB = np.array([CLASS_COLOURS[name] for name in CLASS_NAMES], dtype=np.uint8).reshape(-1, 3)
+_CLASS_RGBA = np.column_stack([_CLASS_RGB, np.full(len(_CLASS_RGB), 255, np.uint8)])
+_COLOUR_BYTES = slice(POINT.fields["red"][1], POINT.fields["alpha"][1] + 1)      # red, green, blue, alpha: adjacent
 LEVELS = {"INFO": Log.INFO, "WARN": Log.WARNING, "WARNING": Log.WARNING, "ERROR": Log.ERROR}
 
 
@@ -63,7 +67,11 @@ def _binary(values_um):
 
 
 # a pose with every field set: Rerun's MCAP importer reads an absent position as a column it cannot decode
-_IDENTITY = Pose(position=Vector3(x=0.0, y=0.0, z=0.0), orientation={"w": 1.0})
+_UPRIGHT = Quaternion(w=1.0)
+_IDENTITY = Pose(position=Vector3(x=0.0, y=0.0, z=0.0), orientation=_UPRIGHT)
+_SPHERE = Vector3(x=4.0 * METRE, y=4.0 * METRE, z=4.0 * METRE)
+# the messages below are built for every detector event and every cell that leaves: their constant parts are made
+# once (a message given to another is copied into it)
 
 
 def membranes(unix_ns: int, cells) -> PointCloud:
@@ -94,11 +102,12 @@ class Membranes:
 def centroids(x_um, y_um, keys, class_ids) -> np.ndarray:
     """Point-like cells as ``POINT`` rows, the rows ``membranes`` writes for them, built as arrays (for many steps'
     cells at once: slices of the result are each step's points)."""
-    colours = _CLASS_RGB[np.asarray(class_ids, dtype=np.intp)]
-    data = np.zeros(len(keys), dtype=POINT)
-    data["x"], data["y"] = _binary(x_um), _binary(y_um)
-    data["red"], data["green"], data["blue"], data["alpha"] = colours[:, 0], colours[:, 1], colours[:, 2], 255
-    data["key"], data["class"] = keys, class_ids
+    count = len(keys)
+    data = np.zeros(count, dtype=POINT)
+    data["x"], data["y"] = _binary(np.array((x_um, y_um), dtype=float).reshape(2, count))
+    ids = np.array(class_ids, dtype=np.intp)
+    data.view(np.uint8).reshape(count, POINT.itemsize)[:, _COLOUR_BYTES] = _CLASS_RGBA[ids]   # red .. alpha
+    data["key"], data["class"] = keys, ids
     return data
 
 
@@ -131,20 +140,25 @@ def log(unix_ns: int, text: str, level: str = "INFO") -> Log:
 
 
 def _colour(rgb, alpha: float = 1.0) -> Color:
+    return _colours(tuple(int(value) for value in rgb), alpha)
+
+
+@functools.lru_cache(maxsize=256)
+def _colours(rgb: tuple, alpha: float) -> Color:
     return Color(r=rgb[0] / 255, g=rgb[1] / 255, b=rgb[2] / 255, a=alpha)
 
 
 def _line(points_um, rgb, thickness: float = METRE, loop: bool = False) -> LinePrimitive:
     return LinePrimitive(type=LinePrimitive.LINE_LOOP if loop else LinePrimitive.LINE_STRIP, thickness=thickness,
                          pose=_IDENTITY, color=_colour(rgb),
-                         points=[Point3(x=float(x) * METRE, y=float(y) * METRE, z=0.0) for x, y in points_um])
+                         points=[Point3(x=x * METRE, y=y * METRE, z=0.0)
+                                 for x, y in np.asarray(points_um, dtype=float).tolist()])
 
 
 def _text(x: float, y: float, text: str, rgb=(230, 230, 230)) -> TextPrimitive:
     """A label at (x, y) um."""
-    return TextPrimitive(pose=Pose(position=Vector3(x=x * METRE, y=y * METRE, z=0.0), orientation={"w": 1.0}),
-                         billboard=True,
-                         font_size=12.0, scale_invariant=True, color=_colour(rgb), text=text)
+    return TextPrimitive(pose=Pose(position=Vector3(x=x * METRE, y=y * METRE, z=0.0), orientation=_UPRIGHT),
+                         billboard=True, font_size=12.0, scale_invariant=True, color=_colour(rgb), text=text)
 
 
 def device(unix_ns: int, outlines) -> SceneUpdate:
@@ -162,8 +176,7 @@ def marker(unix_ns: int, entity_id: str, x_um: float, y_um: float, rgb, label: s
     """A detector event: a sphere where the cell was when it was detected, with its label, for
     ``MARKER_LIFETIME``."""
     sphere = SpherePrimitive(pose=Pose(position=Vector3(x=x_um * METRE, y=y_um * METRE, z=0.0),
-                                       orientation={"w": 1.0}),
-                             size=Vector3(x=4.0 * METRE, y=4.0 * METRE, z=4.0 * METRE), color=_colour(rgb, 0.8))
+                                       orientation=_UPRIGHT), size=_SPHERE, color=_colour(rgb, 0.8))
     return SceneEntity(timestamp=stamp(unix_ns), frame_id=FRAME, id=entity_id, lifetime=MARKER_LIFETIME,
                        spheres=[sphere], texts=[_text(x_um, y_um + 5.0, label, rgb)])
 

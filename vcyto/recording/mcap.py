@@ -253,6 +253,7 @@ class McapRecorder:
                       "WARN" if decision.action == "abort" else "INFO")
         for cell in self._left(truth):
             self._outcome(now, cell)
+        self._classes.forget_pulses(now)          # the pulses that are over (bounded state)
         if fields is not None and self.field_every and step % self.field_every == 0:
             payload = fields()
             self._write("/flow/velocity", now, payload)

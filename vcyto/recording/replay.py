@@ -28,7 +28,7 @@ from sim.model.scenario import Scenario
 from ..classes import class_of_type, provisional_class
 from ..config import scenario_from_toml
 from ..outcomes import outcome_class, outcome_text
-from .rerunlog import POINT_LIKE, RerunLogger, decision_text
+from .rerunlog import BATCH_ROWS, BATCH_SECONDS, POINT_LIKE, RerunLogger, decision_text
 
 MEMBRANES = "/foxglove/membranes"
 
@@ -341,8 +341,9 @@ def replay(path: Path, target, progress=None) -> dict:
     scenario = scenario_from_toml(metadata["scenario_toml"], "scenario_toml") if "scenario_toml" in metadata \
         else Scenario()
     columns = metadata.get("recording_format", "1") >= "3"
-    logger = RerunLogger(scenario, detection_window(metadata), target,
-                         membranes=metadata.get("model") not in POINT_LIKE)
+    # the live loop's small batches whatever the target: what a replay holds stays small
+    logger = RerunLogger(scenario, detection_window(metadata), target, batch_rows=BATCH_ROWS,
+                         batch_seconds=BATCH_SECONDS, membranes=metadata.get("model") not in POINT_LIKE)
     replayer = _Replayer(logger, scenario, int(metadata.get("time_origin_unix_ns", 0)), metres=columns)
     steps = count = 0
     last_time = 0.0

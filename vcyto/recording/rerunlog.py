@@ -32,8 +32,11 @@ Timelines: ``sim_time`` (simulated seconds) and ``step``.
 
 Cost: the logger keeps rows in memory and sends each entity's rows in one columnar call (``send_columns``)
 per batch (``batch_rows`` rows, or ``batch_seconds`` of wall time, whichever comes first), with the Arrow arrays
-built directly from numpy. The number of entities is bounded (the slots), so a run of 10^5 cells costs a
-bounded number of calls per batch, and the state is bounded by the cells in the channel and one batch.
+built directly from numpy. A view saved to a file (nobody watches it live) is sent in larger batches
+(``FILE_BATCH_ROWS``, ``FILE_BATCH_SECONDS``): Rerun's file writer keeps about 1 KB per chunk sent (one chunk per
+entity per batch) until the file is finished, so the batches set how that memory grows with the run. The number
+of entities is bounded (the slots), so a run of 10^5 cells costs a bounded number of calls per batch, and the state
+is bounded by the cells in the channel and one batch.
 """
 
 from __future__ import annotations
@@ -58,6 +61,8 @@ RECENT_EVENTS = 16                     # markers shown with each new detector ev
 PATH_SLOTS = 16                        # the paths of the last this many cells stay in the view
 BATCH_ROWS = 2000                      # rows kept before they are sent
 BATCH_SECONDS = 0.5                    # wall time after which kept rows are sent (the live view's lag)
+FILE_BATCH_ROWS = 1 << 16              # the same for a view saved to a file
+FILE_BATCH_SECONDS = 5.0
 VIEW_MARGIN_UM = 25.0                  # the channel view's margin around the channel, for the labels outside it
 LEGEND_ROOM_UM = 20.0                  # and the room above it for the speed's colour bar
 AREA_RANGE = (0.5, 1.1)                # the area panel's axis (area / initial area)
@@ -185,7 +190,7 @@ class RerunLogger:
     """Logs the pieces of a run to one Rerun recording stream (see the module docstring for the entities)."""
 
     def __init__(self, scenario: Scenario, detection_window=None, target=("save", "run.rrd"), application_id="vcyto",
-                 batch_rows: int = BATCH_ROWS, batch_seconds: float = BATCH_SECONDS, membranes: bool = True):
+                 batch_rows: int | None = None, batch_seconds: float | None = None, membranes: bool = True):
         rr = import_rerun()
         self.rr = rr
         self.height_um = scenario.channel.height / UM
@@ -208,7 +213,9 @@ class RerunLogger:
         self.paths: dict[int, list] = {}               # the cells in the channel: centroid paths (um)
         self.positions: dict[int, tuple] = {}          # the cells in the channel: latest centroid (um)
         self.recent_events: collections.deque = collections.deque(maxlen=RECENT_EVENTS)
-        self.batch_rows, self.batch_seconds = batch_rows, batch_seconds
+        saved = kind == "save"              # a file: larger batches (module docstring)
+        self.batch_rows = batch_rows or (FILE_BATCH_ROWS if saved else BATCH_ROWS)
+        self.batch_seconds = batch_seconds or (FILE_BATCH_SECONDS if saved else BATCH_SECONDS)
         self._pending: dict[str, _Rows] = collections.defaultdict(_Rows)
         self._traced: dict = {}                        # recorded steps of an event-driven plant, as columns
         self._rows, self._sent_at = 0, time.monotonic()

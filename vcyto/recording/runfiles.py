@@ -143,6 +143,7 @@ class StreamFiles:
         self.directory = directory
         self.run_id = outputs.reserve_run(directory, suffixes, name)
         self.suffixes = suffixes
+        self._checkpoint = None
 
     def path(self, suffix: str) -> Path | None:
         return self.directory / f"{self.run_id}.{suffix}" if suffix in self.suffixes else None
@@ -152,8 +153,13 @@ class StreamFiles:
         (complete or partial) into the reserved files."""
         from . import fcs, gatingml
         fcs_path, summary_path = self.path("fcs"), self.path("json")
-        fcs.write_fcs(fcs_path, result, {"VCYTO_COMMAND": _command(), "VCYTO_STATUS": result.get("status", "complete"),
-                                         "VCYTO_RUN_ID": self.run_id}, settings=settings, scenario=scenario)
+        keywords = {"VCYTO_COMMAND": _command(), "VCYTO_STATUS": result.get("status", "complete"),
+                    "VCYTO_RUN_ID": self.run_id}
+        if self._checkpoint is not None and settings is not None and "cells" not in result:
+            # a long run: its checkpoint's events and the rest, in bounded memory (not read back from the table)
+            self._checkpoint.finish_events(result, keywords)
+        else:
+            fcs.write_fcs(fcs_path, result, keywords, settings=settings, scenario=scenario)
         if settings is not None:
             gatingml.write_gatingml(self.path("gating.xml"), settings.detector.gate)
         outputs.write_into(summary_path, outputs.strict_json(result) + "\n")
@@ -191,8 +197,9 @@ class StreamFiles:
         """The ``vcyto.recording.checkpoint.Checkpoint`` that writes this run's summary, FCS events and gate as it
         goes."""
         from .checkpoint import Checkpoint
-        return Checkpoint(self.path("json"), self.path("fcs"), self.path("gating.xml"), self.run_id, settings,
-                          scenario, {"VCYTO_COMMAND": _command(), "VCYTO_RUN_ID": self.run_id})
+        self._checkpoint = Checkpoint(self.path("json"), self.path("fcs"), self.path("gating.xml"), self.run_id,
+                                      settings, scenario, {"VCYTO_COMMAND": _command(), "VCYTO_RUN_ID": self.run_id})
+        return self._checkpoint
 
     def discard_unwritten(self) -> None:
         """Remove the reserved summary and events that were never written (a run that failed before it ran)."""

@@ -218,6 +218,19 @@ def test_the_reference_controllers_sort_as_the_built_in_one_on_a_poisson_stream(
     assert by_c["control"]["missed_decisions"] == 0 and by_c["control"]["latency_ms"]["count"] == len(expected)
 
 
+def test_the_c_controller_polling_for_its_messages_decides_as_the_built_in_one(c_server):
+    """``--spin SECONDS`` (poll for the next message before sleeping in read) changes when it reads, not what it
+    answers: 100 Poisson events in lock-step decide as the built-in controller; a spin that is not 0-1 s is
+    refused with exit 2, naming the option."""
+    short = [*POISSON[:3], "100", *POISSON[4:]]
+    built_in = _run(short)
+    by_c = _run(short, wire.launch(f"{shlex.quote(str(c_server))} --once --spin 0.002", timeout=30))
+    assert _outcomes(by_c) == _outcomes(built_in) and len(_outcomes(built_in)) > 80
+    for bad in ("x", "5", "-1"):
+        done = subprocess.run([str(c_server), "--spin", bad], capture_output=True, text=True, timeout=10)
+        assert done.returncode == 2 and "--spin" in done.stderr, (bad, done.stderr)
+
+
 # --- paced real time: late answers are missed decisions ------------------------------------------------------
 
 def test_late_answers_in_real_time_are_missed_and_their_targets_go_lower(tmp_path):

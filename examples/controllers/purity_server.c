@@ -10,6 +10,10 @@
  *
  *     vcyto stream --model rom --count 100 --controller-exec "./purity_server --once"
  *
+ * `--spin SECONDS` polls for the next message for that long after the last one before it sleeps in read(): in
+ * paced real time (vcyto stream --realtime) a sleeping process wakes late often enough to miss deadlines
+ * (docs/controllers.md); a polling one keeps a processor busy.
+ *
  * It listens on 127.0.0.1 unless told otherwise (an open port lets anyone who reaches it drive the sorter).
  * The JSON reader is minimal: it finds a key by its quoted name anywhere in the message, which suffices for
  * vcyto's messages (no key repeats within one); a controller for production would use a JSON library.
@@ -26,6 +30,7 @@
 #include <string.h>
 #include <sys/socket.h>
 #include <sys/un.h>
+#include <time.h>
 #include <unistd.h>
 
 #define PROTOCOL "vcyto-controller"
@@ -95,9 +100,30 @@ static int json_pair(const char *json, const char *key, double out[2]) {
 
 /* ---- framing: 4-byte big-endian length, then the JSON ---- */
 
+static double spin_seconds = 0.0;     /* --spin: how long to poll for the next message before sleeping in read */
+
+static double now_seconds(void) {
+    struct timespec t;
+    clock_gettime(CLOCK_MONOTONIC, &t);
+    return (double)t.tv_sec + 1e-9 * (double)t.tv_nsec;
+}
+
+/* Wait until fd is readable, polling for up to spin_seconds first: a process asleep in read() wakes some tens of
+   microseconds to milliseconds after the data arrives (the scheduler's tail), a polling one at once. */
+static void await_readable(int fd) {
+    if (spin_seconds <= 0.0) return;
+    char probe;
+    double until = now_seconds() + spin_seconds;
+    do {
+        ssize_t got = recv(fd, &probe, 1, MSG_PEEK | MSG_DONTWAIT);
+        if (got >= 0 || (errno != EAGAIN && errno != EWOULDBLOCK && errno != EINTR)) return;
+    } while (now_seconds() < until);
+}
+
 static int read_full(int fd, void *buffer, size_t n) {
     char *p = buffer;
     while (n > 0) {
+        await_readable(fd);
         ssize_t got = read(fd, p, n);
         if (got < 0 && errno == EINTR) continue;
         if (got <= 0) return 0;
@@ -341,8 +367,15 @@ int main(int argc, char **argv) {
             address = argv[++i];
         } else if (strcmp(argv[i], "--once") == 0) {
             once = 1;
+        } else if (strcmp(argv[i], "--spin") == 0 && i + 1 < argc) {
+            char *end;
+            spin_seconds = strtod(argv[++i], &end);
+            if (*end != '\0' || !(spin_seconds >= 0.0 && spin_seconds <= 1.0)) {
+                fprintf(stderr, "purity_server: --spin: give seconds from 0 to 1 (got %s)\n", argv[i]);
+                return 2;
+            }
         } else {
-            fprintf(stderr, "usage: purity_server [--listen tcp:HOST:PORT | unix:PATH] [--once]\n");
+            fprintf(stderr, "usage: purity_server [--listen tcp:HOST:PORT | unix:PATH] [--once] [--spin SECONDS]\n");
             return 2;
         }
     }

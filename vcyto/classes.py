@@ -54,17 +54,22 @@ class CellClasses:
         self._action: dict[int, str] = {}          # key -> "sort" / "pass" / "abort"
         self.pulses: dict[int, tuple[float, float]] = {}   # event_id -> (on, off) of a sort, until it is over
 
-    def observe(self, events, decisions):
-        """Take a control period's new detector events and decisions (made or revised)."""
+    def observe(self, events, decisions) -> list[int]:
+        """Take a control period's new detector events and decisions (made or revised); the keys of the cells whose
+        class they may have changed."""
+        touched = []
         for event in events:
             self._detected[event.key] = event.classification
             self._event_keys[event.event_id] = event.key
+            touched.append(event.key)
         for decision in decisions:
             key = self._event_keys.get(decision.event_id)
             if key is not None:
                 self._action[key] = decision.action
+                touched.append(key)
             if decision.action == "sort" and math.isfinite(decision.pulse_on):
                 self.pulses[decision.event_id] = (decision.pulse_on, decision.pulse_off)
+        return touched
 
     def provisional(self, key: int) -> str:
         """The class name of a cell still in the channel."""

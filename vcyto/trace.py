@@ -16,6 +16,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import numpy as np
+
 from .classes import CLASS_IDS
 
 TRACE_BATCH = 32               # record intervals a stretch may span before the loop shows it (the live view's lag)
@@ -100,25 +102,77 @@ class Tracer:
         return Trace([tick * period for tick in ticks], ticks, drive, counts, keys, x, y)
 
 
-def class_snapshot(trace: Trace, classes) -> dict:
-    """The class id (``vcyto.classes.CLASS_IDS``) of each key in ``trace`` by ``classes`` (a
-    ``vcyto.classes.CellClasses``) as it stands."""
-    return {key: CLASS_IDS[classes.provisional(key)] for key in set(trace.keys)}
+class TracedRows:
+    """The recorded steps of a run of records (each with a ``trace``) gathered as arrays, for the sinks to write at
+    once rather than record by record: per step ``times`` (s), ``steps``, ``drive``, ``counts`` (rows), ``record``
+    (the index of the record that carried it); per row ``keys``, ``x``, ``y`` (m); ``class_ids`` once
+    ``classify`` has run."""
 
+    def __init__(self, records):
+        self.records = records
+        times, steps, drive, counts, record_of, keys, x, y = [], [], [], [], [], [], [], []
+        for index, record in enumerate(records):
+            trace = record.trace
+            times += trace.times
+            steps += trace.steps
+            drive += trace.drive
+            counts += trace.counts
+            record_of += [index] * len(trace)
+            keys += trace.keys
+            x += trace.x
+            y += trace.y
+        self.times, self.steps = np.array(times, dtype=float), np.array(steps, dtype=np.int64)
+        self.drive, self.counts = np.array(drive, dtype=float), np.array(counts, dtype=np.int64)
+        self.record, self.keys = np.array(record_of, dtype=np.int64), np.array(keys, dtype=np.int64)
+        self.x, self.y = np.array(x, dtype=float), np.array(y, dtype=float)
+        self.class_ids = None
 
-def row_classes(trace: Trace, now: float, before: dict, after: dict) -> list:
-    """Each row's class id: ``after`` (the classes with the record's events and decisions) at the record's own time
-    ``now``, ``before`` at the earlier steps, as a loop that stopped at each recorded step would have shown."""
-    if before is after:
-        return [after[key] for key in trace.keys]
-    late = now - 1e-12
-    return [after[key] if time >= late else before[key] for key, time in zip(trace.keys, trace.row_times())]
+    def __len__(self) -> int:
+        return len(self.steps)
 
+    def by_key(self, x, y) -> dict:
+        """Each key's rows of ``x``, ``y`` (arrays per row, e.g. the positions in um) as an (n, 2) array, in step
+        order."""
+        if not len(self.keys):
+            return {}
+        order = np.argsort(self.keys, kind="stable")
+        keys = self.keys[order]
+        starts = np.flatnonzero(np.r_[True, keys[1:] != keys[:-1]])
+        points = np.column_stack([np.asarray(x)[order], np.asarray(y)[order]])
+        return dict(zip(keys[starts].tolist(), np.split(points, starts[1:])))
 
-def extend_paths(paths: dict, trace: Trace, x_um, y_um) -> dict:
-    """Append each traced row (um) to its cell's path in ``paths`` (key -> points); the latest point of each key."""
-    latest = {}
-    for key, x, y in zip(trace.keys, x_um, y_um):
-        paths.setdefault(key, []).append((x, y))
-        latest[key] = (x, y)
-    return latest
+    def classify(self, classes, each=None, before=None) -> np.ndarray:
+        """Each row's class id, the cells' classes following ``classes`` (a ``vcyto.classes.CellClasses``) record by
+        record: ``before(index, record)`` is called, the classes take the record's events and decisions, then
+        ``each(index, record)`` is called (a sink's events, decisions and outcomes). A row at its record's own time
+        has the classes as they stand after the record's events and decisions, an earlier row those before them, as
+        a loop that stopped at every recorded step would have shown (``tests/test_trace.py``); the rows' classes are
+        looked up at once, not row by row."""
+        records, keys = self.records, self.keys
+        unique, inverse = np.unique(keys, return_inverse=True)
+        initial = np.array([CLASS_IDS[classes.provisional(key)] for key in unique.tolist()], dtype=np.int64)
+        changes = []                      # (record index, key, class id) as the records' events and decisions come
+        for index, record in enumerate(records):
+            if before is not None:
+                before(index, record)
+            if record.events or record.decisions:
+                changes += [(index, key, CLASS_IDS[classes.provisional(key)])
+                            for key in classes.observe(record.events, record.decisions)]
+            if each is not None:
+                each(index, record)
+        class_ids = initial[inverse] if len(keys) else np.zeros(0, dtype=np.int64)
+        if changes and len(keys):
+            # the latest change of each row's key at or before the record whose classes the row shows
+            now = np.array([record.observation.time for record in records])
+            row_record = np.repeat(self.record, self.counts)
+            late = np.repeat(self.times, self.counts) >= now[row_record] - 1e-12
+            shown = row_record - ~late                         # its own record's classes, or the one before's
+            change = np.array(changes, dtype=np.int64)
+            span = len(records) + 1
+            change = change[np.argsort(change[:, 1] * span + change[:, 0], kind="stable")]
+            at = np.searchsorted(change[:, 1] * span + change[:, 0], keys * span + shown, side="right") - 1
+            hit = at >= 0
+            hit[hit] = change[at[hit], 1] == keys[hit]
+            class_ids = np.where(hit, change[np.maximum(at, 0), 2], class_ids)
+        self.class_ids = class_ids
+        return class_ids

@@ -34,6 +34,7 @@ from google.protobuf.duration_pb2 import Duration
 from google.protobuf.timestamp_pb2 import Timestamp
 
 from ..classes import CLASS_COLOURS, CLASS_NAMES
+from . import protowire as wire
 
 FRAME = "channel"
 TOPICS = {"/foxglove/scene": SceneUpdate, "/foxglove/membranes": PointCloud, "/foxglove/speed": RawImage,
@@ -95,8 +96,7 @@ class Membranes:
 
     def packed(self, unix_ns: int, data: bytes) -> bytes:
         """The message of points already packed as ``POINT`` rows (``centroids``)."""
-        return (PointCloud(timestamp=stamp(unix_ns)).SerializeToString() + self._fixed
-                + PointCloud(data=data).SerializeToString())
+        return wire.field(1, wire.timestamp(unix_ns)) + self._fixed + wire.data(6, data)
 
 
 def centroids(x_um, y_um, keys, class_ids) -> np.ndarray:
@@ -174,7 +174,7 @@ def device(unix_ns: int, outlines) -> SceneUpdate:
 
 def marker(unix_ns: int, entity_id: str, x_um: float, y_um: float, rgb, label: str) -> SceneEntity:
     """A detector event: a sphere where the cell was when it was detected, with its label, for
-    ``MARKER_LIFETIME``."""
+    ``MARKER_LIFETIME`` (the message ``scene_entities`` writes as bytes)."""
     sphere = SpherePrimitive(pose=Pose(position=Vector3(x=x_um * METRE, y=y_um * METRE, z=0.0),
                                        orientation=_UPRIGHT), size=_SPHERE, color=_colour(rgb, 0.8))
     return SceneEntity(timestamp=stamp(unix_ns), frame_id=FRAME, id=entity_id, lifetime=MARKER_LIFETIME,
@@ -183,11 +183,67 @@ def marker(unix_ns: int, entity_id: str, x_um: float, y_um: float, rgb, label: s
 
 def path(unix_ns: int, key: int, points_um, rgb, label: str) -> SceneEntity:
     """A cell's centroid path, drawn when it has left, in the colour of its outcome class, for
-    ``PATH_LIFETIME``."""
+    ``PATH_LIFETIME`` (the message ``scene_entities`` writes as bytes)."""
     points = np.asarray(points_um, dtype=float).reshape(-1, 2)
     return SceneEntity(timestamp=stamp(unix_ns), frame_id=FRAME, id=f"path/{key}", lifetime=PATH_LIFETIME,
                        lines=[_line(points, rgb, thickness=0.5 * METRE)],
                        texts=[_text(float(points[-1, 0]), float(points[-1, 1]), label, rgb)])
+
+
+class Entities:
+    """The scene entities a recording writes per detector event and per cell that leaves, as serialised bytes equal
+    to ``marker``'s and ``path``'s messages, at a fraction of their cost: a marker is a copy of a template with
+    its varying fields set; a path is written in protobuf's wire format (``vcyto.recording.protowire``), its
+    points as an array (the protobuf classes build a message per point)."""
+
+    def __init__(self):
+        self._markers: dict = {}
+        self._path_head = wire.text(2, FRAME)
+        self._path_lifetime = wire.field(4, PATH_LIFETIME.SerializeToString())
+        self._line_head = (wire.integer(1, LinePrimitive.LINE_STRIP) + wire.field(2, _IDENTITY.SerializeToString())
+                           + wire.double(3, 0.5 * METRE))
+        label = _text(0.0, 0.0, "x")
+        self._label_template = label
+
+    def marker(self, unix_ns: int, entity_id: str, x_um: float, y_um: float, rgb, label: str) -> bytes:
+        rgb = tuple(int(value) for value in rgb)
+        template = self._markers.get(rgb)
+        if template is None:
+            template = self._markers[rgb] = marker(0, "", 0.0, 0.0, rgb, "x")
+        entity = SceneEntity()
+        entity.CopyFrom(template)
+        entity.timestamp.seconds, entity.timestamp.nanos = divmod(unix_ns, 1_000_000_000)
+        entity.id = entity_id
+        position = entity.spheres[0].pose.position
+        position.x, position.y = x_um * METRE, y_um * METRE
+        text = entity.texts[0]
+        position = text.pose.position
+        position.x, position.y = x_um * METRE, (y_um + 5.0) * METRE
+        text.text = label
+        return entity.SerializeToString()
+
+    def path(self, unix_ns: int, key: int, points_um, rgb, label: str) -> bytes:
+        points = np.asarray(points_um, dtype=float).reshape(-1, 2)
+        colour = _colour_bytes(tuple(int(value) for value in rgb), 1.0)
+        line = self._line_head + wire.points(5, points * METRE) + wire.field(6, colour)
+        text = TextPrimitive()
+        text.CopyFrom(self._label_template)
+        position = text.pose.position
+        position.x, position.y = float(points[-1, 0]) * METRE, float(points[-1, 1]) * METRE
+        text.text = label
+        text.color.CopyFrom(_colours(tuple(int(value) for value in rgb), 1.0))
+        return (wire.field(1, wire.timestamp(unix_ns)) + self._path_head + wire.text(3, f"path/{key}")
+                + self._path_lifetime + wire.field(11, line) + wire.field(13, text.SerializeToString()))
+
+    @staticmethod
+    def scene(entities) -> bytes:
+        """A ``SceneUpdate`` of entities written by ``marker`` and ``path``."""
+        return b"".join(wire.field(2, entity) for entity in entities)
+
+
+@functools.lru_cache(maxsize=256)
+def _colour_bytes(rgb: tuple, alpha: float) -> bytes:
+    return _colours(rgb, alpha).SerializeToString()
 
 
 def speed_grid(payload: dict, pixel_um: float) -> np.ndarray:

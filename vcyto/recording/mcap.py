@@ -42,7 +42,6 @@ import base64
 import collections
 import dataclasses
 import errno
-import itertools
 import json
 import logging
 import math
@@ -64,7 +63,7 @@ from ..classes import CLASS_COLOURS, CLASS_IDS, CLASS_NAMES, CellClasses
 from ..outcomes import outcome_text
 from ..outputs import plain
 from ..sortreport import EVENT_NAMES, name_cells
-from ..trace import class_snapshot, extend_paths, row_classes
+from ..trace import TracedRows
 from . import foxglove
 from .schemas import SCHEMAS
 
@@ -180,7 +179,9 @@ class McapRecorder:
         self.flush_every = max(1, flush_every)
         self.field_every = field_every
         self._classes = CellClasses(scenario)
-        self._paths: dict[int, list] = {}        # the cells in the channel: their centroid paths (um)
+        self._paths: dict[int, list] = {}        # the cells in the channel: their centroid paths (um), in pieces
+        self._kinds: dict[int, tuple] = {}       # traced cells in the channel: (type, area ratio)
+        self._entities = foxglove.Entities()
         self._reported: set[int] = set()         # cells that left, while ``truth`` still lists them
         self._keys_by_event: dict[int, int] = {}  # detector events' cells, for the log's decision lines
         self._steps, self._rows = _columns(STEP_COLUMNS), _columns(ROW_COLUMNS)
@@ -219,47 +220,114 @@ class McapRecorder:
         self._write_proto("/foxglove/log", time_s, foxglove.log(self._stamp(time_s), text, level))
 
     def on_steps(self, records):
-        """Write a batch of steps (``vcyto.recording.sinks.BackgroundSinks`` hands them over together)."""
-        for record in records:
-            self.on_step(record)
+        """Write a batch of steps (``vcyto.recording.sinks.BackgroundSinks`` hands them over together): an
+        event-driven plant's recorded steps gathered as arrays (``vcyto.trace.gather``), other steps one by one;
+        the file is flushed when ``flush_every`` steps are waiting."""
+        start = 0
+        while start < len(records):
+            traced = records[start].trace is not None
+            end = start + 1
+            while end < len(records) and (records[end].trace is not None) == traced:
+                end += 1
+            if traced:
+                self._traced(records[start:end])
+                self._flush_due()
+            else:
+                for record in records[start:end]:
+                    self._step(record)
+                    self._flush_due()
+            start = end
+
+    def _flush_due(self):
+        if len(self._steps["time"]) >= self.flush_every:
+            self.flush()
 
     def on_step(self, record):
         """Take one step (``vcyto.steps.StepRecord``): its events, decisions and outcomes are written now, its
         per-step rows with the batch's (every ``flush_every`` steps, then the file is flushed)."""
+        self.on_steps([record])
+
+    def _step(self, record):
+        """A step of a plant that does not trace (every record a recorded step: its rows, membranes, field)."""
         step, observation, truth, actuation = record.step, record.observation, record.truth, record.actuation
-        events, decisions, fields, diagnostics = record.events, record.decisions, record.fields, record.diagnostics
         now = observation.time
-        # the classes before this record's events and decisions (the recorded steps before its time had them)
-        before = class_snapshot(record.trace, self._classes) if record.trace and (events or decisions) else None
-        self._classes.observe(events, decisions)
+        self._classes.observe(record.events, record.decisions)
         in_channel = [cell for cell in truth.cells if cell.fate == "in_channel"]
-        if record.trace is not None:            # an event-driven plant's recorded steps, as columns
-            after = class_snapshot(record.trace, self._classes)
-            self._traced(record, row_classes(record.trace, now, before or after, after))
-        else:
-            _append(self._steps, (now, step, actuation, len(observation.cells), time.time(), diagnostics or {},
-                                  len(in_channel)))
-            self._membranes(now, in_channel)
-            for cell in in_channel:
-                self._cell(now, cell)
-        positions = {cell.key: cell for cell in in_channel}
-        for event in events:
-            self._event(event, positions.get(event.key))
-        for decision in decisions:
+        _append(self._steps, (now, step, actuation, len(observation.cells), time.time(), record.diagnostics or {},
+                              len(in_channel)))
+        self._membranes(now, in_channel)
+        for cell in in_channel:
+            self._cell(now, cell)
+        self._happenings(record, in_channel)
+        for cell in self._left(truth):
+            self._outcome(now, cell, self._classes.settle(cell))
+        fields = record.fields
+        if fields is not None and self.field_every and step % self.field_every == 0:
+            payload = fields()
+            self._write("/flow/velocity", now, payload)
+            self._write_proto("/foxglove/speed", now, foxglove.speed_image(self._stamp(now), payload))
+
+    def _happenings(self, record, in_channel=None):
+        """A record's detector events (a marker where the cell is) and decisions; the pulses that are over are
+        forgotten."""
+        now = record.observation.time
+        if record.events:
+            cells = record.truth.cells if in_channel is None else in_channel
+            positions = {cell.key: cell for cell in cells if cell.fate == "in_channel"}
+            for event in record.events:
+                self._event(event, positions.get(event.key))
+        for decision in record.decisions:
             self._write("/controller/decision", now, {"time": now, **{key: getattr(decision, key) for key in
                                                                     DECISION_FIELDS}})
             reason = f" ({decision.reason})" if decision.reason else ""
             self._log(now, name_cells(f"event {decision.event_id}: {decision.action}{reason}", self._keys_by_event),
                       "WARN" if decision.action == "abort" else "INFO")
-        for cell in self._left(truth):
-            self._outcome(now, cell)
         self._classes.forget_pulses(now)          # the pulses that are over (bounded state)
-        if fields is not None and self.field_every and step % self.field_every == 0:
-            payload = fields()
-            self._write("/flow/velocity", now, payload)
-            self._write_proto("/foxglove/speed", now, foxglove.speed_image(self._stamp(now), payload))
-        if len(self._steps["time"]) >= self.flush_every:
-            self.flush()
+
+    def _traced(self, records):
+        """The recorded steps of an event-driven plant's records (``vcyto.trace``), gathered as arrays: their rows,
+        a point cloud per step, the paths; the plant's diagnostics on each record's last step."""
+        rows = TracedRows(records)
+        x_um, y_um = np.round(rows.x * 1e6, 4), np.round(rows.y * 1e6, 4)
+        for key, chunk in rows.by_key(x_um, y_um).items():       # a path is whole when its cell leaves
+            self._paths.setdefault(key, []).append(chunk)
+        gone, kinds, diagnostics = [], self._kinds, []
+
+        def each(index, record):
+            truth = record.truth
+            for cell in truth.cells:
+                if cell.key not in kinds:
+                    kinds[cell.key] = (cell.type, round(cell.area_ratio, 6))
+            self._happenings(record)
+            now = record.observation.time
+            for cell in self._left(truth):
+                self._outcome(now, cell, self._classes.settle(cell))
+                gone.append(cell.key)
+            if len(record.trace):
+                diagnostics.extend([{}] * (len(record.trace) - 1) + [record.diagnostics or {}])
+
+        class_ids = rows.classify(self._classes, each)
+        count, steps, columns = len(rows), self._steps, self._rows
+        keys = rows.keys.tolist()
+        for name, values in (("time", rows.times.tolist()), ("step", rows.steps.tolist()),
+                             ("idt", rows.drive.tolist()), ("cells_in_channel", rows.counts.tolist()),
+                             ("wall_time", [time.time()] * count), ("diagnostics", diagnostics),
+                             ("rows", rows.counts.tolist())):
+            steps[name].extend(values)
+        nothing = [None] * len(keys)
+        for name, values in (("key", keys), ("type", [kinds[key][0] for key in keys]),
+                             ("class", [CLASS_NAMES[i] for i in class_ids.tolist()]), ("x_um", x_um.tolist()),
+                             ("y_um", y_um.tolist()), ("area_ratio", [kinds[key][1] for key in keys]),
+                             ("perimeter_um", nothing), ("spacing_min_h", nothing), ("spacing_max_h", nothing)):
+            columns[name].extend(values)
+        for key in gone:
+            kinds.pop(key, None)
+        points, size = foxglove.centroids(x_um, y_um, rows.keys, class_ids).tobytes(), foxglove.POINT.itemsize
+        channel, packed, stamp = self._channels["/foxglove/membranes"], self._cloud.packed, self._stamp
+        ends = np.cumsum(rows.counts)
+        for time_s, start, end in zip(rows.times.tolist(), (ends - rows.counts).tolist(), ends.tolist()):
+            unix_ns = stamp(time_s)
+            channel.log(packed(unix_ns, points[start * size:end * size]), log_time=unix_ns)
 
     def flush(self):
         """Write the batch's per-step columns and scene entities, then flush the file (a kill keeps this)."""
@@ -270,7 +338,7 @@ class McapRecorder:
         if steps["time"]:
             now = steps["time"][-1]
             if self._scene:
-                self._write_proto("/foxglove/scene", now, foxglove.SceneUpdate(entities=self._scene))
+                self._write_proto("/foxglove/scene", now, self._entities.scene(self._scene))
             self._write("/cells/rows", now, {"time": steps["time"], "count": steps["rows"], **self._rows})
             self._write("/loop/steps", now, {key: steps[key] for key in STEP_COLUMNS if key != "rows"})
             self._steps, self._rows, self._scene = _columns(STEP_COLUMNS), _columns(ROW_COLUMNS), []
@@ -278,34 +346,11 @@ class McapRecorder:
 
     def _left(self, truth) -> list:
         """The cells that left since the previous step (each once: ``truth`` may list them again)."""
-        self._reported &= {cell.key for cell in truth.cells}
         left = [cell for cell in truth.cells if cell.fate != "in_channel" and cell.key not in self._reported]
-        self._reported.update(cell.key for cell in left)
+        if left or len(self._reported) > REPORTED_KEPT:
+            self._reported &= {cell.key for cell in truth.cells}
+            self._reported.update(cell.key for cell in left)
         return left
-
-    def _traced(self, record, class_ids):
-        """The recorded steps of ``record.trace`` (``vcyto.trace``): their rows, a point cloud per step, the paths;
-        the plant's diagnostics on the last step (as of the record)."""
-        trace, steps, rows = record.trace, self._steps, self._rows
-        count, keys = len(trace), trace.keys
-        cells = {cell.key: cell for cell in record.truth.cells}
-        x_um, y_um = [round(x * 1e6, 4) for x in trace.x], [round(y * 1e6, 4) for y in trace.y]
-        for name, values in (("time", trace.times), ("step", trace.steps), ("idt", trace.drive),
-                             ("cells_in_channel", trace.counts), ("wall_time", [time.time()] * count),
-                             ("diagnostics", [{}] * (count - 1) + [record.diagnostics or {}]), ("rows", trace.counts)):
-            steps[name].extend(values)
-        nothing = [None] * len(keys)
-        for name, values in (("key", keys), ("type", [cells[key].type for key in keys]),
-                             ("class", [CLASS_NAMES[i] for i in class_ids]), ("x_um", x_um), ("y_um", y_um),
-                             ("area_ratio", [round(cells[key].area_ratio, 6) for key in keys]),
-                             ("perimeter_um", nothing), ("spacing_min_h", nothing), ("spacing_max_h", nothing)):
-            rows[name].extend(values)
-        points, start, size = foxglove.centroids(x_um, y_um, keys, class_ids).tobytes(), 0, foxglove.POINT.itemsize
-        for time_s, end in zip(trace.times, itertools.accumulate(trace.counts)):
-            data = points[start * size:end * size]
-            self._write_proto("/foxglove/membranes", time_s, self._cloud.packed(self._stamp(time_s), data))
-            start = end
-        extend_paths(self._paths, trace, x_um, y_um)
 
     def _membranes(self, now: float, cells):
         rows = []
@@ -328,19 +373,20 @@ class McapRecorder:
         self._log(event.time, text)
         if cell is not None:
             name = self._classes.provisional(event.key)
-            self._scene.append(foxglove.marker(self._stamp(event.time), f"event/{event.event_id}", cell.x / UM,
+            self._scene.append(self._entities.marker(self._stamp(event.time), f"event/{event.event_id}", cell.x / UM,
                                                cell.y / UM, CLASS_COLOURS[name],
                                                f"event {event.event_id}: type {event.classification}"))
 
-    def _outcome(self, now: float, cell):
-        name = self._classes.settle(cell)
+    def _outcome(self, now: float, cell, name: str):
         self._write("/outcome", now, {"time": now, "key": cell.key, "type": cell.type, "outlet": cell.fate,
                                       "class": name, "exit_time": cell.exit_time, "exit_y_um": cell.exit_y / UM,
                                       "area_restored": (cell.measures or {}).get("area_corrected")})
         self._log(now, outcome_text(cell.key, cell.type, cell.fate, name, (cell.measures or {}).get("area_corrected")),
                   "INFO" if name in ("sorted", "passed") else "WARN")
-        path = self._paths.pop(cell.key, None) or [(cell.x / UM, cell.y / UM)]
-        self._scene.append(foxglove.path(self._stamp(now), cell.key, path, CLASS_COLOURS[name], f"{cell.key}: {name}"))
+        chunks = self._paths.pop(cell.key, None) or [(cell.x / UM, cell.y / UM)]
+        path = np.vstack([np.asarray(chunk, dtype=float).reshape(-1, 2) for chunk in chunks])
+        self._scene.append(self._entities.path(self._stamp(now), cell.key, path, CLASS_COLOURS[name],
+                                               f"{cell.key}: {name}"))
 
     def _cell(self, now: float, cell):
         """A row of ``/cells/rows``: a cell in the channel at this step (null figures for models without
@@ -374,6 +420,7 @@ class McapRecorder:
                         raise
 
 
+REPORTED_KEPT = 64            # cells that left kept beyond those ``truth`` lists (then pruned to those)
 STEP_COLUMNS = ("time", "step", "idt", "cells_in_channel", "wall_time", "diagnostics", "rows")
 ROW_COLUMNS = ("key", "type", "class", "x_um", "y_um", "area_ratio", "perimeter_um", "spacing_min_h", "spacing_max_h")
 DECISION_FIELDS = ("event_id", "action", "arrival", "pulse_on", "pulse_off", "reason")

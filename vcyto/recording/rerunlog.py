@@ -52,12 +52,13 @@ from sim.model.scenario import UM, Scenario
 
 from ..classes import CLASS_COLOURS, CLASS_IDS, CLASS_NAMES, CellClasses
 from ..outcomes import outcome_text
-from ..trace import class_snapshot, extend_paths, row_classes
+from ..trace import TracedRows
 from .foxglove import speed_grid
 from .viewer import finish_stream, import_rerun, speed_scale_mm_s
 
 POINT_LIKE = ("rom", "streamline")     # plants whose cells have no membrane (their view has no area panel)
 RECENT_EVENTS = 16                     # markers shown with each new detector event
+REPORTED_KEPT = 64                     # cells that left kept beyond those a record lists (then pruned to those)
 PATH_SLOTS = 16                        # the paths of the last this many cells stay in the view
 BATCH_ROWS = 2000                      # rows kept before they are sent
 BATCH_SECONDS = 0.5                    # wall time after which kept rows are sent (the live view's lag)
@@ -210,7 +211,7 @@ class RerunLogger:
                 self.stream.connect_grpc(default_blueprint=view)
         else:
             raise ValueError(f"unknown Rerun target {kind!r}")
-        self.paths: dict[int, list] = {}               # the cells in the channel: centroid paths (um)
+        self.paths: dict[int, list] = {}               # the cells in the channel: centroid paths (um), in pieces
         self.positions: dict[int, tuple] = {}          # the cells in the channel: latest centroid (um)
         self.recent_events: collections.deque = collections.deque(maxlen=RECENT_EVENTS)
         saved = kind == "save"              # a file: larger batches (module docstring)
@@ -347,25 +348,24 @@ class RerunLogger:
         if self._membranes:                             # once a model has shown membranes, every step says which
             self._add("device/membranes", membranes)
 
-    def traced(self, trace, class_ids):
-        """The recorded steps of an event-driven plant (``vcyto.trace.Trace``) with each row's class id: the cells
-        at each step, sent as columns."""
-        x_um, y_um = [x / UM for x in trace.x], [y / UM for y in trace.y]
-        self.positions.update(extend_paths(self.paths, trace, x_um, y_um))
+    def traced(self, rows, x_um, y_um):
+        """The recorded steps of an event-driven plant (``vcyto.trace.TracedRows``, classified) at ``x_um``,
+        ``y_um``: the cells at each step, sent as columns. (The caller adds the rows to the cells' paths.)"""
         columns = self._traced
-        for name, values in (("times", trace.times), ("steps", trace.steps), ("counts", trace.counts),
-                             ("keys", trace.keys), ("x", x_um), ("y", y_um), ("class_ids", class_ids)):
-            columns.setdefault(name, []).extend(values)
-        self._rows += len(trace.keys) + len(trace)
+        for name, values in (("times", rows.times), ("steps", rows.steps), ("counts", rows.counts),
+                             ("keys", rows.keys), ("x", x_um), ("y", y_um), ("class_ids", rows.class_ids)):
+            columns.setdefault(name, []).append(values)
+        self._rows += len(rows.keys) + len(rows)
 
     def _send_traced(self):
-        rr, columns = self.rr, self._traced
+        rr = self.rr
+        columns = {name: np.concatenate(chunks) for name, chunks in self._traced.items()}
         rows = _Rows()
         rows.times, rows.steps = columns["times"], columns["steps"]
         keys = columns["keys"]
         cells = rr.Points2D.columns(positions=np.column_stack([columns["x"], columns["y"]]).astype(np.float32),
-                                    class_ids=np.array(columns["class_ids"], dtype=np.uint16),
-                                    labels=[str(key) for key in keys], radii=np.full(len(keys), 2.0, np.float32))
+                                    class_ids=columns["class_ids"].astype(np.uint16),
+                                    labels=keys.astype(str), radii=np.full(len(keys), 2.0, np.float32))
         self.stream.send_columns("device/cells", indexes=self._indexes(rows),
                                  columns=cells.partition(columns["counts"]))
         self._traced = {}
@@ -376,8 +376,8 @@ class RerunLogger:
         self.positions.pop(key, None)
         if path:
             class_id = CLASS_IDS.get(class_name, CLASS_IDS["lost"])
-            self._add(f"device/paths/{key % PATH_SLOTS}", (np.asarray(path, dtype=float), class_id,
-                                                            f"{key}: {class_name}"))
+            points = np.vstack([np.asarray(piece, dtype=float).reshape(-1, 2) for piece in path])
+            self._add(f"device/paths/{key % PATH_SLOTS}", (points, class_id, f"{key}: {class_name}"))
         self.text(text, "INFO" if class_name in ("sorted", "passed") else "WARN")
 
     def sort_figures(self):
@@ -385,9 +385,10 @@ class RerunLogger:
         for name, value in self.figures.values().items():
             self._add(f"sort/{name}", value)
 
-    def event(self, time_s: float, key: int, class_name: str, label: str):
-        """A detector event: a marker where the cell is, at the event's time, with the recent ones."""
-        position = self.positions.get(key)
+    def event(self, time_s: float, key: int, class_name: str, label: str, position=None):
+        """A detector event: a marker where the cell is (``position``, um; else its latest shown), at the event's
+        time, with the recent ones."""
+        position = position or self.positions.get(key)
         if position is not None:
             self.recent_events.append((position, CLASS_IDS[class_name], label))
             self._add("device/events", list(self.recent_events), time_s)
@@ -496,26 +497,75 @@ class RerunSink:
         self.classes = CellClasses(scenario)
         self._reported: set[int] = set()
 
+    def on_steps(self, records):
+        """Show a batch of steps: an event-driven plant's recorded steps gathered as arrays (``vcyto.trace``), other
+        steps one by one."""
+        start = 0
+        while start < len(records):
+            traced = records[start].trace is not None
+            end = start + 1
+            while end < len(records) and (records[end].trace is not None) == traced:
+                end += 1
+            if traced:
+                self._traced(records[start:end])
+            else:
+                for record in records[start:end]:
+                    self._step(record)
+            start = end
+
     def on_step(self, record):
         """Show one step (``vcyto.steps.StepRecord``)."""
-        step, observation, truth = record.step, record.observation, record.truth
-        events, decisions, fields = record.events, record.decisions, record.fields
-        logger, classes, figures = self.logger, self.classes, self.logger.figures
-        revised = {d.event_id: classes.pulses.get(d.event_id) for d in decisions if d.action == "abort"}
-        trace = record.trace
-        before = class_snapshot(trace, classes) if trace and (events or decisions) else None
-        classes.observe(events, decisions)
-        logger.time(observation.time, step)
-        if trace is not None:                 # an event-driven plant's recorded steps, as columns
-            after = class_snapshot(trace, classes)
-            logger.traced(trace, row_classes(trace, observation.time, before or after, after))
-        else:
-            logger.cells([_cell_view(cell, classes.provisional(cell.key)) for cell in truth.cells
-                          if cell.fate == "in_channel"])
-        for event in events:
-            figures.event(event.classification)
-            logger.event(event.time, event.key, classes.provisional(event.key), event_text(event))
-        for decision in decisions:
+        self.on_steps([record])
+
+    def _step(self, record):
+        """A step of a plant that does not trace: its cells and membranes, events, decisions, outcomes, field."""
+        classes, logger = self.classes, self.logger
+        revised = self._revised(record)
+        classes.observe(record.events, record.decisions)
+        logger.time(record.observation.time, record.step)
+        logger.cells([_cell_view(cell, classes.provisional(cell.key)) for cell in record.truth.cells
+                      if cell.fate == "in_channel"])
+        self._happenings(record, revised, positions=False)
+        fields = record.fields
+        if fields is not None and self.field_every and record.step % self.field_every == 0:
+            logger.field(fields())
+
+    def _traced(self, records):
+        """The recorded steps of an event-driven plant's records as columns; each record's events, decisions and
+        outcomes at its time."""
+        logger = self.logger
+        rows = TracedRows(records)
+        x_um, y_um = rows.x / UM, rows.y / UM
+        for key, piece in rows.by_key(x_um, y_um).items():        # a path is whole when its cell leaves
+            logger.paths.setdefault(key, []).append(piece)
+        revised = {}
+
+        def before(index, record):
+            revised[index] = self._revised(record)
+
+        def each(index, record):
+            logger.time(record.observation.time, record.step)
+            self._happenings(record, revised.pop(index), positions=True)
+
+        rows.classify(self.classes, each, before)
+        logger.traced(rows, x_um, y_um)
+
+    def _revised(self, record) -> dict:
+        """The pulses a record's aborts revise, as scheduled before them."""
+        pulses = self.classes.pulses
+        return {d.event_id: pulses.get(d.event_id) for d in record.decisions if d.action == "abort"}
+
+    def _happenings(self, record, revised: dict, positions: bool):
+        """A record's detector events (a marker where the cell is: at its position in ``truth`` if ``positions``,
+        else its latest shown), decisions and pulses, outcomes, and the sort's figures."""
+        logger, classes, figures, truth = self.logger, self.classes, self.logger.figures, record.truth
+        if record.events:
+            where = {cell.key: (cell.x / UM, cell.y / UM) for cell in truth.cells} if positions else {}
+            for event in record.events:
+                figures.event(event.classification)
+                logger.event(event.time, event.key, classes.provisional(event.key), event_text(event),
+                             where.get(event.key))
+        for decision in record.decisions:
             figures.decision(decision.action)
             logger.text(decision_text(decision.event_id, decision.action, decision.reason),
                         level="WARN" if decision.action == "abort" else "INFO")
@@ -523,21 +573,18 @@ class RerunSink:
                 else revised.get(decision.event_id)
             if pulse and math.isfinite(pulse[0]):
                 logger.pulse(*pulse, aborted=decision.action == "abort", event_id=decision.event_id)
-        classes.forget_pulses(observation.time)
-        self._reported &= {cell.key for cell in truth.cells}
-        left = False
-        for cell in truth.cells:
-            if cell.fate != "in_channel" and cell.key not in self._reported:
-                self._reported.add(cell.key)
-                name = classes.settle(cell)
-                figures.outcome(cell.fate, classes.true_class(cell.type) == "II")
-                logger.outcome(cell.key, name, outcome_text(cell.key, cell.type, cell.fate, name,
-                                                                (cell.measures or {}).get("area_corrected")))
-                left = True
-        if left or decisions:
+        classes.forget_pulses(record.observation.time)
+        left = [cell for cell in truth.cells if cell.fate != "in_channel" and cell.key not in self._reported]
+        if left or len(self._reported) > REPORTED_KEPT:
+            self._reported &= {cell.key for cell in truth.cells}
+        for cell in left:
+            self._reported.add(cell.key)
+            name = classes.settle(cell)
+            figures.outcome(cell.fate, classes.true_class(cell.type) == "II")
+            logger.outcome(cell.key, name, outcome_text(cell.key, cell.type, cell.fate, name,
+                                                        (cell.measures or {}).get("area_corrected")))
+        if left or record.decisions:
             logger.sort_figures()
-        if fields is not None and self.field_every and step % self.field_every == 0:
-            logger.field(fields())
 
     def after_gap(self, record):
         """Steps were not shown before ``record`` (a live view that fell behind: ``vcyto.sinks.LiveView``): forget

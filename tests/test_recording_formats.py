@@ -10,6 +10,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from jsonschema import Draft202012Validator
 from mcap.reader import make_reader
 from mcap_protobuf.decoder import DecoderFactory
@@ -18,7 +20,7 @@ from rerun.chunk import RrdReader
 from sim.model.arrivals import Arrivals
 from sim.model.scenario import Scenario
 from sim.plants.feib import FeibPlant
-from vcyto.classes import CLASS_IDS
+from vcyto.classes import CLASS_COLOURS, CLASS_IDS
 from vcyto.outcomes import outcome_class
 from vcyto.recording.mcap import McapRecorder
 from vcyto.recording.rerunlog import RerunSink
@@ -401,3 +403,30 @@ def test_each_area_series_is_named_by_its_cell_and_type(feib):
     _, static = rrd_rows(feib["dir"] / "live.rrd")
     named = {entity: values["SeriesLines:names"] for entity, values in static.items() if entity.startswith("/area/")}
     assert named == {"/area/0": ["cell 0 (melanoma)"]}, named
+
+
+@settings(max_examples=150, deadline=None)
+@given(unix_ns=st.integers(0, 4_000_000_000_000_000_000), x=st.floats(-1e4, 1e4), y=st.floats(-1e4, 1e4),
+       label=st.text(max_size=40), rgb=st.sampled_from(sorted(set(CLASS_COLOURS.values()))),
+       path=st.lists(st.tuples(st.floats(-1e4, 1e4), st.sampled_from([0.0, -0.0, 1.5, 250.0])), min_size=1,
+                     max_size=30), points=st.binary(max_size=64))
+def test_the_messages_written_as_bytes_are_those_the_protobuf_classes_serialise(unix_ns, x, y, label, rgb, path,
+                                                                                 points):
+    """Markers, paths and point clouds are written in protobuf's wire format (``vcyto.recording.protowire``) for
+    speed; each is byte for byte what the protobuf classes serialise (zeros, -0.0 and empty fields included)."""
+    from foxglove_schemas_protobuf.PointCloud_pb2 import PointCloud
+    from foxglove_schemas_protobuf.SceneUpdate_pb2 import SceneUpdate
+
+    from vcyto.recording import foxglove
+    entities = foxglove.Entities()
+    marker = entities.marker(unix_ns, f"event/{label}", x, y, rgb, label)
+    assert marker == foxglove.marker(unix_ns, f"event/{label}", x, y, rgb, label).SerializeToString()
+    line = entities.path(unix_ns, 7, path, rgb, label)
+    assert line == foxglove.path(unix_ns, 7, path, rgb, label).SerializeToString()
+    scene = SceneUpdate.FromString(entities.scene([marker, line]))
+    assert scene == SceneUpdate(entities=[foxglove.marker(unix_ns, f"event/{label}", x, y, rgb, label),
+                                          foxglove.path(unix_ns, 7, path, rgb, label)])
+    cloud = foxglove.Membranes().packed(unix_ns, points)
+    assert cloud == PointCloud(timestamp=foxglove.stamp(unix_ns), frame_id=foxglove.FRAME, pose=foxglove._IDENTITY,
+                               point_stride=foxglove.POINT.itemsize, fields=foxglove.POINT_FIELDS,
+                               data=points).SerializeToString()

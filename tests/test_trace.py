@@ -149,3 +149,31 @@ def test_a_sample_sliding_through_a_small_window_of_cells_is_recorded_as_with_ev
     for topic, batches in whole.items():
         strip = [{k: v for k, v in m.items() if k != "wall_time"} for m in batches]
         assert [{k: v for k, v in m.items() if k != "wall_time"} for m in topics[topic]] == strip, topic
+
+
+def test_records_written_in_batches_are_the_records_written_one_by_one(both, tmp_path):
+    """The recorders take an event-driven plant's records a batch at a time (``vcyto.trace.TracedRows``: the rows'
+    classes looked up for the batch at once); the recording is the one of the records taken one by one."""
+    from vcyto.recording.sinks import BackgroundSinks
+    (_, one_by_one), _ = both
+    recorder = McapRecorder(tmp_path / "run.mcap", {"seed": SETTINGS.seed}, flush_every=50, scenario=Scenario())
+    sinks = BackgroundSinks([recorder], batch_steps=64, batch_seconds=1e9)
+    batches = []
+    recorder.on_steps = lambda records, write=recorder.on_steps: (batches.append(len(records)), write(records))
+    try:
+        run_stream(Scenario(), SETTINGS, plant=make_plant(Scenario(), SETTINGS), sinks=[sinks])
+    finally:
+        sinks.close()
+    topics = {}
+    with open(tmp_path / "run.mcap", "rb") as handle:
+        for _, channel, message in make_reader(handle).iter_messages(log_time_order=False):
+            if channel.message_encoding == "json":
+                topics.setdefault(channel.topic, []).append(json.loads(message.data))
+    assert max(batches) == 64 and len(batches) >= 3
+    for name in ("time", "step", "idt", "cells_in_channel"):
+        assert column(topics, "/loop/steps", name) == column(one_by_one, "/loop/steps", name), name
+    for name in ("time", "count", "key", "type", "class", "x_um", "y_um", "area_ratio"):
+        assert column(topics, "/cells/rows", name) == column(one_by_one, "/cells/rows", name), name
+    assert len(set(column(topics, "/cells/rows", "class"))) >= 3
+    for topic in ("/detector/event", "/controller/decision", "/outcome"):
+        assert topics[topic] == one_by_one[topic], topic

@@ -173,14 +173,16 @@ def steps_of(sink):
 
 
 LIVE_DEPTH = 2                # batches waiting for a live view; more are dropped
+LIVE_CHUNK = 64               # steps a live view is given at once (``on_steps``), between looks at the run's end
 SETTLE_SECONDS = 0.25         # how long the run's end waits for the live view's step in progress
 
 
 class LiveView:
     """``sink`` (a live view) on its own thread behind a bounded queue that never blocks the one feeding it: a batch
     of steps that finds ``depth`` batches waiting is dropped and its steps counted (``dropped``; ``frames``: every
-    step handed over). After a gap the sink's ``after_gap(record)``, if it has one, is called with the first step
-    shown again (it forgets the cells that left meanwhile). ``settle`` ends the showing: the waiting batches are
+    step handed over); the sink is given the steps ``LIVE_CHUNK`` at a time (its ``on_steps``, else ``on_step``
+    for each). After a gap the sink's ``after_gap(record)``, if it has one, is called with the first step shown
+    again (it forgets the cells that left meanwhile). ``settle`` ends the showing: the waiting batches are
     dropped and the step in progress is given ``SETTLE_SECONDS``; ``close`` then closes the sink, unless it is
     still busy (``ConnectionError``: the view is left as it is). A failure of the sink is raised to the feeder at
     its next batch, as a sink's of ``BackgroundSinks``."""
@@ -223,11 +225,12 @@ class LiveView:
             try:
                 if gap and hasattr(self.sink, "after_gap") and records and not self._failed:
                     self.sink.after_gap(records[0])
-                for shown, record in enumerate(records):
+                show = steps_of(self.sink)
+                for shown in range(0, len(records), LIVE_CHUNK):
                     if self._settling or self._failed:
                         self._drop(len(records) - shown)
                         break
-                    self.sink.on_step(record)
+                    show(records[shown:shown + LIVE_CHUNK])
             except BaseException as error:
                 self._failure, self._failed = error, True
 

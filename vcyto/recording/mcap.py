@@ -171,6 +171,7 @@ class McapRecorder:
             described = build_file_descriptor_set(message_class).SerializeToString()
             self._channels[topic] = Channel(topic, message_encoding="protobuf", context=self._context, schema=Schema(
                 name=message_class.DESCRIPTOR.full_name, encoding="protobuf", data=described))
+        self._log_channel = self._channels["/foxglove/log"]
         self.origin_ns = time.time_ns()
         detection_window = detection_window or getattr(metadata.get("detector"), "window", None)
         scenario = scenario or _scenario_of(metadata)
@@ -217,11 +218,12 @@ class McapRecorder:
         self._add(topic, time_s, message if isinstance(message, bytes) else message.SerializeToString())
 
     def _log(self, time_s: float, text: str, level: str = "INFO"):
-        self._write_proto("/foxglove/log", time_s, foxglove.log(self._stamp(time_s), text, level))
+        unix_ns = self.origin_ns + int(round(time_s * 1e9))
+        self._log_channel.log(foxglove.log(unix_ns, text, level).SerializeToString(), log_time=unix_ns)
 
     def on_steps(self, records):
         """Write a batch of steps (``vcyto.recording.sinks.BackgroundSinks`` hands them over together): an
-        event-driven plant's recorded steps gathered as arrays (``vcyto.trace.gather``), other steps one by one;
+        event-driven plant's recorded steps gathered as arrays (``vcyto.trace.TracedRows``), other steps one by one;
         the file is flushed when ``flush_every`` steps are waiting."""
         start = 0
         while start < len(records):

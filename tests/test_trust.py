@@ -378,14 +378,14 @@ def test_a_disk_filling_up_mid_run_is_one_line_exit_1(tmp_path, monkeypatch):
 
     from vcyto.recording import mcap as recording
     written = {"steps": 0}
-    original = recording.McapRecorder.on_step
+    original = recording.McapRecorder.on_steps
 
-    def filling(self, *args, **kwargs):
-        written["steps"] += 1
+    def filling(self, records):
+        written["steps"] += len(records)
         if written["steps"] > 20:
             raise OSError(errno.ENOSPC, "No space left on device", str(self.path))
-        return original(self, *args, **kwargs)
-    monkeypatch.setattr(recording.McapRecorder, "on_step", filling)
+        return original(self, records)
+    monkeypatch.setattr(recording.McapRecorder, "on_steps", filling)
     monkeypatch.delenv("DISPLAY", raising=False)
     status, _, stderr = vcyto_inline(["stream", "--cells", "RBC", "--model", "streamline", "--mesh-h", "10um",
                                       "--output", str(tmp_path), "--no-viewer", "--quiet", "--name", "full"])

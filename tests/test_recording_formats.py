@@ -430,3 +430,24 @@ def test_the_messages_written_as_bytes_are_those_the_protobuf_classes_serialise(
     assert cloud == PointCloud(timestamp=foxglove.stamp(unix_ns), frame_id=foxglove.FRAME, pose=foxglove._IDENTITY,
                                point_stride=foxglove.POINT.itemsize, fields=foxglove.POINT_FIELDS,
                                data=points).SerializeToString()
+
+
+def test_each_event_shows_with_the_newest_events_before_it_across_batches(tmp_path):
+    """``device/events``: the row of each detector event holds it and the ``RECENT_EVENTS - 1`` events before it, in
+    order, also where the events before it were sent in an earlier batch."""
+    from vcyto.recording.rerunlog import RECENT_EVENTS, RerunLogger
+    logger = RerunLogger(Scenario(), None, ("save", tmp_path / "events.rrd"))
+    count = 2 * RECENT_EVENTS + 7
+    for n in range(count):
+        logger.time(n * 1e-3, n)
+        logger.event(n * 1e-3, n, "in channel", f"event {n}", position=(float(n), 1.0))
+        if n in (3, RECENT_EVENTS + 2):                      # batches end among the events
+            logger.send_pending()
+    logger.close()
+    rows, _ = rrd_rows(tmp_path / "events.rrd")
+    markers = rows["/device/events"]
+    assert [t for t, _ in markers] == [round(n * 1e-3 * 1e9) for n in range(count)]
+    for n, (_, values) in enumerate(markers):
+        shown = list(range(max(0, n + 1 - RECENT_EVENTS), n + 1))
+        assert [x for x, _ in values["Points2D:positions"]] == shown
+        assert values["Points2D:labels"] == [f"event {k}" for k in shown]

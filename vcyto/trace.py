@@ -176,3 +176,10 @@ class TracedRows:
             class_ids = np.where(hit, change[np.maximum(at, 0), 2], class_ids)
         self.class_ids = class_ids
         return class_ids
+
+
+def joined(pieces) -> np.ndarray:
+    """A path kept in pieces (arrays of (x, y) rows, or (x, y) pairs) as one (n, 2) array."""
+    if len(pieces) == 1 and isinstance(pieces[0], np.ndarray):
+        return pieces[0]
+    return np.vstack([np.asarray(piece, dtype=float).reshape(-1, 2) for piece in pieces])

@@ -63,7 +63,7 @@ from ..classes import CLASS_COLOURS, CLASS_IDS, CLASS_NAMES, CellClasses
 from ..outcomes import outcome_text
 from ..outputs import plain
 from ..sortreport import EVENT_NAMES, name_cells
-from ..trace import TracedRows
+from ..trace import TracedRows, joined
 from . import foxglove
 from .schemas import SCHEMAS
 
@@ -386,7 +386,7 @@ class McapRecorder:
         self._log(now, outcome_text(cell.key, cell.type, cell.fate, name, (cell.measures or {}).get("area_corrected")),
                   "INFO" if name in ("sorted", "passed") else "WARN")
         chunks = self._paths.pop(cell.key, None) or [(cell.x / UM, cell.y / UM)]
-        path = np.vstack([np.asarray(chunk, dtype=float).reshape(-1, 2) for chunk in chunks])
+        path = joined(chunks)
         self._scene.append(self._entities.path(self._stamp(now), cell.key, path, CLASS_COLOURS[name],
                                                f"{cell.key}: {name}"))
 

@@ -52,7 +52,7 @@ from sim.model.scenario import UM, Scenario
 
 from ..classes import CLASS_COLOURS, CLASS_IDS, CLASS_NAMES, CellClasses
 from ..outcomes import outcome_text
-from ..trace import TracedRows
+from ..trace import TracedRows, joined
 from .foxglove import speed_grid
 from .viewer import finish_stream, import_rerun, speed_scale_mm_s
 
@@ -376,8 +376,7 @@ class RerunLogger:
         self.positions.pop(key, None)
         if path:
             class_id = CLASS_IDS.get(class_name, CLASS_IDS["lost"])
-            points = np.vstack([np.asarray(piece, dtype=float).reshape(-1, 2) for piece in path])
-            self._add(f"device/paths/{key % PATH_SLOTS}", (points, class_id, f"{key}: {class_name}"))
+            self._add(f"device/paths/{key % PATH_SLOTS}", (joined(path), class_id, f"{key}: {class_name}"))
         self.text(text, "INFO" if class_name in ("sorted", "passed") else "WARN")
 
     def sort_figures(self):
@@ -390,8 +389,7 @@ class RerunLogger:
         time, with the recent ones."""
         position = position or self.positions.get(key)
         if position is not None:
-            self.recent_events.append((position, CLASS_IDS[class_name], label))
-            self._add("device/events", list(self.recent_events), time_s)
+            self._add("device/events", (position, CLASS_IDS[class_name], label), time_s)
         self.text(label)
 
     def pulse(self, on: float, off: float, aborted: bool = False, event_id: int | None = None):
@@ -440,7 +438,7 @@ class RerunLogger:
 
     def _columns(self, entity: str, rows: _Rows):
         rr, values = self.rr, rows.values
-        lengths = [len(v) for v in values] if entity in ("device/cells", "device/membranes", "device/events") else None
+        lengths = [len(v) for v in values] if entity in ("device/cells", "device/membranes") else None
         if entity == "device/cells":
             flat = [cell for row in values for cell in row]
             return rr.Points2D.columns(positions=np.array([c[:2] for c in flat], dtype=np.float32).reshape(-1, 2),
@@ -452,12 +450,8 @@ class RerunLogger:
             return rr.LineStrips2D.columns(strips=_strips(rr, [s[0] for s in flat]),
                                            class_ids=np.array([s[1] for s in flat], dtype=np.uint16),
                                            radii=np.full(len(flat), 0.4, np.float32)).partition(lengths)
-        if entity == "device/events":
-            flat = [marker for row in values for marker in row]
-            return rr.Points2D.columns(positions=np.array([m[0] for m in flat], dtype=np.float32).reshape(-1, 2),
-                                       class_ids=np.array([m[1] for m in flat], dtype=np.uint16),
-                                       labels=[m[2] for m in flat], radii=np.full(len(flat), 2.0, np.float32)
-                                       ).partition(lengths)
+        if entity == "device/events":             # each event's row: it and the ones before it, newest last
+            return self._recent_events(values)
         if entity.startswith("device/paths/"):
             return rr.LineStrips2D.columns(strips=_strips(rr, [v[0] for v in values]),
                                            class_ids=np.array([v[1] for v in values], dtype=np.uint16),
@@ -465,6 +459,22 @@ class RerunLogger:
         if entity == "log":
             return rr.TextLog.columns(text=[v[0] for v in values], level=[v[1] for v in values])
         return rr.Scalars.columns(scalars=np.array(values, dtype=float))
+
+    def _recent_events(self, markers):
+        """The rows of ``device/events`` for new ``markers`` (position, class id, label), each the newest
+        ``RECENT_EVENTS`` markers as of its own (the ones of earlier batches included), built as arrays."""
+        rr, kept = self.rr, list(self.recent_events)
+        every = kept + list(markers)
+        positions = np.array([m[0] for m in every], dtype=np.float32).reshape(-1, 2)
+        class_ids = np.array([m[1] for m in every], dtype=np.uint16)
+        labels = np.array([m[2] for m in every], dtype=str)
+        newest = np.arange(len(kept), len(every))
+        lengths = np.minimum(newest + 1, RECENT_EVENTS)
+        firsts = newest + 1 - lengths
+        rows = np.repeat(firsts - np.cumsum(lengths) + lengths, lengths) + np.arange(lengths.sum())
+        self.recent_events.extend(markers)
+        return rr.Points2D.columns(positions=positions[rows], class_ids=class_ids[rows], labels=labels[rows],
+                                   radii=np.full(len(rows), 2.0, np.float32)).partition(lengths)
 
     def close(self):
         self.send_pending()

@@ -423,6 +423,8 @@ def test_the_messages_written_as_bytes_are_those_the_protobuf_classes_serialise(
     assert marker == foxglove.marker(unix_ns, f"event/{label}", x, y, rgb, label).SerializeToString()
     line = entities.path(unix_ns, 7, path, rgb, label)
     assert line == foxglove.path(unix_ns, 7, path, rgb, label).SerializeToString()
+    several = [(unix_ns + n, n, path[n:] + path[:n], rgb, f"{n}: {label}") for n in range(len(path))]
+    assert entities.paths(several) == [foxglove.path(*item).SerializeToString() for item in several]
     scene = SceneUpdate.FromString(entities.scene([marker, line]))
     assert scene == SceneUpdate(entities=[foxglove.marker(unix_ns, f"event/{label}", x, y, rgb, label),
                                           foxglove.path(unix_ns, 7, path, rgb, label)])

@@ -223,17 +223,32 @@ class Entities:
         return entity.SerializeToString()
 
     def path(self, unix_ns: int, key: int, points_um, rgb, label: str) -> bytes:
-        points = np.asarray(points_um, dtype=float).reshape(-1, 2)
-        colour = _colour_bytes(tuple(int(value) for value in rgb), 1.0)
-        line = self._line_head + wire.points(5, points * METRE) + wire.field(6, colour)
-        text = TextPrimitive()
-        text.CopyFrom(self._label_template)
-        position = text.pose.position
-        position.x, position.y = float(points[-1, 0]) * METRE, float(points[-1, 1]) * METRE
-        text.text = label
-        text.color.CopyFrom(_colours(tuple(int(value) for value in rgb), 1.0))
-        return (wire.field(1, wire.timestamp(unix_ns)) + self._path_head + wire.text(3, f"path/{key}")
-                + self._path_lifetime + wire.field(11, line) + wire.field(13, text.SerializeToString()))
+        return self.paths([(unix_ns, key, points_um, rgb, label)])[0]
+
+    def paths(self, items) -> list[bytes]:
+        """``path``'s entities of (unix_ns, key, points in um, RGB, label) items, their points written as one array."""
+        if not items:
+            return []
+        shapes = [np.asarray(points, dtype=float).reshape(-1, 2) for _, _, points, _, _ in items]
+        ends = np.cumsum([len(points) for points in shapes]).tolist()
+        every = np.concatenate(shapes) * METRE
+        packed = wire.points(5, every)
+        size = wire.POINT3_BYTES if len(packed) == len(every) * wire.POINT3_BYTES else None    # else: +0.0s
+        entities, start = [], 0
+        for (unix_ns, key, _, rgb, label), points, end in zip(items, shapes, ends):
+            rgb = tuple(int(value) for value in rgb)
+            line = (self._line_head + (packed[start * size:end * size] if size else wire.points(5, every[start:end]))
+                    + wire.field(6, _colour_bytes(rgb, 1.0)))
+            text = TextPrimitive()
+            text.CopyFrom(self._label_template)
+            position = text.pose.position
+            position.x, position.y = every[end - 1].tolist()
+            text.text = label
+            text.color.CopyFrom(_colours(rgb, 1.0))
+            entities.append(wire.field(1, wire.timestamp(unix_ns)) + self._path_head + wire.text(3, f"path/{key}")
+                            + self._path_lifetime + wire.field(11, line) + wire.field(13, text.SerializeToString()))
+            start = end
+        return entities
 
     @staticmethod
     def scene(entities) -> bytes:

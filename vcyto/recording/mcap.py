@@ -187,6 +187,7 @@ class McapRecorder:
         self._keys_by_event: dict[int, int] = {}  # detector events' cells, for the log's decision lines
         self._steps, self._rows = _columns(STEP_COLUMNS), _columns(ROW_COLUMNS)
         self._scene: list = []                   # the scene's entities of the batch (markers, paths)
+        self._leaving: list = []                 # the paths of the cells that left in the batch, to be written
         self._cloud = foxglove.Membranes()
         outlines = device_outlines(scenario, detection_window)
         self._write_proto("/foxglove/scene", 0.0, foxglove.device(self.origin_ns, outlines))
@@ -339,11 +340,12 @@ class McapRecorder:
         steps = self._steps
         if steps["time"]:
             now = steps["time"][-1]
+            self._scene += self._entities.paths(self._leaving)
             if self._scene:
                 self._write_proto("/foxglove/scene", now, self._entities.scene(self._scene))
             self._write("/cells/rows", now, {"time": steps["time"], "count": steps["rows"], **self._rows})
             self._write("/loop/steps", now, {key: steps[key] for key in STEP_COLUMNS if key != "rows"})
-            self._steps, self._rows, self._scene = _columns(STEP_COLUMNS), _columns(ROW_COLUMNS), []
+            self._steps, self._rows, self._scene, self._leaving = _columns(STEP_COLUMNS), _columns(ROW_COLUMNS), [], []
         self._writer.flush()
 
     def _left(self, truth) -> list:
@@ -387,8 +389,7 @@ class McapRecorder:
                   "INFO" if name in ("sorted", "passed") else "WARN")
         chunks = self._paths.pop(cell.key, None) or [(cell.x / UM, cell.y / UM)]
         path = joined(chunks)
-        self._scene.append(self._entities.path(self._stamp(now), cell.key, path, CLASS_COLOURS[name],
-                                               f"{cell.key}: {name}"))
+        self._leaving.append((self._stamp(now), cell.key, path, CLASS_COLOURS[name], f"{cell.key}: {name}"))
 
     def _cell(self, now: float, cell):
         """A row of ``/cells/rows``: a cell in the channel at this step (null figures for models without

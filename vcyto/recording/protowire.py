@@ -85,6 +85,7 @@ def _seconds(seconds: int) -> bytes:
 
 # one repeated ``foxglove.Point3`` field element per row: key, length 18, then x and y (doubles; z = 0 left out)
 _POINT3 = np.dtype([("key", "u1"), ("length", "u1"), ("x_key", "u1"), ("x", "<f8"), ("y_key", "u1"), ("y", "<f8")])
+POINT3_BYTES = _POINT3.itemsize           # a point's bytes (unless a coordinate is +0.0)
 
 
 def points(number: int, xy: np.ndarray) -> bytes:

@@ -62,7 +62,8 @@ def true_class(cell_type) -> str:
 
 KEEP_CELLS = 10_000            # per-cell records a summary lists; a longer run's are in its table only
 SORT_HORIZON = 0.1             # s: sorts kept for the co-deflection check after their predicted arrival
-EVENT_NAMES = 1 << 16          # recent detector events whose cells a decision's reason can name
+EVENT_NAMES = 1 << 12          # recent detector events whose cells a decision's reason can name: its neighbours, a
+                               # few ms away, named within the cell's transit (tens of ms; >= 2 s at 2,000 events/s)
 SORTS_KEPT = 1 << 12           # sorts in effect above which those past SORT_HORIZON are dropped
 TRANSIT_CELLS = 1 << 17        # the yield estimate's transit times: of the sample's first cells (by key)
 STRETCH = 1 << 16              # cells never injected, recorded at the end a stretch at a time

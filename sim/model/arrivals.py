@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import collections
 import math
+import threading
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -142,6 +143,7 @@ class Offer:
         self._before = np.zeros((2, chunks + 1), dtype=np.int64)      # admitted, rejected before each chunk
         self._types = np.zeros((2, chunks + 1, len(self.names)), dtype=np.int64)  # the same per type
         self._drawn: collections.OrderedDict = collections.OrderedDict()          # chunk -> its cells
+        self._lock = threading.Lock()                      # readers on several threads share the chunks drawn
         origin, free = arrivals.first, -math.inf
         for k in range(chunks):
             self._states.append(rng.bit_generator.state)
@@ -179,16 +181,17 @@ class Offer:
     def cells(self, k: int) -> tuple:
         """Chunk ``k``'s cells: (times, type indices) admitted, (times, type indices) rejected; drawn again from the
         chunk's state unless among the chunks read last."""
-        if k in self._drawn:
-            self._drawn.move_to_end(k)
-            return self._drawn[k]
-        rng = np.random.Generator(self._generator())
-        rng.bit_generator.state = self._states[k]
-        times, kinds, keep, _ = self._draw(k, rng)
-        self._drawn[k] = cells = ((times[keep], kinds[keep]), (times[~keep], kinds[~keep]))
-        if len(self._drawn) > CHUNKS_KEPT:
-            self._drawn.popitem(last=False)
-        return cells
+        with self._lock:
+            if k in self._drawn:
+                self._drawn.move_to_end(k)
+                return self._drawn[k]
+            rng = np.random.Generator(self._generator(0))         # its state set next
+            rng.bit_generator.state = self._states[k]
+            times, kinds, keep, _ = self._draw(k, rng)
+            self._drawn[k] = cells = ((times[keep], kinds[keep]), (times[~keep], kinds[~keep]))
+            if len(self._drawn) > CHUNKS_KEPT:
+                self._drawn.popitem(last=False)
+            return cells
 
     def __repr__(self) -> str:
         return f"Offer({len(self.admitted)} admitted, {len(self.rejected)} rejected, in chunks of {self.chunk})"

@@ -65,7 +65,8 @@ SORT_HORIZON = 0.1             # s: sorts kept for the co-deflection check after
 EVENT_NAMES = 1 << 12          # recent detector events whose cells a decision's reason can name: its neighbours, a
                                # few ms away, named within the cell's transit (tens of ms; >= 2 s at 2,000 events/s)
 SORTS_KEPT = 1 << 12           # sorts in effect above which those past SORT_HORIZON are dropped
-TRANSIT_CELLS = 1 << 17        # the yield estimate's transit times: of the sample's first cells (by key)
+TRANSIT_CELLS = 1 << 16        # the yield estimate's transit times: of the sample's first cells (by key); full
+                               # after 65,536 cells, so that a 10^5-event run and a longer one hold the same
 STRETCH = 1 << 16              # cells never injected, recorded at the end a stretch at a time
 
 

@@ -193,6 +193,12 @@ class Offer:
                 self._drawn.popitem(last=False)
             return cells
 
+    def __getstate__(self) -> dict:                    # copied or pickled without its lock
+        return {name: value for name, value in vars(self).items() if name != "_lock"}
+
+    def __setstate__(self, state: dict):
+        vars(self).update(state, _lock=threading.Lock())
+
     def __repr__(self) -> str:
         return f"Offer({len(self.admitted)} admitted, {len(self.rejected)} rejected, in chunks of {self.chunk})"
 

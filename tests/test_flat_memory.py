@@ -124,7 +124,7 @@ def test_a_long_runs_fcs_is_finished_from_its_checkpoint_with_the_events_of_its_
 def test_a_loop_holds_no_array_of_the_cells_offered(monkeypatch):
     """The same loop (the rom plant, the controller, the sort report and the sample) offered 4,000 and 40,000 cells,
     looked at when 1,500 cells have left: the longer holds less than a quarter of a byte more for each cell more it
-    was offered (the running counts of its chunks of 1,024 cells, about 100 bytes a chunk), where an array of the
+    was offered (the arrays of running counts of its chunks of 1,024 cells), where an array of the
     sample would add 8 bytes an admitted cell for its times, one for its types, one for a flag per cell (about half
     an admitted cell an offered one at this rate)."""
     monkeypatch.setattr(arrivals, "CHUNK", 1024)

@@ -1,4 +1,5 @@
-"""The arrival process: Poisson arrivals thinned by the inlet's dead time, against their analytic statistics."""
+"""The arrival process: Poisson arrivals thinned by the inlet's dead time, against their analytic statistics; the
+sample drawn a chunk at a time, read in any order, holding a few chunks' cells whatever its length."""
 
 import math
 
@@ -6,7 +7,8 @@ import numpy as np
 import pytest
 from scipy import stats
 
-from sim.model.arrivals import Arrivals, dead_time_acceptance, offer
+from sim.model import arrivals as arrivals_module
+from sim.model.arrivals import Arrivals, dead_time_acceptance, offer, schedule
 
 
 def test_admitted_gaps_follow_the_shifted_exponential_and_rejections_the_dead_time_law():
@@ -58,3 +60,71 @@ def test_bad_arrivals_are_refused(fields, words):
     base = {"count": 5, "mix": (("RBC", 1.0),), "process": "poisson"}
     with pytest.raises(ValueError, match=words):
         Arrivals(**{**base, **fields})
+
+
+def _dead_time_rule_holds(sample, dead: float) -> bool:
+    """Every offered cell, in time order, is admitted exactly when it comes at least ``dead`` after the last admitted
+    one (a non-paralysable dead time), across the chunks' seams."""
+    merged = sorted([(t, 1) for t, _ in sample.admitted] + [(t, 0) for t, _ in sample.rejected])
+    free = -math.inf
+    for t, admitted in merged:
+        if (t >= free) != bool(admitted):
+            return False
+        free = t + dead if admitted else free
+    return True
+
+
+@pytest.mark.parametrize("chunk", [None, 97, 1000])
+def test_a_sample_drawn_a_chunk_at_a_time_keeps_the_dead_time_across_chunks_and_reads_the_same_in_any_order(chunk):
+    arrivals = Arrivals(count=5000, mix=(("RBC", 0.7), ("melanoma", 0.3)), rate=3000.0, process="poisson",
+                        min_spacing=0.4e-3)
+    sample = offer(arrivals, np.random.default_rng(11), chunk)
+    admitted, rejected = list(sample.admitted), list(sample.rejected)
+    assert len(admitted) + len(rejected) == 5000 and len(rejected) > 1000
+    assert _dead_time_rule_holds(sample, arrivals.min_spacing)
+    times = [t for t, _ in admitted + rejected]
+    assert min(times) == 0.0 and len(set(times)) == 5000
+    # the counts kept as running totals are those of the cells
+    names = [name for _, name in admitted + rejected]
+    assert sample.offered == {name: names.count(name) for name in ("RBC", "melanoma")}
+    for time in (0.0, 0.3, 0.777, 1.0, math.inf):
+        due = [name for t, name in rejected if t <= time]
+        assert sample.rejected.counts(time) == {name: due.count(name) for name in set(due)}
+    # drawn again when read: any order, any stretch, the same cells (a fresh sample of the same seed read backwards)
+    again = offer(arrivals, np.random.default_rng(11), chunk)
+    assert [again.admitted[i] for i in reversed(range(len(admitted)))] == admitted[::-1]
+    assert again.admitted[-3:] == admitted[-3:] and again.admitted[7] == admitted[7] and again.rejected == rejected
+    stretch_times, kinds = again.admitted.arrays(1234, 2345)
+    assert list(zip(stretch_times.tolist(), [again.admitted.names[k] for k in kinds])) == admitted[1234:2345]
+    assert kinds.itemsize == 1
+    # same seed, same sample; another seed, another
+    assert offer(arrivals, np.random.default_rng(12), chunk).admitted != admitted
+
+
+def test_regular_and_explicit_samples_read_through_their_chunks():
+    regular = offer(Arrivals(count=1000, mix=(("RBC", 0.5), ("melanoma", 0.5)), rate=1000.0, first=0.25),
+                    np.random.default_rng(1), chunk=64)
+    assert len(regular.rejected) == 0
+    assert np.allclose([t for t, _ in regular.admitted], 0.25 + np.arange(1000) * 1e-3, rtol=0, atol=1e-12)
+    cells = tuple(["RBC", "melanoma", "RBC"] * 100)
+    explicit = schedule(Arrivals(cells=cells, rate=500.0), np.random.default_rng(0))
+    assert [name for _, name in explicit] == list(cells)
+
+
+def test_what_a_sample_holds_does_not_grow_with_its_length(monkeypatch):
+    """Ten times the cells offered: the arrays a sample holds (its last chunks drawn, running counts per chunk) grow
+    by the chunks' counts only, far below a byte per offered cell, after reading it through."""
+    monkeypatch.setattr(arrivals_module, "CHUNK", 2048)
+
+    def held(count):
+        sample = offer(Arrivals(count=count, mix=(("RBC", 0.9), ("melanoma", 0.1)), rate=2000.0,
+                                process="poisson"), np.random.default_rng(3))
+        for start in range(0, len(sample.admitted), 5000):           # read through, as a run does
+            sample.admitted.arrays(start, start + 5000)
+        drawn = sum(array.nbytes for cells in sample._drawn.values() for side in cells for array in side)
+        return drawn + sum(getattr(sample, name).nbytes for name in ("_origin", "_free", "_first", "_before",
+                                                                      "_types")), len(sample._states)
+
+    (small, _), (large, large_states) = held(20_000), held(200_000)
+    assert large - small < 0.05 * (200_000 - 20_000)          # a per-offered-cell array would be >= 1 byte a cell
+    assert large_states <= 200_000 / 2048 + 1

@@ -12,7 +12,7 @@ from mcap.reader import make_reader
 from controller.detector import Detector, DetectorSettings
 from controller.events import Decision, Sighting
 from controller.protocol import DecisionLog
-from sim.model.arrivals import Arrivals, Cells, offer
+from sim.model.arrivals import Arrivals
 from sim.model.scenario import Scenario
 from sim.plants import rom as rom_module
 from vcyto.recording.mcap import McapRecorder
@@ -95,23 +95,6 @@ class _Paced:
         pass
 
 
-def test_the_sample_as_arrays_is_the_same_draws_as_the_list_of_pairs():
-    arrivals = Arrivals(count=5000, mix=(("RBC", 0.7), ("melanoma", 0.3)), rate=3000.0, process="poisson")
-    sample = offer(arrivals, np.random.default_rng(11))
-    # the earlier construction: the names drawn, the gaps after them, pairs kept in lists
-    rng = np.random.default_rng(11)
-    names = rng.choice(["RBC", "melanoma"], size=5000, p=[0.7, 0.3])
-    gaps = rng.exponential(1 / 3000.0, size=5000)
-    gaps[0] = 0.0
-    times, admitted, rejected, free = np.cumsum(gaps), [], [], -np.inf
-    for t, name in zip(times.tolist(), names.tolist()):
-        (admitted if t >= free else rejected).append((t, name))
-        free = t + arrivals.min_spacing if t >= free else free
-    assert isinstance(sample.admitted, Cells) and sample.admitted == admitted and sample.rejected == rejected
-    assert list(sample.admitted) == admitted and sample.admitted[7] == admitted[7]
-    assert sample.admitted[-3:] == admitted[-3:] and sample.admitted.kinds.itemsize == 1
-
-
 def test_decision_logs_keep_the_latest_events_only():
     log = DecisionLog(keep=10)
     for event_id in range(1000):
@@ -143,7 +126,7 @@ def test_a_sample_sliding_through_a_small_window_of_cells_is_recorded_as_with_ev
     plant = make_plant(Scenario(), SETTINGS)
     plant.window = window                   # read at reset: 4 cells grow it, 40 slide many times
     result, topics = recorded(tmp_path, plant)
-    assert plant._base > 0 and len(plant._born) < len(plant._arrival_all)
+    assert plant._base > 0 and len(plant._born) < plant._count
     assert result["statistics"] == held["statistics"] and result["steps"] == held["steps"]
     assert set(topics) == set(whole)
     for topic, batches in whole.items():

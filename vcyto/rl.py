@@ -186,7 +186,7 @@ class SortEnv(gymnasium.Env):
         self._batch, self._next, self._ended = [], 0, False
         self._sorted_targets = self._contaminants = self._misrouted = 0
         sample = loop.sample
-        self._targets_offered = sum(self._target[name] for _, name in sample.admitted + sample.rejected)
+        self._targets_offered = sum(count for name, count in sample.offered.items() if self._target[name])
         self._alive = self._to_next_event()
         self._collect()                                 # cells that left before the first decision
         return self._observe(), {"seed": self.episode_settings.seed, "targets_offered": self._targets_offered}

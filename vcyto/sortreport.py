@@ -47,7 +47,7 @@ import statistics
 import numpy as np
 
 from controller.events import TYPE_I, TYPE_II
-from sim.model.arrivals import Cells
+from sim.model.arrivals import Cells, Drawn
 
 from .outcomes import DEFAULT_OUTLET, SORTED_OUTLET, outcome_class
 from .restored import Restored
@@ -62,9 +62,12 @@ def true_class(cell_type) -> str:
 
 KEEP_CELLS = 10_000            # per-cell records a summary lists; a longer run's are in its table only
 SORT_HORIZON = 0.1             # s: sorts kept for the co-deflection check after their predicted arrival
-EVENT_NAMES = 1 << 16          # recent detector events whose cells a decision's reason can name
+EVENT_NAMES = 1 << 12          # recent detector events whose cells a decision's reason can name: its neighbours, a
+                               # few ms away, named within the cell's transit (tens of ms; >= 2 s at 2,000 events/s)
 SORTS_KEPT = 1 << 12           # sorts in effect above which those past SORT_HORIZON are dropped
-TRANSIT_CELLS = 1 << 17        # the yield estimate's transit times: of the sample's first cells (by key)
+TRANSIT_CELLS = 1 << 16        # the yield estimate's transit times: of the sample's first cells (by key); full
+                               # after 65,536 cells, so that a 10^5-event run and a longer one hold the same
+STRETCH = 1 << 16              # cells never injected, recorded at the end a stretch at a time
 
 
 class SortLedger:
@@ -94,10 +97,11 @@ class SortLedger:
         self.time = 0.0
         self._events: dict = {}            # key -> event, of the cells not yet recorded
         self._decisions: dict = {}         # event_id -> decision, of the cells not yet recorded
-        self._keys: dict = {}              # event_id -> key, the recent events (reasons name them)
+        self._keys = RecentKeys()          # event_id -> key, the recent events (reasons name them)
         self._sorts: dict = {}             # event_id -> predicted arrival (s) of the recent sorts in effect
         self._inside: dict = {}            # key -> the latest truth of a cell in the channel
-        self._recorded = np.zeros(len(sample.admitted), dtype=bool)
+        self._below = 0                    # every key below it recorded
+        self._recorded: set = set()        # keys at or above ``_below`` recorded (cells that overtook others)
         self._due = self._not_due = 0
 
     # --- what the loop shows ----------------------------------------------------------------------------
@@ -119,9 +123,6 @@ class SortLedger:
     def event(self, event):
         self._events[event.key] = event
         self._keys[event.event_id] = event.key
-        if len(self._keys) > 2 * EVENT_NAMES:
-            newest = event.event_id
-            self._keys = {e: k for e, k in self._keys.items() if e > newest - EVENT_NAMES}
 
     def decision(self, decision):
         self._decisions[decision.event_id] = decision
@@ -142,9 +143,12 @@ class SortLedger:
 
     # --- records ----------------------------------------------------------------------------------------
     def _record(self, key: int, cell, partial: bool = False):
-        if self._recorded[key]:
+        if key < self._below or key in self._recorded:
             return
-        self._recorded[key] = True
+        self._recorded.add(key)
+        while self._below in self._recorded:
+            self._recorded.discard(self._below)
+            self._below += 1
         event = self._events.pop(key, None)
         decision = self._decisions.pop(event.event_id, None) if event is not None else None
         arrival, name = self.sample.admitted[key]
@@ -168,21 +172,19 @@ class SortLedger:
         if self.keep is None or len(self.sample.admitted) <= self.keep:
             self.kept.append(record)
 
-    def _record_not_due(self, keys: np.ndarray):
-        """The cells of a partial run not yet due when it stopped, recorded at once: their rows (``cell_record`` of
-        a cell never injected, one per key) go to the table as columns; they are not counted, nor kept (a run longer
-        than ``keep``). A run stopped early has most of its sample here: one row each would hold up its exit."""
-        self._recorded[keys] = True
+    def _record_not_due(self, keys: np.ndarray, times: np.ndarray, kinds: np.ndarray):
+        """The cells of a partial run not yet due when it stopped (``keys``, their arrival ``times`` and type indices
+        into the sample's names), recorded at once: their rows (``cell_record`` of a cell never injected, one per
+        key) go to the table as columns; they are not counted, nor kept (a run longer than ``keep``). A run stopped
+        early has most of its sample here: one row each would hold up its exit."""
         self._not_due += len(keys)
         if not len(keys):
             return
         from .celltable import flat
-        admitted = [self.sample.admitted[key] for key in keys.tolist()]
-        names = [name for _, name in admitted]
+        names = [self.sample.admitted.names[kind] for kind in kinds.tolist()]
         classes = {name: true_class(self.scenario.cell_type(name)) for name in set(names)}
         columns = flat(cell_record(0, 0.0, names[0], None, None, None, None, self.scenario))   # the same in each
-        columns.update(key=keys, type=names, true_class=[classes[name] for name in names],
-                       arrival_ms=np.array([at for at, _ in admitted]) * 1e3)
+        columns.update(key=keys, type=names, true_class=[classes[name] for name in names], arrival_ms=times * 1e3)
         self.table.append_columns(columns, len(keys))
 
     def _covered(self, mine_ms) -> bool:
@@ -209,14 +211,20 @@ class SortLedger:
         for key in sorted(self._inside):
             self._record(key, self._inside[key], partial)
         self._inside = {}
-        never = np.flatnonzero(~self._recorded)
-        if partial and self.table is not None and self.keep is not None and len(self.sample.admitted) > self.keep:
-            arrivals = np.fromiter((at for at, _ in self.sample.admitted), float, len(self.sample.admitted))
-            later = arrivals[never] > time
-            self._record_not_due(never[later])
-            never = never[~later]
-        for key in never.tolist():
-            self._record(key, None, partial)
+        admitted = self.sample.admitted
+        bulk = partial and self.table is not None and self.keep is not None and len(admitted) > self.keep
+        below, done = self._below, np.array(sorted(self._recorded), dtype=np.int64)
+        for start in range(below, len(admitted), STRETCH):            # the cells never injected, a stretch at a time
+            keys = np.arange(start, min(start + STRETCH, len(admitted)))
+            keys = keys[~np.isin(keys, done)]
+            if bulk:
+                times, kinds = admitted.arrays(start, start + STRETCH)
+                later = times[keys - start] > time
+                self._record_not_due(keys[later], times[keys[later] - start], kinds[keys[later] - start])
+                keys = keys[~later]
+            for key in keys.tolist():
+                self._record(key, None, partial)
+        self._below, self._recorded = len(admitted), set()
         self.close()
         settings, scenario = self.settings, self.scenario
         rejected = rejected_by(self.sample.rejected, time if partial else math.inf)
@@ -237,12 +245,11 @@ class SortLedger:
 
 
 def rejected_by(rejected, time: float) -> dict:
-    """The cells ``rejected`` at the inlet (``sim.model.arrivals.Cells`` or (time, name) pairs) by ``time`` (s), as
-    {name: count}: read from the arrays, so that a checkpoint's cost does not grow with the sample."""
-    if isinstance(rejected, Cells):
-        due = int(np.searchsorted(rejected.times, time, side="right"))
-        counts = np.bincount(rejected.kinds[:due], minlength=len(rejected.names)).tolist()
-        return {name: count for name, count in zip(rejected.names, counts) if count}
+    """The cells ``rejected`` at the inlet by ``time`` (s), as {name: count}: counted by the sample
+    (``sim.model.arrivals.Drawn`` or ``Cells``: running counts, so that a checkpoint's cost does not grow with the
+    sample), else from (time, name) pairs."""
+    if isinstance(rejected, (Drawn, Cells)):
+        return rejected.counts(time)
     return dict(collections.Counter(name for at, name in rejected if at <= time))
 
 
@@ -268,10 +275,34 @@ def _coincidence_possible(settings) -> bool:
     return settings.arrivals.min_spacing < 1.02 * max(-low, high)
 
 
-def name_cells(text: str, keys_by_event: dict) -> str:
+class RecentKeys:
+    """The cells (keys) of the latest ``EVENT_NAMES`` detector events, by event id: a ring of two arrays, set up
+    whole at the start, so that what it holds does not depend on the run's length. Reads as a dict's ``get``; an
+    event older than the latest ``EVENT_NAMES`` ids is not known."""
+
+    def __init__(self, size: int | None = None):
+        size = size or EVENT_NAMES
+        self._events = np.full(size, -1, dtype=np.int64)
+        self._keys = np.zeros(size, dtype=np.int64)
+        self._filled = 0
+
+    def __setitem__(self, event_id: int, key: int):
+        slot = event_id % len(self._events)
+        self._filled += int(self._events[slot] < 0)
+        self._events[slot], self._keys[slot] = event_id, key
+
+    def get(self, event_id: int, default=None):
+        slot = event_id % len(self._events)
+        return int(self._keys[slot]) if self._events[slot] == event_id else default
+
+    def __len__(self) -> int:
+        return int(self._filled)
+
+
+def name_cells(text: str, keys_by_event) -> str:
     """``text`` with each ``event N`` followed by its cell, ``event N (cell K)`` (``?`` for an event not in
-    ``keys_by_event``): the controller knows detector events, numbered in detection order, not cells (numbered
-    in arrival order)."""
+    ``keys_by_event``, a dict or ``RecentKeys``): the controller knows detector events, numbered in detection
+    order, not cells (numbered in arrival order)."""
     return _EVENT.sub(lambda found: f"{found.group(0)} (cell {keys_by_event.get(int(found.group(1)), '?')})", text)
 
 

@@ -40,7 +40,7 @@ import numpy as np
 from ..fast import rom_kernels as kernels
 from ..method.fluid import NavierStokes
 from ..method.transfer import PointLocator
-from ..model.arrivals import Cells
+from ..model.arrivals import Cells, Drawn
 from ..model.drive import lag_decay
 from ..model.geometry import clip_to_channel, injection_point
 from ..model.scenario import Channel, Scenario
@@ -262,8 +262,8 @@ class RomPlant:
 
     # ------------------------------------------------------------------ the contract
     def reset(self, arrivals) -> Observation:
-        self._arrival_all, self._kind_all = self._schedule(arrivals)
-        n = len(self._arrival_all)
+        self._sample, self._types = self._schedule(arrivals)
+        n = self._count = len(self._sample)
         self._base = 0                      # the key of the window's first cell (``_slide``)
         self._cell_state(n if self.window is None else min(n, self.window))
         self._log_step = np.zeros(LOG_ROWS, dtype=np.int64)
@@ -299,8 +299,10 @@ class RomPlant:
     def _view(self):
         """The kernel's arguments for the window at ``_base``."""
         end = self._base + len(self._born)
-        self._arrival = self._arrival_all[self._base:end]
-        self._kind = self._kind_all[self._base:end].astype(np.int64)
+        times, kinds = self._sample.arrays(self._base, end + 1)       # and the first arrival beyond the window
+        self._arrival = times[:end - self._base]
+        self._kind = self._types[kinds[:end - self._base]].astype(np.int64)
+        self._beyond = float(times[-1]) if end < self._count else math.inf
         self._arrays = (self.flows.cells, self._params, self._segments, self._dividers, self._outlets,
                         self._semi_axes, self._start, self._kind, self._arrival, self._born, self._position,
                         self._fate, self._exit_time, self._exit_y, self._stalled, self._counters, self._level,
@@ -310,8 +312,7 @@ class RomPlant:
 
     def _horizon(self) -> float:
         """How far the kernel may run: two periods before the first arrival beyond the window (inf: none)."""
-        end = self._base + len(self._arrival)
-        return math.inf if end == len(self._arrival_all) else float(self._arrival_all[end]) - 2 * self.control_period
+        return self._beyond - 2 * self.control_period
 
     def _make_room(self):
         """Slide the window when half of it is settled and reported, and whenever it holds too few arrivals for the
@@ -345,20 +346,20 @@ class RomPlant:
         self._view()
 
     def _schedule(self, arrivals):
-        """Arrival times and type indices in time order: read from the arrays of ``sim.model.arrivals.Cells`` (in time
-        order, no ties), else sorted from (time, name) pairs. Unknown names fail here, as in the other plants."""
+        """The sample, read a stretch at a time (``arrays(start, stop)``: times and indices into its ``names``), and
+        the plant's type index of each of its names. A sample drawn at the inlet (``sim.model.arrivals.Drawn``: in
+        time order, drawn again as it is read) and one held as ``Cells`` in time order without ties are read as they
+        are; (time, name) pairs are sorted into ``Cells`` first. Unknown names fail here, as in the other plants."""
         index = {name: k for k, name in enumerate(self._names)}
-        if isinstance(arrivals, Cells) and not np.any(np.diff(arrivals.times) <= 0):
-            for name in arrivals.names:
-                self.scenario.cell_type(name)
-            table = np.array([index.get(name, -1) for name in arrivals.names], dtype=_KIND)
-            # the sample's own times (the plant only reads them) and its types in a byte a cell
-            return np.asarray(arrivals.times, dtype=float), table[arrivals.kinds] if len(table) else np.zeros(0, _KIND)
-        items = sorted(arrivals)
-        for _, name in items:
+        if not (isinstance(arrivals, Drawn) or isinstance(arrivals, Cells) and np.all(np.diff(arrivals.times) > 0)):
+            items = sorted(arrivals)
+            arrivals = Cells([t for t, _ in items], [index.get(name, -1) for _, name in items], self._names)
+            names = {name for _, name in items}
+        else:
+            names = arrivals.names
+        for name in names:
             self.scenario.cell_type(name)
-        return (np.array([t for t, _ in items], dtype=float),
-                np.array([index[name] for _, name in items], dtype=_KIND))
+        return arrivals, np.array([index.get(name, -1) for name in arrivals.names], dtype=_KIND)
 
     def step(self, actuation: float) -> Observation:
         """One control period at the drive ``actuation``."""
@@ -454,7 +455,7 @@ class RomPlant:
 
     @property
     def done(self) -> bool:
-        return (self._base + int(self._counters[kernels.NEXT]) == len(self._arrival_all)
+        return (self._base + int(self._counters[kernels.NEXT]) == self._count
                 and int(self._counters[kernels.ACTIVE]) == 0)
 
     def observe(self) -> Observation:
@@ -472,7 +473,7 @@ class RomPlant:
         """Ground truth of every injected cell the window holds (all of them when the sample fits in it; its cost
         grows with the cells run: call it at the end)."""
         cells = tuple(self._record(self._base + i) for i in range(int(self._counters[kernels.NEXT])))
-        return Truth(self.time, cells, len(self._arrival_all) - self._base - int(self._counters[kernels.NEXT]))
+        return Truth(self.time, cells, self._count - self._base - int(self._counters[kernels.NEXT]))
 
     def truth_update(self) -> Truth:
         """Ground truth of the cells in the channel and of those that settled since the previous call (each
@@ -494,7 +495,7 @@ class RomPlant:
         while self._unreported < upto and self._unreported in reported:
             reported.discard(self._unreported)
             self._unreported += 1
-        return Truth(self.time, tuple(cells), len(self._arrival_all) - upto)
+        return Truth(self.time, tuple(cells), self._count - upto)
 
     def _record(self, key: int) -> CellTruth:
         i = key - self._base
@@ -508,7 +509,7 @@ class RomPlant:
         of control periods) and drive level ``level``, the first ``injected`` arrivals injected, ``cells``
         {key: (x, y, born)} in the channel; the other injected cells count as settled elsewhere (``lost``
         here: the caller keeps their records). The plant must hold every cell (``window`` None)."""
-        if len(self._born) < len(self._arrival_all):
+        if len(self._born) < self._count:
             raise ValueError("adopt needs a rom plant that holds every cell of its sample (window=None)")
         counters = self._counters
         counters[kernels.STEP] = round(time_s / self.control_period)

@@ -124,7 +124,8 @@ class Integer(_Checked):
 # --- limits: sizes refused before any work ---------------------------------------------------------
 
 BYTES_PER_DOF = 6_000         # measured: the paper mesh (54,243 DOFs) takes ~220 MB set up, the 6.67 um one ~70 MB
-BYTES_PER_CELL = 4_000        # per-cell state, summary row and JSON of a stream, generously
+BYTES_PER_CELL = 100          # what a stream holds per cell: the sample of plants that hold it whole (9 bytes),
+                              # the ~25 bytes an event a long recorded rom sort still grows by, generously
 MAX_SWEEP_POINTS = 100_000    # a sweep larger than this is refused (each point is a run)
 MEMORY_SHARE = 0.8            # of the memory available now
 

@@ -31,7 +31,7 @@ from dataclasses import dataclass
 import numpy as np
 
 PROCESSES = ("regular", "poisson")
-MAX_COUNT = 10_000_000          # cells offered to one stream; beyond it a run is a sweep, not one stream
+MAX_COUNT = 100_000_000         # cells offered to one stream (drawn a chunk at a time: a few KB a chunk held)
 CHUNK = 1 << 16                 # offered cells drawn at a time (``Offer``)
 CHUNKS_KEPT = 4                 # drawn chunks kept for reading: those of the plant's window and the cells leaving
 

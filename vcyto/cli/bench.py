@@ -307,13 +307,15 @@ def _process(args, scenario, progress):
 
 
 def _sort(args, scenario, progress):
+    from sim.model.arrivals import MAX_COUNT
+
     from ..bench import sort
     try:
         counts = [int(v) for v in args.counts.split(",") if v.strip()]
     except ValueError:
         counts = []
-    if not counts or min(counts) < 1 or max(counts) > 10**7:
-        raise UsageError(f"--counts: wants positive cell counts (at most 10,000,000) such as 1000,10000 "
+    if not counts or min(counts) < 1 or max(counts) > MAX_COUNT:
+        raise UsageError(f"--counts: wants positive cell counts (at most {MAX_COUNT:,}) such as 1000,10000 "
                          f"(got {args.counts!r})")
     result = sort.bench_sort(counts, args.rate, not args.no_record, not args.no_rerun, args.seed, progress)
     return result, sort.report_lines(result)

@@ -40,12 +40,17 @@ def recorded(directory, plant):
         result = run_stream(Scenario(), SETTINGS, plant=plant, sinks=[recorder])
     finally:
         recorder.close()
+    return result, json_topics(directory / "run.mcap")
+
+
+def json_topics(path) -> dict:
+    """topic -> the JSON messages of the recording at ``path``, in the file's order."""
     topics = {}
-    with open(directory / "run.mcap", "rb") as handle:
+    with open(path, "rb") as handle:
         for _, channel, message in make_reader(handle).iter_messages(log_time_order=False):
             if channel.message_encoding == "json":
                 topics.setdefault(channel.topic, []).append(json.loads(message.data))
-    return result, topics
+    return topics
 
 
 def column(topics, topic, name):
@@ -147,11 +152,7 @@ def test_records_written_in_batches_are_the_records_written_one_by_one(both, tmp
         run_stream(Scenario(), SETTINGS, plant=make_plant(Scenario(), SETTINGS), sinks=[sinks])
     finally:
         sinks.close()
-    topics = {}
-    with open(tmp_path / "run.mcap", "rb") as handle:
-        for _, channel, message in make_reader(handle).iter_messages(log_time_order=False):
-            if channel.message_encoding == "json":
-                topics.setdefault(channel.topic, []).append(json.loads(message.data))
+    topics = json_topics(tmp_path / "run.mcap")
     assert max(batches) == 64 and len(batches) >= 3
     for name in ("time", "step", "idt", "cells_in_channel"):
         assert column(topics, "/loop/steps", name) == column(one_by_one, "/loop/steps", name), name

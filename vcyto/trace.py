@@ -183,3 +183,15 @@ def joined(pieces) -> np.ndarray:
     if len(pieces) == 1 and isinstance(pieces[0], np.ndarray):
         return pieces[0]
     return np.vstack([np.asarray(piece, dtype=float).reshape(-1, 2) for piece in pieces])
+
+
+def stretches(records):
+    """``records`` split into their longest stretches of records with a trace and without: (traced, records)."""
+    start = 0
+    while start < len(records):
+        traced = records[start].trace is not None
+        end = start + 1
+        while end < len(records) and (records[end].trace is not None) == traced:
+            end += 1
+        yield traced, records[start:end]
+        start = end

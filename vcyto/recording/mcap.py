@@ -63,7 +63,7 @@ from ..classes import CLASS_COLOURS, CLASS_IDS, CLASS_NAMES, CellClasses
 from ..outcomes import outcome_text
 from ..outputs import plain
 from ..sortreport import EVENT_NAMES, name_cells
-from ..trace import TracedRows, joined
+from ..trace import TracedRows, joined, stretches
 from . import foxglove
 from .schemas import SCHEMAS
 
@@ -226,20 +226,14 @@ class McapRecorder:
         """Write a batch of steps (``vcyto.recording.sinks.BackgroundSinks`` hands them over together): an
         event-driven plant's recorded steps gathered as arrays (``vcyto.trace.TracedRows``), other steps one by one;
         the file is flushed when ``flush_every`` steps are waiting."""
-        start = 0
-        while start < len(records):
-            traced = records[start].trace is not None
-            end = start + 1
-            while end < len(records) and (records[end].trace is not None) == traced:
-                end += 1
+        for traced, stretch in stretches(records):
             if traced:
-                self._traced(records[start:end])
+                self._traced(stretch)
                 self._flush_due()
             else:
-                for record in records[start:end]:
+                for record in stretch:
                     self._step(record)
                     self._flush_due()
-            start = end
 
     def _flush_due(self):
         if len(self._steps["time"]) >= self.flush_every:

@@ -52,7 +52,7 @@ from sim.model.scenario import UM, Scenario
 
 from ..classes import CLASS_COLOURS, CLASS_IDS, CLASS_NAMES, CellClasses
 from ..outcomes import outcome_text
-from ..trace import TracedRows, joined
+from ..trace import TracedRows, joined, stretches
 from .foxglove import speed_grid
 from .viewer import finish_stream, import_rerun, speed_scale_mm_s
 
@@ -510,18 +510,12 @@ class RerunSink:
     def on_steps(self, records):
         """Show a batch of steps: an event-driven plant's recorded steps gathered as arrays (``vcyto.trace``), other
         steps one by one."""
-        start = 0
-        while start < len(records):
-            traced = records[start].trace is not None
-            end = start + 1
-            while end < len(records) and (records[end].trace is not None) == traced:
-                end += 1
+        for traced, stretch in stretches(records):
             if traced:
-                self._traced(records[start:end])
+                self._traced(stretch)
             else:
-                for record in records[start:end]:
+                for record in stretch:
                     self._step(record)
-            start = end
 
     def on_step(self, record):
         """Show one step (``vcyto.steps.StepRecord``)."""

@@ -291,7 +291,9 @@ def test_a_file_larger_than_the_bound_is_refused_unread(sandbox):
 
 @pytest.mark.parametrize("argv, words", [
     (["stream", "--rate", "1e-300"], "--rate: '1e-300' is beyond physical sense for a frequency"),
-    (["stream", "--rate", "1e-5"], "of device time"),                       # two cells, eleven days: refused
+    (["stream", "--rate", "1e-5"], "of device time"),                       # two cells, 1.2 days: refused
+    (["stream", "--model", "rom", "--count", "100000001", "--mix", "RBC:1"], "at most 100,000,000 cells"),
+    (["bench", "sort", "--counts", "1000,100000001"], "--counts: wants positive cell counts (at most 100,000,000)"),
     (["stream", "--gate", "1e308"], "--gate: '1e308' is beyond physical sense"),
     (["stream", "--cells", "RBC,,melanoma"], "--cells: an empty entry"),
     (["stream", "--cells", "RBC,"], "--cells: an empty entry"),

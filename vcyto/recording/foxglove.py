@@ -174,7 +174,7 @@ def device(unix_ns: int, outlines) -> SceneUpdate:
 
 def marker(unix_ns: int, entity_id: str, x_um: float, y_um: float, rgb, label: str) -> SceneEntity:
     """A detector event: a sphere where the cell was when it was detected, with its label, for
-    ``MARKER_LIFETIME`` (the message ``scene_entities`` writes as bytes)."""
+    ``MARKER_LIFETIME`` (the message ``Entities`` writes as bytes)."""
     sphere = SpherePrimitive(pose=Pose(position=Vector3(x=x_um * METRE, y=y_um * METRE, z=0.0),
                                        orientation=_UPRIGHT), size=_SPHERE, color=_colour(rgb, 0.8))
     return SceneEntity(timestamp=stamp(unix_ns), frame_id=FRAME, id=entity_id, lifetime=MARKER_LIFETIME,
@@ -183,7 +183,7 @@ def marker(unix_ns: int, entity_id: str, x_um: float, y_um: float, rgb, label: s
 
 def path(unix_ns: int, key: int, points_um, rgb, label: str) -> SceneEntity:
     """A cell's centroid path, drawn when it has left, in the colour of its outcome class, for
-    ``PATH_LIFETIME`` (the message ``scene_entities`` writes as bytes)."""
+    ``PATH_LIFETIME`` (the message ``Entities`` writes as bytes)."""
     points = np.asarray(points_um, dtype=float).reshape(-1, 2)
     return SceneEntity(timestamp=stamp(unix_ns), frame_id=FRAME, id=f"path/{key}", lifetime=PATH_LIFETIME,
                        lines=[_line(points, rgb, thickness=0.5 * METRE)],
@@ -202,8 +202,7 @@ class Entities:
         self._path_lifetime = wire.field(4, PATH_LIFETIME.SerializeToString())
         self._line_head = (wire.integer(1, LinePrimitive.LINE_STRIP) + wire.field(2, _IDENTITY.SerializeToString())
                            + wire.double(3, 0.5 * METRE))
-        label = _text(0.0, 0.0, "x")
-        self._label_template = label
+        self._label_template = _text(0.0, 0.0, "x")
 
     def marker(self, unix_ns: int, entity_id: str, x_um: float, y_um: float, rgb, label: str) -> bytes:
         rgb = tuple(int(value) for value in rgb)

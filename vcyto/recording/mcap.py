@@ -219,7 +219,7 @@ class McapRecorder:
         self._add(topic, time_s, message if isinstance(message, bytes) else message.SerializeToString())
 
     def _log(self, time_s: float, text: str, level: str = "INFO"):
-        unix_ns = self.origin_ns + int(round(time_s * 1e9))
+        unix_ns = self._stamp(time_s)
         self._log_channel.log(foxglove.log(unix_ns, text, level).SerializeToString(), log_time=unix_ns)
 
     def on_steps(self, records):

@@ -172,7 +172,7 @@ def test_sweep_specs(sandbox, parameters, base, sweep):
 
 
 TOPICS = ["/loop/step", "/cells", "/loop/steps", "/cells/rows", "/detector/event", "/controller/decision", "/outcome",
-          "/flow/velocity"]
+          "/flow/velocity", "/detector/events", "/controller/decisions", "/outcomes"]
 payloads = st.dictionaries(st.sampled_from(["time", "step", "idt", "cells", "key", "classification", "fluorescence",
                                             "event_id", "action", "type", "outlet", "shape", "x_um", "y_um"]),
                            st.one_of(toml_scalars, st.lists(st.integers(-3, 3), max_size=3),

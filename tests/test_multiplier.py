@@ -15,6 +15,7 @@ from sim.method.fluid import NavierStokes
 from sim.method.membrane import Membrane
 from sim.method.transfer import PointLocator
 from sim.model.scenario import UM, CellType, Scenario, ScenarioError
+from vcyto.recording.replay import happenings
 from vcyto.restored import RESTORED_LIMIT, Restored, restored_warning
 
 KEPT = "pressure+multiplier"             # the multiplier without the projection: nothing corrects the area after
@@ -140,7 +141,6 @@ def test_paper_run_reports_the_restored_area_and_warns_above_the_limit(membrane,
 def test_recording_and_summary_carry_each_cells_restored_area(tmp_path):
     """A membrane plant's cell: its /outcome in the MCAP carries the area the projection restored, the summary's
     per-cell ``area_corrected`` and ``statistics.area_restored`` agree with it."""
-    from mcap.reader import make_reader
 
     from sim.model.arrivals import Arrivals
     from vcyto.recording.mcap import McapRecorder
@@ -154,9 +154,7 @@ def test_recording_and_summary_carry_each_cells_restored_area(tmp_path):
                             sinks=[recorder])
     finally:
         recorder.close()
-    with open(path, "rb") as handle:
-        outcomes = [json.loads(message.data) for _, channel, message in make_reader(handle).iter_messages()
-                    if channel.topic == "/outcome"]
+    outcomes = happenings(path)["/outcome"]
     cell = result["cells"][0]
     assert len(outcomes) == 1 and outcomes[0]["area_restored"] == cell["area_corrected"] > 0
     assert result["statistics"]["area_restored"]["largest"] == cell["area_corrected"]

@@ -17,6 +17,7 @@ from sim.model.arrivals import Arrivals
 from sim.model.scenario import Scenario
 from sim.plants.streamline import StreamlinePlant
 from vcyto.recording.mcap import PER_STEP, McapRecorder
+from vcyto.recording.replay import COLUMNAR, happenings, rows_of
 from vcyto.recording.sinks import BackgroundSinks
 from vcyto.stream import StreamSettings, StreamStopped, run_stream
 
@@ -65,9 +66,10 @@ def test_round_trip_one_row_per_step_in_batches_monotonic_times_and_outcomes(pla
     assert [t for r in rows for t in r["time"]] == times
     assert [c for r in rows for c in r["count"]] == [n for m in batches for n in m[2]["cells_in_channel"]]
     assert sum(len(r["key"]) for r in rows) == sum(c for r in rows for c in r["count"]) > 0
-    outcomes = {m[2]["key"]: m[2]["outlet"] for m in recorded if m[0] == "/outcome"}
+    written = happenings(path)
+    outcomes = {outcome["key"]: outcome["outlet"] for outcome in written["/outcome"]}
     assert outcomes == {cell["key"]: cell["outlet"] for cell in result["cells"]}
-    decisions = {m[2]["event_id"]: m[2]["action"] for m in recorded if m[0] == "/controller/decision"}
+    decisions = {decision["event_id"]: decision["action"] for decision in written["/controller/decision"]}
     assert sorted(decisions.values()) == sorted(c["decision"] for c in result["cells"])
     with open(path, "rb") as handle:
         metadata = list(make_reader(handle).iter_metadata())
@@ -82,7 +84,7 @@ def test_the_logs_decision_lines_name_each_events_cell(plant, tmp_path):
     from mcap_protobuf.decoder import DecoderFactory
     path = tmp_path / "run.mcap"
     record(plant, path, cells=("melanoma", "RBC", "melanoma", "RBC"))
-    cells_of = {data["event_id"]: data["key"] for topic, _, data in messages(path) if topic == "/detector/event"}
+    cells_of = {event["event_id"]: event["key"] for event in happenings(path)["/detector/event"]}
     decode, lines = DecoderFactory(), []
     with open(path, "rb") as handle:
         for schema, channel, message in make_reader(handle).iter_messages(topics=["/foxglove/log"]):
@@ -191,7 +193,9 @@ def killed_recording(command, directory, size: int, wait: float):
                     channels[record.id] = record.topic
                 elif isinstance(record, Message) and record.channel_id in channels:
                     topic = channels[record.channel_id]
-                    if not topic.startswith("/foxglove/"):
+                    if topic in COLUMNAR:
+                        topics.setdefault(COLUMNAR[topic], []).extend(rows_of(json.loads(record.data)))
+                    elif not topic.startswith("/foxglove/"):
                         topics.setdefault(topic, []).append(json.loads(record.data))
         except McapError:
             pass                                   # the truncated tail: everything before it is intact

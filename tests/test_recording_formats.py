@@ -22,13 +22,16 @@ from sim.model.scenario import Scenario
 from sim.plants.feib import FeibPlant
 from vcyto.classes import CLASS_COLOURS, CLASS_IDS
 from vcyto.outcomes import outcome_class
-from vcyto.recording.mcap import McapRecorder
+from vcyto.recording.mcap import FORMAT, McapRecorder
+from vcyto.recording.replay import happenings
 from vcyto.recording.rerunlog import RerunSink
 from vcyto.stream import StreamSettings, run_stream
 
 FOXGLOVE = {"/foxglove/scene": "foxglove.SceneUpdate", "/foxglove/membranes": "foxglove.PointCloud",
             "/foxglove/speed": "foxglove.RawImage", "/foxglove/log": "foxglove.Log"}
 OLD = Path(__file__).parent / "data" / "format1-streamline.mcap"
+# a rom stream of 30 cells recorded in format 3 (one message per event, decision and outcome)
+FORMAT3 = Path(__file__).parent / "data" / "format3-rom.mcap"
 
 
 class Capture:
@@ -195,9 +198,7 @@ def test_rerun_view_keeps_the_plants_coordinates(feib):
 
 def test_each_cell_is_coloured_by_its_outcome_class(sort):
     rows, _ = rrd_rows(sort["dir"] / "live.rrd")
-    _, messages = mcap_messages(sort["dir"] / "run.mcap")
-    recorded = {json.loads(m.data)["key"]: json.loads(m.data)["class"] for _, c, m in messages
-                if c.topic == "/outcome"}
+    recorded = {outcome["key"]: outcome["class"] for outcome in happenings(sort["dir"] / "run.mcap")["/outcome"]}
     paths = path_classes(rows)
     assert len(paths) == len(sort["result"]["cells"])            # each cell's path, once, in a slot
     classes = set()
@@ -230,7 +231,7 @@ def test_replay_shows_what_the_live_view_shows(sort, tmp_path):
         assert [t for t, _ in again[entity]] == [t for t, _ in live[entity]], entity
     assert [v for _, v in again["/log"]] == [v for _, v in live["/log"]]          # velocities and reasons too
     assert any("mm/s" in v["TextLog:text"][0] for _, v in again["/log"])
-    assert json.loads(done.stdout)["format"] == "3"
+    assert json.loads(done.stdout)["format"] == FORMAT
 
 
 def test_a_recording_of_the_first_format_still_replays(tmp_path):
@@ -243,6 +244,25 @@ def test_a_recording_of_the_first_format_still_replays(tmp_path):
     final = path_classes(rows)
     assert final == {0: [CLASS_IDS["sorted"]], 1: [CLASS_IDS["passed"]], 2: [CLASS_IDS["sorted"]]}
     assert len(rows["/device/events"]) == 3
+
+
+def test_a_recording_of_the_third_format_replays_every_event_decision_and_outcome(tmp_path):
+    """Format 3 wrote an event, a decision and an outcome as one message each; its replay shows a log line for
+    each, a marker per event and a path per cell, as the recording has them."""
+    written = happenings(FORMAT3)
+    assert len(written["/detector/event"]) >= 20 and len(written["/outcome"]) >= 20
+    replayed = tmp_path / "format3.rrd"
+    done = subprocess.run([sys.executable, "-m", "vcyto", "replay", str(FORMAT3), "--save", str(replayed), "--json"],
+                          capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr
+    assert json.loads(done.stdout)["format"] == "3" and not json.loads(done.stdout)["damaged"]
+    rows, _ = rrd_rows(replayed)
+    lines = [v["TextLog:text"][0] for _, v in rows["/log"]]
+    assert len(lines) == sum(len(found) for found in written.values())
+    assert sum(line.startswith("cell ") and "detected type" in line for line in lines) == \
+        len(written["/detector/event"])
+    assert len(rows["/device/events"]) == len(written["/detector/event"])
+    assert path_classes(rows) == {outcome["key"]: [CLASS_IDS[outcome["class"]]] for outcome in written["/outcome"]}
 
 
 def test_sinks_keep_only_the_cells_in_the_channel(sort):
@@ -412,8 +432,9 @@ def test_each_area_series_is_named_by_its_cell_and_type(feib):
                      max_size=30), points=st.binary(max_size=64))
 def test_the_messages_written_as_bytes_are_those_the_protobuf_classes_serialise(unix_ns, x, y, label, rgb, path,
                                                                                  points):
-    """Markers, paths and point clouds are written in protobuf's wire format (``vcyto.recording.protowire``) for
-    speed; each is byte for byte what the protobuf classes serialise (zeros, -0.0 and empty fields included)."""
+    """Markers, paths, point clouds and log lines are written in protobuf's wire format
+    (``vcyto.recording.protowire``) for speed; each is byte for byte what the protobuf classes serialise (zeros,
+    -0.0 and empty fields included)."""
     from foxglove_schemas_protobuf.PointCloud_pb2 import PointCloud
     from foxglove_schemas_protobuf.SceneUpdate_pb2 import SceneUpdate
 
@@ -432,6 +453,8 @@ def test_the_messages_written_as_bytes_are_those_the_protobuf_classes_serialise(
     assert cloud == PointCloud(timestamp=foxglove.stamp(unix_ns), frame_id=foxglove.FRAME, pose=foxglove._IDENTITY,
                                point_stride=foxglove.POINT.itemsize, fields=foxglove.POINT_FIELDS,
                                data=points).SerializeToString()
+    for level in ("INFO", "WARN", "ERROR"):
+        assert foxglove.log_line(unix_ns, label, level) == foxglove.log(unix_ns, label, level).SerializeToString()
 
 
 def test_each_event_shows_with_the_newest_events_before_it_across_batches(tmp_path):

@@ -16,6 +16,7 @@ from sim.model.arrivals import Arrivals
 from sim.model.scenario import Scenario
 from sim.plants import rom as rom_module
 from vcyto.recording.mcap import McapRecorder
+from vcyto.recording.replay import COLUMNAR, rows_of
 from vcyto.stream import StreamSettings, make_plant, run_stream
 
 SETTINGS = StreamSettings(Arrivals(count=240, mix=(("RBC", 0.8), ("melanoma", 0.2)), rate=2500.0,
@@ -44,11 +45,14 @@ def recorded(directory, plant):
 
 
 def json_topics(path) -> dict:
-    """topic -> the JSON messages of the recording at ``path``, in the file's order."""
+    """topic -> the JSON messages of the recording at ``path``, in the file's order; the rows of the columnar
+    events, decisions and outcomes as the records they are (``/detector/event`` ...)."""
     topics = {}
     with open(path, "rb") as handle:
         for _, channel, message in make_reader(handle).iter_messages(log_time_order=False):
-            if channel.message_encoding == "json":
+            if channel.topic in COLUMNAR:
+                topics.setdefault(COLUMNAR[channel.topic], []).extend(rows_of(json.loads(message.data)))
+            elif channel.message_encoding == "json":
                 topics.setdefault(channel.topic, []).append(json.loads(message.data))
     return topics
 

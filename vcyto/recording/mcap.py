@@ -10,20 +10,20 @@ points of the cells in the channel, with fields key, class and a colour), ``/fox
 decisions with their reasons, outcomes).
 
 vcyto's channels (JSON, each with a JSON Schema stating required fields and units; ``vcyto.recording.schemas.SCHEMAS``).
-The per-step ones are columns, one message per batch of steps (``flush_every``):
+Every one but the flow field is columns, one message per batch of steps (``flush_every``):
 - ``/loop/steps``        per step: time, step, IDT drive, cells the optics see, wall time, plant diagnostics
                          (dt, physics steps, cumulative solver times: wall-clock);
 - ``/cells/rows``        per step its row count, then per row (a cell in the channel at that step): key, type,
                          class, centroid (um), area ratio, perimeter and smallest/largest point spacing / h (null
                          for models without membranes); the membranes are in ``/foxglove/membranes``;
-- ``/detector/event``    each detector event (fluorescence, scatter, velocity, class);
-- ``/controller/decision`` each decision (sort / pass / abort, predicted arrival, pulse, reason) and when it was
-                         shown;
-- ``/outcome``           each cell when it leaves (outlet, exit time and ordinate, outcome class);
+- ``/detector/events``   the batch's detector events (fluorescence, scatter, velocity, class);
+- ``/controller/decisions`` the batch's decisions (sort / pass / abort, predicted arrival, pulse, reason) and when
+                         each was shown;
+- ``/outcomes``          the cells that left in the batch (outlet, exit time and ordinate, outcome class);
 - ``/flow/velocity``     every ``field_every`` steps (0: never): velocity (m/s) and pressure (Pa) at the mesh
                          vertices (float32, base64) with the grid.
-Events, decisions and outcomes of a batch are written before its ``/loop/steps`` message (``vcyto.recording.replay``
-puts them back among the steps by their times).
+The events, decisions and outcomes of a batch are written before its ``/loop/steps`` message, one message each
+(``vcyto.recording.replay`` puts them back among the steps by their times).
 
 Log and publish times are the wall-clock start of the run (``time_origin_unix_ns`` in the metadata) plus the
 simulated time, so MCAP tools show a date and a timeline as long as the simulated run; every message also
@@ -45,6 +45,7 @@ import errno
 import json
 import logging
 import math
+import operator
 import os
 import re
 import shutil
@@ -70,7 +71,8 @@ from .schemas import SCHEMAS
 PER_STEP = ("/loop/steps", "/cells/rows")
 # 1: JSON channels only, membranes in /cells; 2: Foxglove channels beside them (um); 3: the per-step channels as
 # columns per batch (/loop/steps, /cells/rows), Foxglove coordinates in metres, scene entities with lifetimes
-FORMAT = "3"
+# 4: events, decisions and outcomes as columns per batch (/detector/events, /controller/decisions, /outcomes)
+FORMAT = "4"
 FULL_BYTES = 1 << 20          # a filesystem with less free space than this is full (for a failed write's cause)
 
 
@@ -186,6 +188,7 @@ class McapRecorder:
         self._reported: set[int] = set()         # cells that left, while ``truth`` still lists them
         self._keys_by_event: dict[int, int] = {}  # detector events' cells, for the log's decision lines
         self._steps, self._rows = _columns(STEP_COLUMNS), _columns(ROW_COLUMNS)
+        self._happened = _happening_columns()    # the batch's events, decisions and outcomes, as columns
         self._scene: list = []                   # the scene's entities of the batch (markers, paths)
         self._leaving: list = []                 # the paths of the cells that left in the batch, to be written
         self._cloud = foxglove.Membranes()
@@ -220,7 +223,7 @@ class McapRecorder:
 
     def _log(self, time_s: float, text: str, level: str = "INFO"):
         unix_ns = self._stamp(time_s)
-        self._log_channel.log(foxglove.log(unix_ns, text, level).SerializeToString(), log_time=unix_ns)
+        self._log_channel.log(foxglove.log_line(unix_ns, text, level), log_time=unix_ns)
 
     def on_steps(self, records):
         """Write a batch of steps (``vcyto.recording.sinks.BackgroundSinks`` hands them over together): an
@@ -273,9 +276,9 @@ class McapRecorder:
             positions = {cell.key: cell for cell in cells if cell.fate == "in_channel"}
             for event in record.events:
                 self._event(event, positions.get(event.key))
+        decisions = self._happened["/controller/decisions"]
         for decision in record.decisions:
-            self._write("/controller/decision", now, {"time": now, **{key: getattr(decision, key) for key in
-                                                                    DECISION_FIELDS}})
+            _append(decisions, (*_DECISION_FIELDS(decision), now))
             reason = f" ({decision.reason})" if decision.reason else ""
             self._log(now, name_cells(f"event {decision.event_id}: {decision.action}{reason}", self._keys_by_event),
                       "WARN" if decision.action == "abort" else "INFO")
@@ -331,7 +334,13 @@ class McapRecorder:
         self._writing(self._flush)
 
     def _flush(self):
-        steps = self._steps
+        steps, happened = self._steps, self._happened
+        if any(columns["time"] for columns in happened.values()):
+            now = steps["time"][-1] if steps["time"] else max(max(c["time"]) for c in happened.values() if c["time"])
+            for topic, columns in happened.items():
+                if columns["time"]:
+                    self._write(topic, now, columns)
+            self._happened = _happening_columns()
         if steps["time"]:
             now = steps["time"][-1]
             self._scene += self._entities.paths(self._leaving)
@@ -364,8 +373,7 @@ class McapRecorder:
         self._keys_by_event[event.event_id] = event.key
         if len(self._keys_by_event) > 2 * EVENT_NAMES:         # the recent events: a decision names its neighbours
             self._keys_by_event = {e: k for e, k in self._keys_by_event.items() if e > event.event_id - EVENT_NAMES}
-        values = {key: getattr(event, key) for key in SCHEMAS["/detector/event"]["properties"]}
-        self._write("/detector/event", event.time, values)
+        _append(self._happened["/detector/events"], _EVENT_FIELDS(event))
         text = (f"cell {event.key}: detected type {event.classification} (fluorescence {event.fluorescence:.2f}, "
                 f"{event.velocity * 1e3:.1f} mm/s)")
         self._log(event.time, text)
@@ -376,10 +384,10 @@ class McapRecorder:
                                                f"event {event.event_id}: type {event.classification}"))
 
     def _outcome(self, now: float, cell, name: str):
-        self._write("/outcome", now, {"time": now, "key": cell.key, "type": cell.type, "outlet": cell.fate,
-                                      "class": name, "exit_time": cell.exit_time, "exit_y_um": cell.exit_y / UM,
-                                      "area_restored": (cell.measures or {}).get("area_corrected")})
-        self._log(now, outcome_text(cell.key, cell.type, cell.fate, name, (cell.measures or {}).get("area_corrected")),
+        restored = (cell.measures or {}).get("area_corrected")
+        _append(self._happened["/outcomes"], (cell.key, cell.type, cell.fate, name, cell.exit_time,
+                                              cell.exit_y / UM, restored, now))
+        self._log(now, outcome_text(cell.key, cell.type, cell.fate, name, restored),
                   "INFO" if name in ("sorted", "passed") else "WARN")
         chunks = self._paths.pop(cell.key, None) or [(cell.x / UM, cell.y / UM)]
         path = joined(chunks)
@@ -420,7 +428,18 @@ class McapRecorder:
 REPORTED_KEPT = 64            # cells that left kept beyond those ``truth`` lists (then pruned to those)
 STEP_COLUMNS = ("time", "step", "idt", "cells_in_channel", "wall_time", "diagnostics", "rows")
 ROW_COLUMNS = ("key", "type", "class", "x_um", "y_um", "area_ratio", "perimeter_um", "spacing_min_h", "spacing_max_h")
-DECISION_FIELDS = ("event_id", "action", "arrival", "pulse_on", "pulse_off", "reason")
+HAPPENINGS = ("/detector/events", "/controller/decisions", "/outcomes")     # in the order a batch writes them
+# the columns of each: the fields of its records (``vcyto.recording.schemas.RECORDS``), in their order, which
+# ``_happenings`` and ``_outcome`` append in
+HAPPENING_COLUMNS = {topic: tuple(SCHEMAS[topic]["properties"]) for topic in HAPPENINGS}
+assert HAPPENING_COLUMNS["/controller/decisions"][-1] == "time" and HAPPENING_COLUMNS["/outcomes"] == (
+    "key", "type", "outlet", "class", "exit_time", "exit_y_um", "area_restored", "time")
+_EVENT_FIELDS = operator.attrgetter(*HAPPENING_COLUMNS["/detector/events"])
+_DECISION_FIELDS = operator.attrgetter(*HAPPENING_COLUMNS["/controller/decisions"][:-1])
+
+
+def _happening_columns() -> dict:
+    return {topic: _columns(HAPPENING_COLUMNS[topic]) for topic in HAPPENINGS}
 
 
 def _columns(names) -> dict:

@@ -1,10 +1,12 @@
 """`vcyto replay FILE.mcap`: re-log a recording to Rerun; damaged files replay what can be recovered.
 
-Reads recordings of the three formats: 1 (JSON channels only, membranes in ``/cells``), 2 (membranes in the
-Foxglove point cloud ``/foxglove/membranes``, in um; classes in ``/cells`` and ``/outcome``) and 3 (the per-step
+Reads recordings of the four formats: 1 (JSON channels only, membranes in ``/cells``), 2 (membranes in the
+Foxglove point cloud ``/foxglove/membranes``, in um; classes in ``/cells`` and ``/outcome``), 3 (the per-step
 channels as columns per batch, ``/loop/steps`` and ``/cells/rows``, written after the batch's events, decisions
-and outcomes, which are put back at their steps by their times; point clouds in metres). The replayed view shows
-what the live one did: cells coloured by class, detector event markers, pulses, decisions with their reasons.
+and outcomes, which are put back at their steps by their times; point clouds in metres) and 4 (as 3, with the
+events, decisions and outcomes as columns per batch too: ``/detector/events``, ``/controller/decisions``,
+``/outcomes``, whose rows are replayed as format 3's messages). The replayed view shows what the live one did:
+cells coloured by class, detector event markers, pulses, decisions with their reasons.
 """
 
 from __future__ import annotations
@@ -37,9 +39,12 @@ MAX_RECORD_BYTES = 64 << 20          # one record as stored (a chunk: compressed
 MAX_CHUNK_BYTES = 256 << 20          # one chunk decompressed, refused before it is decompressed further
 MAX_MESSAGE_BYTES = 32 << 20         # one message's payload
 MAX_JSON_DEPTH = 1024                # arrays and objects nested in one JSON message (orjson's bound; vcyto's: 3)
+# format 4's columnar channels, and the topic of format 3's messages their rows are
+COLUMNAR = {"/detector/events": "/detector/event", "/controller/decisions": "/controller/decision",
+            "/outcomes": "/outcome"}
 VCYTO_TOPICS = ("/loop/step", "/cells", "/loop/steps", "/cells/rows",
                 "/detector/event", "/controller/decision", "/outcome", "/flow/velocity",
-                MEMBRANES)
+                MEMBRANES, *COLUMNAR)
 
 
 MAX_FIELD_PIXELS = 16_000_000      # the flow image at 1 um pixels (the paper's channel: ~0.2 million)
@@ -174,6 +179,32 @@ def read_recording(path: Path):
     return metadata, read, problem
 
 
+def rows_of(columns: dict) -> list[dict]:
+    """The records of a columnar message (``{field: [value per record]}``), one dict each; ValueError for columns
+    of unequal lengths (a malformed message)."""
+    if not isinstance(columns, dict) or not all(isinstance(values, list) for values in columns.values()):
+        raise ValueError("a columnar message that is not an object of arrays")
+    lengths = {len(values) for values in columns.values()}
+    if len(lengths) > 1:
+        raise ValueError(f"a columnar message whose columns have {sorted(lengths)} entries (one length expected)")
+    names = list(columns)
+    return [dict(zip(names, values)) for values in zip(*columns.values())]
+
+
+def happenings(path: Path) -> dict:
+    """topic -> the events (``/detector/event``), decisions (``/controller/decision``) and outcomes (``/outcome``)
+    of the recording at ``path``, one dict each in the file's order, whatever its format: for tests and tools."""
+    found = {topic: [] for topic in COLUMNAR.values()}
+    _, channels, _ = read_metadata(path)
+    for topic, data in messages(path, {key: topic for key, topic in channels.items()
+                                       if topic in COLUMNAR or topic in found}):
+        if topic in COLUMNAR:
+            found[COLUMNAR[topic]] += rows_of(data)
+        else:
+            found[topic].append(data)
+    return found
+
+
 def _problem(error: BaseException) -> str:
     return f"{type(error).__name__}: {error}".strip() if not isinstance(error, Damaged) else str(error)
 
@@ -196,7 +227,8 @@ class _Replayer:
     def __init__(self, logger: RerunLogger, scenario: Scenario, origin_ns: int = 0, metres: bool = False):
         self.logger = logger
         self.origin_ns, self.scale = origin_ns, 1e6 if metres else 1.0       # point clouds' units to um
-        self.batches = metres                 # format 3
+        self.batches = metres                 # format 3 and later
+        self.columnar = False                 # format 4: events, decisions, outcomes as columns (sorted by time)
         self.waiting: list = []               # format 3: (topic, data) written before their batch's steps
         self.clouds: dict = {}                # format 3: time stamp (ns) -> points of the batch's steps
         self.rows = None                      # format 3: the batch's /cells/rows
@@ -237,10 +269,15 @@ class _Replayer:
             self.rows = data
         elif topic == MEMBRANES:
             self.clouds[data[0]] = data[1]
+        elif topic in COLUMNAR:
+            self.columnar = True
+            self.waiting += [(COLUMNAR[topic], row) for row in rows_of(data)]
         else:
             self.waiting.append((topic, data))
 
     def on_all_waiting(self):
+        if self.columnar:
+            self.waiting.sort(key=_time_of)
         for item in self.waiting:
             self.on(*item)
         self.waiting = []
@@ -249,6 +286,8 @@ class _Replayer:
         """A batch's steps in order, each with its cells and then the events, decisions and outcomes shown with it
         (those at or before its time and after the previous step's)."""
         logger, rows, waiting = self.logger, self.rows or {}, self.waiting
+        if self.columnar:            # a batch's events, then its decisions, then its outcomes: in time order
+            waiting.sort(key=_time_of)
         starts = np.concatenate([[0], np.cumsum(rows.get("count", []))]).astype(int)
         shown = 0
         for n, (time_s, step) in enumerate(zip(steps["time"], steps["step"])):

@@ -1,5 +1,9 @@
 """JSON Schemas (draft 2020-12) of vcyto's own MCAP channels: every field typed, the required ones listed, units
-in each description and in a ``unit`` annotation (SI or um as named), base64 fields marked as such."""
+in each description and in a ``unit`` annotation (SI or um as named), base64 fields marked as such.
+
+``SCHEMAS``: the channels a recording has; ``RECORDS``: a detector event, a decision and an outcome, the rows of the
+columnar ``/detector/events``, ``/controller/decisions`` and ``/outcomes`` (and the messages of format-3
+recordings, which ``vcyto.recording.replay`` reads)."""
 
 from __future__ import annotations
 
@@ -49,20 +53,9 @@ CELL = {"type": "object", "required": ["key", "type", "class", "x_um", "y_um", "
                     "items": {"type": "array", "items": {"type": "number"}, "minItems": 2, "maxItems": 2}}}}
 B64 = {"type": "string", "contentEncoding": "base64", "contentMediaType": "application/octet-stream"}
 
-SCHEMAS = {
-    "/loop/steps": _object("vcyto.LoopSteps", "the steps of a batch as columns (one entry per step)", {
-        "time": _array(TIME), "step": _array(_integer("steps (control periods) since the start")),
-        "idt": _array(_number("IDT drive (0 off, 1 on)", "1")),
-        "cells_in_channel": _array(_integer("cells the optics see")),
-        "wall_time": _array(_number("wall-clock time when the step was recorded (Unix epoch)", "s")),
-        "diagnostics": _array({"type": "object", "description": "plant figures: dt (s), physics steps, cumulative "
-                                                                "solver wall times (s, wall-clock), health"})}),
-    "/cells/rows": _object("vcyto.CellRows", "the cells in the channel at each step of a batch, as columns: the "
-                           "first count[0] rows belong to time[0], the next count[1] to time[1] ... (membranes: "
-                           "/foxglove/membranes)", {
-        "time": _array(TIME), "count": _array(_integer("rows of this step")),
-        **{name: _array(schema) for name, schema in CELL["properties"].items()
-           if name not in ("fate", "membrane_um")}}),
+# the records of events, decisions and outcomes: one message each in recordings of format 3, the rows of their
+# columnar channels since format 4
+RECORDS = {
     "/detector/event": _object("vcyto.DetectorEvent", "a cell's passage through the detection window", {
         "event_id": _integer("event number"), "time": _number("when the cell left the window", "s"),
         "fluorescence": _number("measured fluorescence", "a.u."),
@@ -87,6 +80,29 @@ SCHEMAS = {
         "area_restored": _number("area the projection restored over its transit / initial area (vcyto.restored); "
                                  "null without a membrane", "1", nullable=True),
         "time": _number("when its leaving was shown", "s")}, optional=("class", "time", "area_restored")),
+}
+
+
+def _columnar(title: str, description: str, record: dict) -> dict:
+    """A channel of ``record``'s fields as columns, one entry per record of a batch (every field required)."""
+    return _object(title, f"{description}, as columns (one entry per record of a batch)",
+                   {name: _array(schema) for name, schema in record["properties"].items()})
+
+
+SCHEMAS = {
+    "/loop/steps": _object("vcyto.LoopSteps", "the steps of a batch as columns (one entry per step)", {
+        "time": _array(TIME), "step": _array(_integer("steps (control periods) since the start")),
+        "idt": _array(_number("IDT drive (0 off, 1 on)", "1")),
+        "cells_in_channel": _array(_integer("cells the optics see")),
+        "wall_time": _array(_number("wall-clock time when the step was recorded (Unix epoch)", "s")),
+        "diagnostics": _array({"type": "object", "description": "plant figures: dt (s), physics steps, cumulative "
+                                                                "solver wall times (s, wall-clock), health"})}),
+    "/cells/rows": _object("vcyto.CellRows", "the cells in the channel at each step of a batch, as columns: the "
+                           "first count[0] rows belong to time[0], the next count[1] to time[1] ... (membranes: "
+                           "/foxglove/membranes)", {
+        "time": _array(TIME), "count": _array(_integer("rows of this step")),
+        **{name: _array(schema) for name, schema in CELL["properties"].items()
+           if name not in ("fate", "membrane_um")}}),
     "/flow/velocity": _object("vcyto.FlowField", "velocity and pressure at the mesh vertices, rows of constant y", {
         "time": TIME, "shape": {"type": "array", "items": {"type": "integer"}, "minItems": 2, "maxItems": 2,
                                 "description": "(rows, columns) of the vertex grid"},
@@ -96,4 +112,9 @@ SCHEMAS = {
                        "unit": "m/s"},
         "vy_f32_b64": {**B64, "description": "y velocity (m/s), little-endian float32", "unit": "m/s"},
         "p_f32_b64": {**B64, "description": "pressure (Pa), little-endian float32", "unit": "Pa"}}),
+    "/detector/events": _columnar("vcyto.DetectorEvents", "the detector events of a batch",
+                                  RECORDS["/detector/event"]),
+    "/controller/decisions": _columnar("vcyto.Decisions", "the controller's decisions of a batch (made or revised)",
+                                       RECORDS["/controller/decision"]),
+    "/outcomes": _columnar("vcyto.Outcomes", "the cells that left the channel in a batch", RECORDS["/outcome"]),
 }

@@ -457,6 +457,17 @@ def test_the_messages_written_as_bytes_are_those_the_protobuf_classes_serialise(
         assert foxglove.log_line(unix_ns, label, level) == foxglove.log(unix_ns, label, level).SerializeToString()
 
 
+@settings(max_examples=300, deadline=None)
+@given(value=st.one_of(st.integers(0, 2**64 - 1), st.sampled_from([2**k + d for k in (7, 14, 21, 28, 35, 63)
+                                                                  for d in (-1, 0)])))
+def test_a_varint_is_protobufs(value):
+    """Each of ``protowire.varint``'s branches (1 to 5 bytes, then any length) writes protobuf's varint."""
+    from google.protobuf.internal.encoder import _VarintBytes
+
+    from vcyto.recording.protowire import varint
+    assert varint(value) == _VarintBytes(value)
+
+
 def test_each_event_shows_with_the_newest_events_before_it_across_batches(tmp_path):
     """``device/events``: the row of each detector event holds it and the ``RECENT_EVENTS - 1`` events before it, in
     order, also where the events before it were sent in an earlier batch."""

@@ -96,7 +96,7 @@ class Membranes:
 
     def packed(self, unix_ns: int, data: bytes) -> bytes:
         """The message of points already packed as ``POINT`` rows (``centroids``)."""
-        return wire.field(1, wire.timestamp(unix_ns)) + self._fixed + wire.data(6, data)
+        return wire.stamp(1, unix_ns) + self._fixed + wire.data(6, data)
 
 
 def centroids(x_um, y_um, keys, class_ids) -> np.ndarray:
@@ -139,14 +139,14 @@ def log(unix_ns: int, text: str, level: str = "INFO") -> Log:
     return Log(timestamp=stamp(unix_ns), level=LEVELS.get(level, Log.INFO), message=text, name="vcyto")
 
 
+_LOG_LEVELS = {name: wire.integer(2, number) for name, number in LEVELS.items()}
 _LOG_NAME = wire.text(4, "vcyto")
 
 
 def log_line(unix_ns: int, text: str, level: str = "INFO") -> bytes:
     """``log``'s message, serialised, written in the wire format (a recording writes a line per event, decision
     and outcome)."""
-    return (wire.field(1, wire.timestamp(unix_ns)) + wire.integer(2, LEVELS.get(level, Log.INFO))
-            + wire.text(3, text) + _LOG_NAME)
+    return wire.stamp(1, unix_ns) + _LOG_LEVELS.get(level, _LOG_LEVELS["INFO"]) + wire.text(3, text) + _LOG_NAME
 
 
 def _colour(rgb, alpha: float = 1.0) -> Color:
@@ -202,33 +202,33 @@ def path(unix_ns: int, key: int, points_um, rgb, label: str) -> SceneEntity:
 
 class Entities:
     """The scene entities a recording writes per detector event and per cell that leaves, as serialised bytes equal
-    to ``marker``'s and ``path``'s messages, at a fraction of their cost: written in protobuf's wire format
-    (``vcyto.recording.protowire``), their constant parts serialised once by the protobuf classes, a path's points
-    as an array (the protobuf classes build a message per point)."""
+    to ``marker``'s and ``path``'s messages, at a fraction of their cost: a marker is a copy of a template with
+    its varying fields set; a path is written in protobuf's wire format (``vcyto.recording.protowire``), its
+    points as an array (the protobuf classes build a message per point)."""
 
     def __init__(self):
-        self._frame = wire.text(2, FRAME)
-        self._marker_lifetime = wire.field(4, MARKER_LIFETIME.SerializeToString())
+        self._markers: dict = {}
+        self._path_head = wire.text(2, FRAME)
         self._path_lifetime = wire.field(4, PATH_LIFETIME.SerializeToString())
         self._line_head = (wire.integer(1, LinePrimitive.LINE_STRIP) + wire.field(2, _IDENTITY.SerializeToString())
                            + wire.double(3, 0.5 * METRE))
-        self._upright = wire.field(2, _UPRIGHT.SerializeToString())
-        self._sphere_size = wire.field(2, _SPHERE.SerializeToString())
-
-    def _pose(self, x_m: float, y_m: float) -> bytes:
-        """A ``Pose`` at (x, y, 0) m, upright."""
-        return wire.field(1, wire.field(1, wire.double(1, x_m) + wire.double(2, y_m)) + self._upright)
-
-    def _label(self, x_m: float, y_m: float, label: str, rgb: tuple) -> bytes:
-        """``_text``'s label at (x, y) m, as the ``texts`` field of an entity."""
-        return wire.field(13, self._pose(x_m, y_m) + _label_style(rgb) + wire.text(6, label))
+        self._label_template = _text(0.0, 0.0, "x")
 
     def marker(self, unix_ns: int, entity_id: str, x_um: float, y_um: float, rgb, label: str) -> bytes:
-        rgb = tuple(int(value) for value in rgb)
-        x_m = x_um * METRE
-        sphere = self._pose(x_m, y_um * METRE) + self._sphere_size + wire.field(3, _colour_bytes(rgb, 0.8))
-        return (wire.field(1, wire.timestamp(unix_ns)) + self._frame + wire.text(3, entity_id)
-                + self._marker_lifetime + wire.field(9, sphere) + self._label(x_m, (y_um + 5.0) * METRE, label, rgb))
+        template = self._markers.get(rgb)           # by the colour as given (a class colour: a tuple)
+        if template is None:
+            template = self._markers[tuple(rgb)] = marker(0, "", 0.0, 0.0, tuple(int(value) for value in rgb), "x")
+        entity = SceneEntity()
+        entity.CopyFrom(template)
+        entity.timestamp.seconds, entity.timestamp.nanos = divmod(unix_ns, 1_000_000_000)
+        entity.id = entity_id
+        position = entity.spheres[0].pose.position
+        position.x, position.y = x_um * METRE, y_um * METRE
+        text = entity.texts[0]
+        position = text.pose.position
+        position.x, position.y = x_um * METRE, (y_um + 5.0) * METRE
+        text.text = label
+        return entity.SerializeToString()
 
     def path(self, unix_ns: int, key: int, points_um, rgb, label: str) -> bytes:
         return self.paths([(unix_ns, key, points_um, rgb, label)])[0]
@@ -242,14 +242,19 @@ class Entities:
         every = np.concatenate(shapes) * METRE
         packed = wire.points(5, every)
         size = wire.POINT3_BYTES if len(packed) == len(every) * wire.POINT3_BYTES else None    # else: +0.0s
-        last = every[np.asarray(ends) - 1].tolist()
         entities, start = [], 0
-        for (unix_ns, key, _, rgb, label), end, (x_m, y_m) in zip(items, ends, last):
+        for (unix_ns, key, _, rgb, label), points, end in zip(items, shapes, ends):
             rgb = tuple(int(value) for value in rgb)
             line = (self._line_head + (packed[start * size:end * size] if size else wire.points(5, every[start:end]))
                     + wire.field(6, _colour_bytes(rgb, 1.0)))
-            entities.append(wire.field(1, wire.timestamp(unix_ns)) + self._frame + wire.text(3, f"path/{key}")
-                            + self._path_lifetime + wire.field(11, line) + self._label(x_m, y_m, label, rgb))
+            text = TextPrimitive()
+            text.CopyFrom(self._label_template)
+            position = text.pose.position
+            position.x, position.y = every[end - 1].tolist()
+            text.text = label
+            text.color.CopyFrom(_colours(rgb, 1.0))
+            entities.append(wire.stamp(1, unix_ns) + self._path_head + wire.text(3, f"path/{key}")
+                            + self._path_lifetime + wire.field(11, line) + wire.field(13, text.SerializeToString()))
             start = end
         return entities
 
@@ -263,13 +268,6 @@ class Entities:
 def _colour_bytes(rgb: tuple, alpha: float) -> bytes:
     return _colours(rgb, alpha).SerializeToString()
 
-
-@functools.lru_cache(maxsize=256)
-def _label_style(rgb: tuple) -> bytes:
-    """Fields 2-5 of ``_text``'s label (billboard, font size, scale invariance, colour), serialised."""
-    styled = _text(0.0, 0.0, "", rgb)
-    styled.ClearField("pose")
-    return styled.SerializeToString()
 
 
 def speed_grid(payload: dict, pixel_um: float) -> np.ndarray:

@@ -33,6 +33,9 @@ def varint(value: int) -> bytes:
         return bytes((value & 0x7F | 0x80, value >> 7 & 0x7F | 0x80, value >> 14))
     if value < 0x10000000:
         return bytes((value & 0x7F | 0x80, value >> 7 & 0x7F | 0x80, value >> 14 & 0x7F | 0x80, value >> 21))
+    if value < 0x800000000:                      # a timestamp's nanoseconds or seconds
+        return bytes((value & 0x7F | 0x80, value >> 7 & 0x7F | 0x80, value >> 14 & 0x7F | 0x80,
+                      value >> 21 & 0x7F | 0x80, value >> 28))
     out = bytearray()
     while value >= 0x80:
         out.append((value & 0x7F) | 0x80)
@@ -75,6 +78,14 @@ def timestamp(unix_ns: int) -> bytes:
     """A ``google.protobuf.Timestamp`` (seconds 1, nanos 2) of a time in ns since the epoch (>= 0)."""
     seconds, nanos = divmod(unix_ns, 1_000_000_000)
     return _seconds(seconds) + integer(2, nanos)
+
+
+def stamp(number: int, unix_ns: int) -> bytes:
+    """``timestamp(unix_ns)`` as field ``number`` (< 16) of its message: ``field(number, timestamp(unix_ns))`` in
+    fewer calls (a recording writes one per step and per log line)."""
+    seconds, nanos = divmod(unix_ns, 1_000_000_000)
+    body = _seconds(seconds) + (b"\x10" + varint(nanos) if nanos else b"")
+    return bytes((number << 3 | LENGTH, len(body))) + body       # the body: at most 16 bytes
 
 
 @functools.lru_cache(maxsize=4)

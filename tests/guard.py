@@ -23,6 +23,7 @@ HEAVY = {
     "vcyto.sweep": ["run_sweep", "executor"],
     "vcyto.studies.calibrate": ["make_calibration_plant", "calibrate"],
     "vcyto.bench.sort": ["bench_sort"],
+    "vcyto.bench.recorders": ["bench_recorders"],
     "vcyto.bench.controller": ["bench_controller"],
     "vcyto.bench.sweep": ["bench_sweep"],
     "vcyto.bench.realtime": ["bench_realtime"],

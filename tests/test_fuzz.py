@@ -60,6 +60,7 @@ OTHER_COMMANDS = {
     ("bench", "coupling"): ["--steps", "--repeats", "--dt", "--mesh-h"],
     ("bench", "sweep"): ["--workers", "--repeats"],
     ("bench", "sort"): ["--counts", "--rate", "--seed"],
+    ("bench", "recorders"): ["--count", "--rate", "--repeats", "--seed"],
     ("calibrate", "--output", ""): ["--model", "--pulse", "--lead", "--pulse-range", "--pulse-step", "--lead-step",
                                     "--offset-step", "--offset-range", "--resolution", "--controller", "--gate"],
     ("sweep", "SPEC"): ["--workers", "--chunk", "--scheduler"],

@@ -130,6 +130,23 @@ def _sort_parser(targets):
     sort_bench.set_defaults(handler=command_bench)
 
 
+def _recorders_parser(targets):
+    recorders_bench = targets.add_parser("recorders", help="where a recorded event's time goes on rom: the loop, "
+                                                           "the loop shown to a recording, the MCAP and Rerun "
+                                                           "recorders, each as CPU time per event")
+    scenario_options(recorders_bench)
+    recorders_bench.add_argument("--count", type=Integer(low=1, high=10_000_000), default="20000",
+                                 help="cells offered (default 20000: about 10,000 events)")
+    recorders_bench.add_argument("--rate", type=Quantity("frequency", "Hz", low=0, low_open=True), default="2000",
+                                 help="offered rate, cells/s (default 2000: about 1000 events/s after the dead time)")
+    recorders_bench.add_argument("--repeats", type=Integer(low=1, high=100), default="3",
+                                 help="runs of each part; the median (default 3)")
+    recorders_bench.add_argument("--seed", type=Integer(low=0, high=2**63 - 1), default="3",
+                                 help="random seed (default 3)")
+    output_options(recorders_bench)
+    recorders_bench.set_defaults(handler=command_bench)
+
+
 def _poisson_stream_options(parser, mix: str, duration_help: str):
     """The options of a benchmark that runs the rom loop on a Poisson stream: rate, duration, mix, repeats, seed."""
     parser.add_argument("--rate", type=Quantity("frequency", "Hz", low=0, low_open=True), default="1000",
@@ -306,6 +323,13 @@ def _process(args, scenario, progress):
     return result, process.process_lines(result)
 
 
+def _recorders(args, scenario, progress):
+    from ..bench import recorders
+    check_cells_fit(scenario, ["RBC", "melanoma"])
+    result = recorders.bench_recorders(scenario, args.count, args.rate, args.repeats, args.seed, progress)
+    return result, recorders.report_lines(result)
+
+
 def _sort(args, scenario, progress):
     from sim.model.arrivals import MAX_COUNT
 
@@ -381,6 +405,7 @@ TARGETS = {
     "sweep": Target(_sweep_parser, _sweep, scenario=False),
     "process": Target(_process_parser, _process, scenario=False),
     "sort": Target(_sort_parser, _sort),
+    "recorders": Target(_recorders_parser, _recorders),
     "realtime": Target(_realtime_parser, _realtime),
     "wire": Target(_wire_parser, _wire),
     "controller": Target(_controller_parser, _controller, scenario=False),

@@ -21,12 +21,13 @@ import numpy as np
 
 VARINT, FIXED64, LENGTH = 0, 1, 2
 _DOUBLE = struct.Struct("<d")
+_BYTE = [bytes((value,)) for value in range(0x80)]      # the one-byte varints
 
 
 def varint(value: int) -> bytes:
     """A non-negative integer as a varint (7 bits a byte, lowest first, the high bit set on all but the last)."""
     if value < 0x80:
-        return bytes((value,))
+        return _BYTE[value]
     if value < 0x4000:
         return bytes((value & 0x7F | 0x80, value >> 7))
     if value < 0x200000:
@@ -45,13 +46,15 @@ def varint(value: int) -> bytes:
 
 
 def key(number: int, wire_type: int) -> bytes:
-    return varint(number << 3 | wire_type)
+    tag = number << 3 | wire_type
+    return _BYTE[tag] if tag < 0x80 else varint(tag)
 
 
 def field(number: int, data: bytes) -> bytes:
     """A length-delimited field: a string, bytes or a nested message's serialisation (written even when empty: a
     nested message that is present)."""
-    return key(number, LENGTH) + varint(len(data)) + data
+    tag, size = number << 3 | LENGTH, len(data)
+    return ((_BYTE[tag] if tag < 0x80 else varint(tag)) + (_BYTE[size] if size < 0x80 else varint(size))) + data
 
 
 def text(number: int, value: str) -> bytes:

@@ -116,14 +116,19 @@ def _process_parser(targets):
     process_bench.set_defaults(handler=command_bench)
 
 
+def _sort_stream_options(parser):
+    """The offered rate and the seed of `bench sort`'s stream (Poisson, the inlet's dead time)."""
+    parser.add_argument("--rate", type=Quantity("frequency", "Hz", low=0, low_open=True), default="2000",
+                        help="offered rate, cells/s (default 2000: about 1000 events/s after the dead time)")
+    parser.add_argument("--seed", type=Integer(low=0, high=2**63 - 1), default="3", help="random seed (default 3)")
+
+
 def _sort_parser(targets):
     sort_bench = targets.add_parser("sort", help="long rom sorting runs with recording: loop cost per event, "
                                                  "linearity in run length, peak memory, file sizes")
     scenario_options(sort_bench)
     sort_bench.add_argument("--counts", default="1000,10000", help="cells offered per run (default 1000,10000)")
-    sort_bench.add_argument("--rate", type=Quantity("frequency", "Hz", low=0, low_open=True), default="2000",
-                            help="offered rate, cells/s (default 2000: about 1000 events/s after the dead time)")
-    sort_bench.add_argument("--seed", type=Integer(low=0, high=2**63 - 1), default="3", help="random seed (default 3)")
+    _sort_stream_options(sort_bench)
     sort_bench.add_argument("--no-record", action="store_true", help="no MCAP and no Rerun")
     sort_bench.add_argument("--no-rerun", action="store_true", help="MCAP only")
     output_options(sort_bench)
@@ -137,12 +142,9 @@ def _recorders_parser(targets):
     scenario_options(recorders_bench)
     recorders_bench.add_argument("--count", type=Integer(low=1, high=10_000_000), default="20000",
                                  help="cells offered (default 20000: about 10,000 events)")
-    recorders_bench.add_argument("--rate", type=Quantity("frequency", "Hz", low=0, low_open=True), default="2000",
-                                 help="offered rate, cells/s (default 2000: about 1000 events/s after the dead time)")
     recorders_bench.add_argument("--repeats", type=Integer(low=1, high=100), default="3",
                                  help="runs of each part; the median (default 3)")
-    recorders_bench.add_argument("--seed", type=Integer(low=0, high=2**63 - 1), default="3",
-                                 help="random seed (default 3)")
+    _sort_stream_options(recorders_bench)
     output_options(recorders_bench)
     recorders_bench.set_defaults(handler=command_bench)
 

@@ -29,6 +29,7 @@ SCHEMA = pa.schema([
 ])
 PAIRS = {"pulse_ms": ("pulse_on_ms", "pulse_off_ms"), "area_ratio_range": ("area_ratio_min", "area_ratio_max"),
          "spacing_over_h": ("spacing_min_h", "spacing_max_h")}
+_SINGLE = tuple(name for name in SCHEMA.names if not any(name in pair for pair in PAIRS.values()))
 
 
 def flat(record: dict) -> dict:
@@ -49,7 +50,9 @@ def record_of(row: dict) -> dict:
 
 
 class CellTable:
-    """Rows appended as cells leave, written a row group at a time to ``path`` (created or truncated)."""
+    """Rows appended as cells leave, written a row group at a time to ``path`` (created or truncated). The rows
+    not yet written are kept as columns (a list per column of the table: ``flat`` of each record, without building
+    a dict per row)."""
 
     def __init__(self, path: Path, rows_per_group: int = ROWS_PER_GROUP):
         from .arrowshim import ready_pyarrow
@@ -58,7 +61,8 @@ class CellTable:
         self.failed = False
         self._writer = None
         self._writer = self._guarded(pq.ParquetWriter, str(self.path), SCHEMA, compression="zstd")
-        self._rows: list[dict] = []
+        self._columns: dict[str, list] = {name: [] for name in SCHEMA.names}
+        self._pending = 0                      # rows in ``_columns``
         self.rows_per_group = rows_per_group
         self.written = 0
 
@@ -73,10 +77,18 @@ class CellTable:
             raise OSError(number, os.strerror(number), str(self.path)) from None
 
     def append(self, record: dict):
+        """One per-cell record as a row (``flat``: its pairs split, a name it lacks null)."""
         if self.failed:
             return
-        self._rows.append(flat(record))
-        if len(self._rows) >= self.rows_per_group:
+        columns = self._columns
+        for name in _SINGLE:
+            columns[name].append(record.get(name))
+        for pair, (low, high) in PAIRS.items():
+            values = record.get(pair)
+            columns[low].append(values[0] if values else None)
+            columns[high].append(values[1] if values else None)
+        self._pending += 1
+        if self._pending >= self.rows_per_group:
             self._write()
 
     def append_columns(self, columns: dict, count: int):
@@ -99,10 +111,10 @@ class CellTable:
         self.written += count
 
     def _write(self):
-        if self._rows and not self.failed:
-            self._guarded(self._writer.write_table, pa.Table.from_pylist(self._rows, schema=SCHEMA))
-            self.written += len(self._rows)
-            self._rows = []
+        if self._pending and not self.failed:
+            self._guarded(self._writer.write_table, pa.Table.from_pydict(self._columns, schema=SCHEMA))
+            self.written += self._pending
+            self._columns, self._pending = {name: [] for name in SCHEMA.names}, 0
 
     def close(self):
         if self._writer is not None:

@@ -68,6 +68,7 @@ SORTS_KEPT = 1 << 12           # sorts in effect above which those past SORT_HOR
 TRANSIT_CELLS = 1 << 16        # the yield estimate's transit times: of the sample's first cells (by key); full
                                # after 65,536 cells, so that a 10^5-event run and a longer one hold the same
 STRETCH = 1 << 16              # cells never injected, recorded at the end a stretch at a time
+ARRIVAL_BLOCK = 1 << 12        # admitted cells whose arrivals the report reads at a time (``ArrivalReader``)
 
 
 class SortLedger:
@@ -103,6 +104,8 @@ class SortLedger:
         self._below = 0                    # every key below it recorded
         self._recorded: set = set()        # keys at or above ``_below`` recorded (cells that overtook others)
         self._due = self._not_due = 0
+        self._arrivals = ArrivalReader(sample.admitted)
+        self._classes: dict = {}           # type name -> its true class
 
     # --- what the loop shows ----------------------------------------------------------------------------
     def on_step(self, record):
@@ -151,9 +154,9 @@ class SortLedger:
             self._below += 1
         event = self._events.pop(key, None)
         decision = self._decisions.pop(event.event_id, None) if event is not None else None
-        arrival, name = self.sample.admitted[key]
+        arrival, name = self._arrivals[key]
         predicted = self.predicted_arrival(event) if event is not None else None
-        record = cell_record(key, arrival, name, cell, event, decision, predicted, self.scenario)
+        record = cell_record(key, arrival, name, cell, event, decision, predicted, self.scenario, self._classes)
         if record["reason"]:
             record["reason"] = name_cells(record["reason"], self._keys)
         due = not partial or record["arrival_ms"] <= self.time * 1e3 or record["outlet"] != "not_injected"
@@ -275,6 +278,34 @@ def _coincidence_possible(settings) -> bool:
     return settings.arrivals.min_spacing < 1.02 * max(-low, high)
 
 
+class ArrivalReader:
+    """The arrival (time in s, type name) of an admitted cell by key, read from the sample ``ARRIVAL_BLOCK`` cells at a
+    time where it gives arrays (``sim.model.arrivals.Drawn`` or ``Cells``: one look-up of the sample per block, not
+    per cell), else by indexing it. The cells leave nearly in key order: the two blocks read last are kept."""
+
+    def __init__(self, admitted, block: int = ARRIVAL_BLOCK):
+        self.admitted, self.block = admitted, block
+        self._arrays = getattr(admitted, "arrays", None) if isinstance(admitted, (Drawn, Cells)) else None
+        self._blocks: dict = {}            # block index -> (times, names) as lists
+
+    def __getitem__(self, key: int) -> tuple:
+        if self._arrays is None or key < 0:
+            return self.admitted[key]
+        number, offset = divmod(key, self.block)
+        block = self._blocks.get(number)
+        if block is None:
+            times, kinds = self._arrays(number * self.block, (number + 1) * self.block)
+            names = self.admitted.names
+            block = (times.tolist(), [names[kind] for kind in kinds.tolist()])
+            if len(self._blocks) >= 2:
+                del self._blocks[next(iter(self._blocks))]
+            self._blocks[number] = block
+        times, names = block
+        if offset >= len(times):
+            raise IndexError("cell index out of range")
+        return times[offset], names[offset]
+
+
 class RecentKeys:
     """The cells (keys) of the latest ``EVENT_NAMES`` detector events, by event id: a ring of two arrays, set up
     whole at the start, so that what it holds does not depend on the run's length. Reads as a dict's ``get``; an
@@ -306,15 +337,22 @@ def name_cells(text: str, keys_by_event) -> str:
     return _EVENT.sub(lambda found: f"{found.group(0)} (cell {keys_by_event.get(int(found.group(1)), '?')})", text)
 
 
-def cell_record(key, arrival, name, cell, event, decision, predicted_arrival, scenario) -> dict:
+def cell_record(key, arrival, name, cell, event, decision, predicted_arrival, scenario, classes=None) -> dict:
     """A cell's record: its arrival (s) and type, its truth (None: never injected), its detector event and the
-    controller's decision on it (or None), the predicted arrival at the SAW window (s)."""
+    controller's decision on it (or None), the predicted arrival at the SAW window (s). ``classes``: a dict the
+    caller keeps of each type's true class, filled as types are met (None: looked up each time)."""
     if cell is None:
         outlet = "not_injected"
     else:
         outlet = cell.fate
+    if classes is None:
+        cell_class = true_class(scenario.cell_type(name))
+    else:
+        cell_class = classes.get(name)
+        if cell_class is None:
+            cell_class = classes[name] = true_class(scenario.cell_type(name))
     record = {
-        "key": key, "type": name, "true_class": true_class(scenario.cell_type(name)), "arrival_ms": arrival * 1e3,
+        "key": key, "type": name, "true_class": cell_class, "arrival_ms": arrival * 1e3,
         "event_id": event.event_id if event else None,
         "detected_class": event.classification if event else None,
         "detection_time_ms": event.time * 1e3 if event else None,

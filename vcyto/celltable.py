@@ -10,6 +10,7 @@ with its length; pandas (``read_parquet``), polars and pyarrow read the file.
 
 from __future__ import annotations
 
+import operator
 import os
 from pathlib import Path
 
@@ -30,6 +31,7 @@ SCHEMA = pa.schema([
 PAIRS = {"pulse_ms": ("pulse_on_ms", "pulse_off_ms"), "area_ratio_range": ("area_ratio_min", "area_ratio_max"),
          "spacing_over_h": ("spacing_min_h", "spacing_max_h")}
 _SINGLE = tuple(name for name in SCHEMA.names if not any(name in pair for pair in PAIRS.values()))
+_ROW = operator.itemgetter(*_SINGLE, *PAIRS)        # a whole record's values, in one call
 
 
 def flat(record: dict) -> dict:
@@ -62,6 +64,8 @@ class CellTable:
         self._writer = None
         self._writer = self._guarded(pq.ParquetWriter, str(self.path), SCHEMA, compression="zstd")
         self._columns: dict[str, list] = {name: [] for name in SCHEMA.names}
+        self._single = [self._columns[name] for name in _SINGLE]
+        self._pairs = [(self._columns[low], self._columns[high]) for low, high in PAIRS.values()]
         self._pending = 0                      # rows in ``_columns``
         self.rows_per_group = rows_per_group
         self.written = 0
@@ -80,13 +84,16 @@ class CellTable:
         """One per-cell record as a row (``flat``: its pairs split, a name it lacks null)."""
         if self.failed:
             return
-        columns = self._columns
-        for name in _SINGLE:
-            columns[name].append(record.get(name))
-        for pair, (low, high) in PAIRS.items():
-            values = record.get(pair)
-            columns[low].append(values[0] if values else None)
-            columns[high].append(values[1] if values else None)
+        try:
+            values = _ROW(record)
+        except KeyError:                       # a record without some of the names: nulls there
+            values = tuple(record.get(name) for name in (*_SINGLE, *PAIRS))
+        single = len(_SINGLE)
+        for column, value in zip(self._single, values):
+            column.append(value)
+        for (low, high), pair in zip(self._pairs, values[single:]):
+            low.append(pair[0] if pair else None)
+            high.append(pair[1] if pair else None)
         self._pending += 1
         if self._pending >= self.rows_per_group:
             self._write()
@@ -114,7 +121,9 @@ class CellTable:
         if self._pending and not self.failed:
             self._guarded(self._writer.write_table, pa.Table.from_pydict(self._columns, schema=SCHEMA))
             self.written += self._pending
-            self._columns, self._pending = {name: [] for name in SCHEMA.names}, 0
+            for column in self._columns.values():      # emptied in place (``_single`` and ``_pairs`` hold them)
+                column.clear()
+            self._pending = 0
 
     def close(self):
         if self._writer is not None:

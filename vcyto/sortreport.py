@@ -114,8 +114,13 @@ class SortLedger:
             self.event(event)
         for decision in record.decisions:
             self.decision(decision)
-        for cell in record.truth.cells:
-            self.cell(cell)
+        inside = self._inside
+        for cell in record.truth.cells:          # ``cell`` of each, inline (a few cells a step, every step)
+            if cell.fate == "in_channel":
+                inside[cell.key] = cell
+            else:
+                inside.pop(cell.key, None)
+                self._record(cell.key, cell)
         if self.checkpoint is not None and self.checkpoint.due():
             self.checkpoint.write(self)
 
@@ -368,7 +373,7 @@ def cell_record(key, arrival, name, cell, event, decision, predicted_arrival, sc
         "exit_time_ms": cell.exit_time * 1e3 if cell and math.isfinite(cell.exit_time) else None,
         "exit_y_um": cell.exit_y * 1e6 if cell and math.isfinite(cell.exit_y) else None,
         "area_ratio": cell.area_ratio if cell else None,
-        **_shape_summary(cell.measures if cell else None),
+        **(_shape_summary(cell.measures) if cell and cell.measures else _NO_SHAPE),
     }
     record["outcome"] = outcome_class(record)
     return record
@@ -381,10 +386,13 @@ def _controller_record(settings) -> dict:
             "enabled": settings.enabled}
 
 
+_NO_SHAPE = {"area_ratio_range": None, "spacing_over_h": None, "area_corrected": None}
+
+
 def _shape_summary(measures: dict | None) -> dict:
     """Area kept over the transit and the band of point spacings (FE-IB cells; None for point-like models)."""
     if not measures:
-        return {"area_ratio_range": None, "spacing_over_h": None, "area_corrected": None}
+        return dict(_NO_SHAPE)
     return {"area_ratio_range": [measures["area_ratio_min"], measures["area_ratio_max"]],
             "spacing_over_h": [measures["spacing_lowest"], measures["spacing_highest"]],
             "area_corrected": measures["area_corrected"]}

@@ -177,8 +177,9 @@ def test_the_cell_table_keeps_columns_that_make_the_rows_of_flat_records(tmp_pat
     a name missing or None null, across row groups and a write of columns between rows."""
     import pyarrow as pa
     records = [{"key": k, "type": "RBC", "true_class": "I", "arrival_ms": 0.5 * k,
-                "decision": "sort" if k % 3 else None, "pulse_ms": [k, k + 0.4] if k % 3 else None, "area_ratio_range": [0.99, 1.0] if k % 2 else None,
-                "outlet": "upper", "exit_time_ms": None if k % 5 else 2.0 * k, "outcome": "sorted"}
+                "decision": "sort" if k % 3 else None, "pulse_ms": [k, k + 0.4] if k % 3 else None,
+                "area_ratio_range": [0.99, 1.0] if k % 2 else None, "outlet": "upper",
+                "exit_time_ms": None if k % 5 else 2.0 * k, "outcome": "sorted"}
                for k in range(23)]
     records[4] = {"key": 4}                                   # a record with most names missing
     table = celltable.CellTable(tmp_path / "t.parquet", rows_per_group=5)

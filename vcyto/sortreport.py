@@ -312,27 +312,27 @@ class ArrivalReader:
 
 
 class RecentKeys:
-    """The cells (keys) of the latest ``EVENT_NAMES`` detector events, by event id: a ring of two arrays, set up
+    """The cells (keys) of the latest ``EVENT_NAMES`` detector events, by event id: a ring of two lists, set up
     whole at the start, so that what it holds does not depend on the run's length. Reads as a dict's ``get``; an
     event older than the latest ``EVENT_NAMES`` ids is not known."""
 
     def __init__(self, size: int | None = None):
         size = size or EVENT_NAMES
-        self._events = np.full(size, -1, dtype=np.int64)
-        self._keys = np.zeros(size, dtype=np.int64)
+        self._events = [-1] * size
+        self._keys = [0] * size
         self._filled = 0
 
     def __setitem__(self, event_id: int, key: int):
         slot = event_id % len(self._events)
-        self._filled += int(self._events[slot] < 0)
-        self._events[slot], self._keys[slot] = event_id, key
+        self._filled += self._events[slot] < 0
+        self._events[slot], self._keys[slot] = int(event_id), int(key)
 
     def get(self, event_id: int, default=None):
         slot = event_id % len(self._events)
-        return int(self._keys[slot]) if self._events[slot] == event_id else default
+        return self._keys[slot] if self._events[slot] == event_id else default
 
     def __len__(self) -> int:
-        return int(self._filled)
+        return self._filled
 
 
 def name_cells(text: str, keys_by_event) -> str:

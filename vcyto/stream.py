@@ -415,9 +415,14 @@ def _peak_rss_mb() -> float | None:
     return peak / 1024 if sys.platform != "darwin" else peak / 2**20
 
 
-def _sightings(observation) -> list[Sighting]:
-    """What the detector sees of an observation's cells (a plant's own views are kept: they are frozen)."""
-    return [c if type(c) is Sighting else Sighting(c.key, c.x, c.y, c.area, c.brightness) for c in observation.cells]
+def _sightings(observation):
+    """What the detector sees of an observation's cells: its own sequence when they are all the plant contract's views
+    (frozen), else each as one."""
+    cells = observation.cells
+    for c in cells:
+        if type(c) is not Sighting:
+            return [c if type(c) is Sighting else Sighting(c.key, c.x, c.y, c.area, c.brightness) for c in cells]
+    return cells
 
 
 def _field_payload(plant):

@@ -450,7 +450,7 @@ class RomPlant:
 
     def take_trace(self):
         """(period index, key, (x, y)) rows traced since the last call, as arrays (copies), in time order."""
-        rows = int(self._counters[kernels.TRACED])
+        rows = self._counters.item(kernels.TRACED)
         self._counters[kernels.TRACED] = 0
         return (self._trace_step[:rows].copy(), self._trace_key[:rows] + self._base,
                 self._trace_positions[:rows].copy())
@@ -469,7 +469,7 @@ class RomPlant:
 
     def _crossings(self) -> list[Observation]:
         """The partial observations of the cells whose crossings the last ``step_until`` logged."""
-        logged = int(self._counters[kernels.LOGGED])
+        logged = self._counters.item(kernels.LOGGED)
         if not logged:
             return []
         seen = []                                   # (period, key, x, y): before and after each logged crossing
@@ -494,12 +494,12 @@ class RomPlant:
 
     @property
     def time(self) -> float:
-        return int(self._counters[kernels.STEP]) * self.control_period
+        return self._counters.item(kernels.STEP) * self.control_period     # item: a Python int
 
     @property
     def done(self) -> bool:
-        return (self._base + int(self._counters[kernels.NEXT]) == self._count
-                and int(self._counters[kernels.ACTIVE]) == 0)
+        counters = self._counters
+        return self._base + counters.item(kernels.NEXT) == self._count and counters.item(kernels.ACTIVE) == 0
 
     def observe(self) -> Observation:
         step, _, first, *_ = counters = self._counters.tolist()
@@ -522,7 +522,7 @@ class RomPlant:
         """Ground truth of the cells in the channel and of those that settled since the previous call (each
         settled cell once); its cost depends on the cells in the channel, not on how many have passed."""
         base = self._base
-        start, upto = self._unreported, base + int(self._counters[kernels.NEXT])
+        start, upto = self._unreported, base + self._counters.item(kernels.NEXT)
         cells, reported, names, fates = [], self._reported, self._names, self._fate_names
         window = slice(start - base, upto - base)   # read in bulk: one conversion per array, not per value
         for i, code, kind, born, exit_time, exit_y, (x, y) in zip(

@@ -55,17 +55,18 @@ class Detector:
 
     def observe(self, time: float, sightings: list[Sighting]) -> list[DetectorEvent]:
         start, end = self.settings.window
-        events = []
+        events, passages, previous = [], self._passages, self._previous
         for sighting in sightings:
-            before = self._previous.get(sighting.key)
-            if sighting.key not in self._passages and sighting.x >= start and (before is None or before[1] < start):
-                self._passages[sighting.key] = self._enter(time, sighting, before, start)
-            passage = self._passages.get(sighting.key)
-            if passage is not None and not passage.emitted and sighting.x >= end:
-                crossing = self._crossing_time(before, (time, sighting.x), end)
-                events.append(self._emit(sighting.key, crossing, passage))
+            key, x = sighting.key, sighting.x
+            before = previous.get(key)
+            passage = passages.get(key)
+            if passage is None and x >= start and (before is None or before[1] < start):
+                passage = passages[key] = self._enter(time, sighting, before, start)
+            if passage is not None and not passage.emitted and x >= end:
+                crossing = self._crossing_time(before, (time, x), end)
+                events.append(self._emit(key, crossing, passage))
                 passage.emitted = True
-            self._previous[sighting.key] = (time, sighting.x)
+            previous[key] = (time, x)
         return events
 
     def forget(self, keys):

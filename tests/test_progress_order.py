@@ -46,3 +46,23 @@ def test_a_large_sample_counts_without_per_cell_lines():
     sink = ProgressSink(notes, count=10_000)
     sink.on_step(record([event(5, 1e-3)], [cell(4, "upper", 0.5e-3)]))
     assert notes.notes == [] and "1 left, 1 detected" in notes.updates[-1]
+
+
+def test_a_bar_reads_no_plant_state_and_the_per_cell_lines_do():
+    """A long run's bar takes the events, the cells that left and the time: the loop need not look at the plant for
+    it (``needs_state`` false) and reads a record's time from a ``Moment``; the per-cell lines' status counts the
+    cells in the channel (true)."""
+    from vcyto.steps import Moment, needs_state
+
+    class Bar(Notes):
+        def run(self, total):
+            self.total = total
+
+        def advance(self, left, events, simulated_s):
+            self.updates.append((left, events, simulated_s))
+
+    bar, lines = ProgressSink(Bar(), count=10_000), ProgressSink(Notes(), count=3)
+    assert not needs_state(bar) and needs_state(lines)
+    bar.on_step(StepRecord(7, Moment(3e-3), SimpleNamespace(cells=(cell(4, "upper", 0.5e-3),)), 0.0,
+                           (event(5, 1e-3),), ()))
+    assert bar.progress.updates == [(1, 1, 3e-3)]

@@ -275,3 +275,24 @@ def test_rom_and_feib_agree_on_the_outlet_of_every_isolated_cell_scene():
             full, reduced = (run_stream(scenario, settings[model], plant=plant)["cells"][0]
                              for model, plant in (("feib", feib), ("rom", rom)))
             assert (full["decision"], full["outlet"]) == (reduced["decision"], reduced["outlet"]), (name, detector)
+
+
+def test_the_plants_fast_views_and_truths_are_the_dataclasses_own():
+    """The views, truths and observations the plant builds without the frozen dataclasses' ``__init__`` are the
+    objects it would build: equal, with the same fields in the same order, repr, pickle and immutability."""
+    import dataclasses
+    import pickle
+
+    from sim.plants import rom
+    from sim.plants.contract import CellTruth, CellView, Observation
+    made = [(rom._view(3, 1e-5, 2e-5, 3e-11, 1.0), CellView(3, 1e-5, 2e-5, 3e-11, 1.0)),
+            (rom._truth(7, "RBC", 0.1, "upper", 0.2, 1.4e-4, 3e-4, 1.4e-4),
+             CellTruth(7, "RBC", 0.1, "upper", 0.2, 1.4e-4, 3e-4, 1.4e-4, 1.0)),
+            (rom._observation(0.5, (CellView(1, 0.0, 0.0, 1.0, 0.0),)),
+             Observation(0.5, (CellView(1, 0.0, 0.0, 1.0, 0.0),)))]
+    for fast, own in made:
+        assert type(fast) is type(own) and fast == own and repr(fast) == repr(own)
+        assert list(vars(fast)) == [f.name for f in dataclasses.fields(own)] == list(vars(own))
+        assert pickle.loads(pickle.dumps(fast)) == own and hash(fast) == hash(own)
+        with pytest.raises(dataclasses.FrozenInstanceError):
+            fast.time = 0.0

@@ -148,3 +148,50 @@ def test_the_fcs_events_of_a_long_run_read_from_its_table_are_those_of_its_cells
     from_table = fcs.event_table(result)
     assert "cells" not in result and len(from_table) == result["statistics"]["events"] > 1000
     np.testing.assert_array_equal(from_table, fcs.event_table({"cells": cells}))
+
+
+@pytest.mark.parametrize("kind", ["drawn", "cells", "list"])
+def test_the_arrival_reader_reads_what_indexing_the_sample_gives(kind):
+    """``ArrivalReader`` (blocks of arrays) gives each key the (time, name) that indexing the sample gives, in the
+    nearly sorted order cells leave in and in any other, across blocks and the sample's chunks; a key past the end
+    is refused."""
+    from sim.model.arrivals import Cells, offer
+    sample = offer(Arrivals(count=3000, mix=(("RBC", 0.8), ("melanoma", 0.2)), rate=2000.0, process="poisson"),
+                   np.random.default_rng(5), chunk=700).admitted
+    if kind == "cells":
+        sample = Cells(*sample.arrays(0, len(sample)), sample.names)
+    elif kind == "list":
+        sample = list(sample)
+    reader = sortreport.ArrivalReader(sample, block=256)
+    rng = np.random.default_rng(1)
+    leaving = np.argsort(np.arange(len(sample)) + rng.normal(0, 40, len(sample)))     # a few overtake others
+    for key in [*leaving.tolist(), *rng.permutation(len(sample)).tolist()]:
+        assert reader[key] == sample[key]
+    assert len({reader[key][1] for key in range(len(sample))}) == 2
+    with pytest.raises(IndexError):
+        reader[len(sample)]
+
+
+def test_the_cell_table_keeps_columns_that_make_the_rows_of_flat_records(tmp_path):
+    """The table's rows (kept as columns, written a row group at a time) are ``flat`` of each record: pairs split,
+    a name missing or None null, across row groups and a write of columns between rows."""
+    import pyarrow as pa
+    records = [{"key": k, "type": "RBC", "true_class": "I", "arrival_ms": 0.5 * k,
+                "decision": "sort" if k % 3 else None, "pulse_ms": [k, k + 0.4] if k % 3 else None,
+                "area_ratio_range": [0.99, 1.0] if k % 2 else None, "outlet": "upper",
+                "exit_time_ms": None if k % 5 else 2.0 * k, "outcome": "sorted"}
+               for k in range(23)]
+    records[4] = {"key": 4}                                   # a record with most names missing
+    table = celltable.CellTable(tmp_path / "t.parquet", rows_per_group=5)
+    for record in records[:12]:
+        table.append(record)
+    table.append_columns({"key": np.array([100, 101]), "type": "RBC", "outlet": "not_injected"}, 2)
+    for record in records[12:]:
+        table.append(record)
+    table.close()
+    written = celltable.read_table(tmp_path / "t.parquet")
+    expected = pa.Table.from_pylist([celltable.flat(r) for r in records[:12]]
+                                    + [{"key": k, "type": "RBC", "outlet": "not_injected"} for k in (100, 101)]
+                                    + [celltable.flat(r) for r in records[12:]], schema=celltable.SCHEMA)
+    assert table.written == 25 and written.equals(expected)
+    assert written["pulse_on_ms"].to_pylist()[:3] == [None, 1.0, 2.0]

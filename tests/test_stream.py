@@ -182,3 +182,25 @@ def test_stream_command_writes_fcs_and_summary(tmp_path):
     summary = json.loads(result.stdout)
     assert [c["outlet"] for c in summary["cells"]] == ["lower", "upper"]
     assert len(list(tmp_path.glob("*.fcs"))) == 1 and len(list(tmp_path.glob("*.json"))) == 1
+
+
+def test_ready_is_called_once_between_the_set_up_and_the_first_step(scenario, streamline_plant):
+    """``run_stream(ready=...)``: called once, the plant reset to the sample and not yet stepped; the run's result is
+    the one without it."""
+    seen = []
+    settings = StreamSettings(Arrivals(cells=("RBC", "melanoma")), model="streamline")
+    result = run_stream(scenario, settings, plant=streamline_plant,
+                        ready=lambda: seen.append((streamline_plant.truth().time, streamline_plant.done)))
+    assert seen == [(0.0, False)] and result["simulated_time_ms"] > 0
+    assert outcomes(result) == outcomes(stream(scenario, streamline_plant, ("RBC", "melanoma")))
+
+
+def test_the_collector_is_settled_in_the_executables_own_process_only():
+    """``settle_collector`` leaves a Python user's collector as it is; in the executable's own process it freezes
+    what exists and collects the youngest generation less often (run in a process of its own)."""
+    code = ("import gc; from vcyto.cli import common; before = gc.get_threshold(); common.settle_collector(); "
+            "alone = gc.get_threshold() == before and gc.get_freeze_count() == 0; common.own_process(); "
+            "common.settle_collector(); print(alone, gc.get_threshold()[0] == common.COLLECTOR_THRESHOLD, "
+            "gc.get_freeze_count() > 0)")
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert done.stdout.split() == ["True", "True", "True"]

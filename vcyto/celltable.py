@@ -10,6 +10,7 @@ with its length; pandas (``read_parquet``), polars and pyarrow read the file.
 
 from __future__ import annotations
 
+import operator
 import os
 from pathlib import Path
 
@@ -29,6 +30,8 @@ SCHEMA = pa.schema([
 ])
 PAIRS = {"pulse_ms": ("pulse_on_ms", "pulse_off_ms"), "area_ratio_range": ("area_ratio_min", "area_ratio_max"),
          "spacing_over_h": ("spacing_min_h", "spacing_max_h")}
+_SINGLE = tuple(name for name in SCHEMA.names if not any(name in pair for pair in PAIRS.values()))
+_ROW = operator.itemgetter(*_SINGLE, *PAIRS)        # a whole record's values, in one call
 
 
 def flat(record: dict) -> dict:
@@ -49,7 +52,9 @@ def record_of(row: dict) -> dict:
 
 
 class CellTable:
-    """Rows appended as cells leave, written a row group at a time to ``path`` (created or truncated)."""
+    """Rows appended as cells leave, written a row group at a time to ``path`` (created or truncated). The rows
+    not yet written are kept as columns (a list per column of the table: ``flat`` of each record, without building
+    a dict per row)."""
 
     def __init__(self, path: Path, rows_per_group: int = ROWS_PER_GROUP):
         from .arrowshim import ready_pyarrow
@@ -58,7 +63,10 @@ class CellTable:
         self.failed = False
         self._writer = None
         self._writer = self._guarded(pq.ParquetWriter, str(self.path), SCHEMA, compression="zstd")
-        self._rows: list[dict] = []
+        self._columns: dict[str, list] = {name: [] for name in SCHEMA.names}
+        self._single = [self._columns[name] for name in _SINGLE]
+        self._pairs = [(self._columns[low], self._columns[high]) for low, high in PAIRS.values()]
+        self._pending = 0                      # rows in ``_columns``
         self.rows_per_group = rows_per_group
         self.written = 0
 
@@ -73,10 +81,21 @@ class CellTable:
             raise OSError(number, os.strerror(number), str(self.path)) from None
 
     def append(self, record: dict):
+        """One per-cell record as a row (``flat``: its pairs split, a name it lacks null)."""
         if self.failed:
             return
-        self._rows.append(flat(record))
-        if len(self._rows) >= self.rows_per_group:
+        try:
+            values = _ROW(record)
+        except KeyError:                       # a record without some of the names: nulls there
+            values = tuple(record.get(name) for name in (*_SINGLE, *PAIRS))
+        single = len(_SINGLE)
+        for column, value in zip(self._single, values):
+            column.append(value)
+        for (low, high), pair in zip(self._pairs, values[single:]):
+            low.append(pair[0] if pair else None)
+            high.append(pair[1] if pair else None)
+        self._pending += 1
+        if self._pending >= self.rows_per_group:
             self._write()
 
     def append_columns(self, columns: dict, count: int):
@@ -99,10 +118,12 @@ class CellTable:
         self.written += count
 
     def _write(self):
-        if self._rows and not self.failed:
-            self._guarded(self._writer.write_table, pa.Table.from_pylist(self._rows, schema=SCHEMA))
-            self.written += len(self._rows)
-            self._rows = []
+        if self._pending and not self.failed:
+            self._guarded(self._writer.write_table, pa.Table.from_pydict(self._columns, schema=SCHEMA))
+            self.written += self._pending
+            for column in self._columns.values():      # emptied in place (``_single`` and ``_pairs`` hold them)
+                column.clear()
+            self._pending = 0
 
     def close(self):
         if self._writer is not None:

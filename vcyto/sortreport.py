@@ -68,6 +68,7 @@ SORTS_KEPT = 1 << 12           # sorts in effect above which those past SORT_HOR
 TRANSIT_CELLS = 1 << 16        # the yield estimate's transit times: of the sample's first cells (by key); full
                                # after 65,536 cells, so that a 10^5-event run and a longer one hold the same
 STRETCH = 1 << 16              # cells never injected, recorded at the end a stretch at a time
+ARRIVAL_BLOCK = 1 << 12        # admitted cells whose arrivals the report reads at a time (``ArrivalReader``)
 
 
 class SortLedger:
@@ -103,6 +104,8 @@ class SortLedger:
         self._below = 0                    # every key below it recorded
         self._recorded: set = set()        # keys at or above ``_below`` recorded (cells that overtook others)
         self._due = self._not_due = 0
+        self._arrivals = ArrivalReader(sample.admitted)
+        self._classes: dict = {}           # type name -> its true class
 
     # --- what the loop shows ----------------------------------------------------------------------------
     def on_step(self, record):
@@ -111,8 +114,13 @@ class SortLedger:
             self.event(event)
         for decision in record.decisions:
             self.decision(decision)
-        for cell in record.truth.cells:
-            self.cell(cell)
+        inside = self._inside
+        for cell in record.truth.cells:          # ``cell`` of each, inline (a few cells a step, every step)
+            if cell.fate == "in_channel":
+                inside[cell.key] = cell
+            else:
+                inside.pop(cell.key, None)
+                self._record(cell.key, cell)
         if self.checkpoint is not None and self.checkpoint.due():
             self.checkpoint.write(self)
 
@@ -151,9 +159,9 @@ class SortLedger:
             self._below += 1
         event = self._events.pop(key, None)
         decision = self._decisions.pop(event.event_id, None) if event is not None else None
-        arrival, name = self.sample.admitted[key]
+        arrival, name = self._arrivals[key]
         predicted = self.predicted_arrival(event) if event is not None else None
-        record = cell_record(key, arrival, name, cell, event, decision, predicted, self.scenario)
+        record = cell_record(key, arrival, name, cell, event, decision, predicted, self.scenario, self._classes)
         if record["reason"]:
             record["reason"] = name_cells(record["reason"], self._keys)
         due = not partial or record["arrival_ms"] <= self.time * 1e3 or record["outlet"] != "not_injected"
@@ -275,28 +283,56 @@ def _coincidence_possible(settings) -> bool:
     return settings.arrivals.min_spacing < 1.02 * max(-low, high)
 
 
+class ArrivalReader:
+    """The arrival (time in s, type name) of an admitted cell by key, read from the sample ``ARRIVAL_BLOCK`` cells at a
+    time where it gives arrays (``sim.model.arrivals.Drawn`` or ``Cells``: one look-up of the sample per block, not
+    per cell), else by indexing it. The cells leave nearly in key order: the two blocks read last are kept."""
+
+    def __init__(self, admitted, block: int = ARRIVAL_BLOCK):
+        self.admitted, self.block = admitted, block
+        self._arrays = getattr(admitted, "arrays", None) if isinstance(admitted, (Drawn, Cells)) else None
+        self._blocks: dict = {}            # block index -> (times, names) as lists
+
+    def __getitem__(self, key: int) -> tuple:
+        if self._arrays is None or key < 0:
+            return self.admitted[key]
+        number, offset = divmod(key, self.block)
+        block = self._blocks.get(number)
+        if block is None:
+            times, kinds = self._arrays(number * self.block, (number + 1) * self.block)
+            names = self.admitted.names
+            block = (times.tolist(), [names[kind] for kind in kinds.tolist()])
+            if len(self._blocks) >= 2:
+                del self._blocks[next(iter(self._blocks))]
+            self._blocks[number] = block
+        times, names = block
+        if offset >= len(times):
+            raise IndexError("cell index out of range")
+        return times[offset], names[offset]
+
+
 class RecentKeys:
-    """The cells (keys) of the latest ``EVENT_NAMES`` detector events, by event id: a ring of two arrays, set up
+    """The cells (keys) of the latest ``EVENT_NAMES`` detector events, by event id: a ring of two lists, set up
     whole at the start, so that what it holds does not depend on the run's length. Reads as a dict's ``get``; an
     event older than the latest ``EVENT_NAMES`` ids is not known."""
 
     def __init__(self, size: int | None = None):
         size = size or EVENT_NAMES
-        self._events = np.full(size, -1, dtype=np.int64)
-        self._keys = np.zeros(size, dtype=np.int64)
+        self._events = [-1] * size
+        self._keys = [0] * size
         self._filled = 0
 
     def __setitem__(self, event_id: int, key: int):
         slot = event_id % len(self._events)
-        self._filled += int(self._events[slot] < 0)
-        self._events[slot], self._keys[slot] = event_id, key
+        self._filled += self._events[slot] < 0
+        self._events[slot], self._keys[slot] = int(event_id), int(key)
 
     def get(self, event_id: int, default=None):
         slot = event_id % len(self._events)
-        return int(self._keys[slot]) if self._events[slot] == event_id else default
+        return self._keys[slot] if self._events[slot] == event_id else default
 
     def __len__(self) -> int:
-        return int(self._filled)
+        return self._filled
 
 
 def name_cells(text: str, keys_by_event) -> str:
@@ -306,15 +342,22 @@ def name_cells(text: str, keys_by_event) -> str:
     return _EVENT.sub(lambda found: f"{found.group(0)} (cell {keys_by_event.get(int(found.group(1)), '?')})", text)
 
 
-def cell_record(key, arrival, name, cell, event, decision, predicted_arrival, scenario) -> dict:
+def cell_record(key, arrival, name, cell, event, decision, predicted_arrival, scenario, classes=None) -> dict:
     """A cell's record: its arrival (s) and type, its truth (None: never injected), its detector event and the
-    controller's decision on it (or None), the predicted arrival at the SAW window (s)."""
+    controller's decision on it (or None), the predicted arrival at the SAW window (s). ``classes``: a dict the
+    caller keeps of each type's true class, filled as types are met (None: looked up each time)."""
     if cell is None:
         outlet = "not_injected"
     else:
         outlet = cell.fate
+    if classes is None:
+        cell_class = true_class(scenario.cell_type(name))
+    else:
+        cell_class = classes.get(name)
+        if cell_class is None:
+            cell_class = classes[name] = true_class(scenario.cell_type(name))
     record = {
-        "key": key, "type": name, "true_class": true_class(scenario.cell_type(name)), "arrival_ms": arrival * 1e3,
+        "key": key, "type": name, "true_class": cell_class, "arrival_ms": arrival * 1e3,
         "event_id": event.event_id if event else None,
         "detected_class": event.classification if event else None,
         "detection_time_ms": event.time * 1e3 if event else None,
@@ -330,7 +373,7 @@ def cell_record(key, arrival, name, cell, event, decision, predicted_arrival, sc
         "exit_time_ms": cell.exit_time * 1e3 if cell and math.isfinite(cell.exit_time) else None,
         "exit_y_um": cell.exit_y * 1e6 if cell and math.isfinite(cell.exit_y) else None,
         "area_ratio": cell.area_ratio if cell else None,
-        **_shape_summary(cell.measures if cell else None),
+        **(_shape_summary(cell.measures) if cell and cell.measures else _NO_SHAPE),
     }
     record["outcome"] = outcome_class(record)
     return record
@@ -343,10 +386,13 @@ def _controller_record(settings) -> dict:
             "enabled": settings.enabled}
 
 
+_NO_SHAPE = {"area_ratio_range": None, "spacing_over_h": None, "area_corrected": None}
+
+
 def _shape_summary(measures: dict | None) -> dict:
     """Area kept over the transit and the band of point spacings (FE-IB cells; None for point-like models)."""
     if not measures:
-        return {"area_ratio_range": None, "spacing_over_h": None, "area_corrected": None}
+        return dict(_NO_SHAPE)
     return {"area_ratio_range": [measures["area_ratio_min"], measures["area_ratio_max"]],
             "spacing_over_h": [measures["spacing_lowest"], measures["spacing_highest"]],
             "area_corrected": measures["area_corrected"]}

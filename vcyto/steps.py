@@ -76,6 +76,13 @@ class ProgressSink:
         if self.bar:
             progress.run(count)
 
+    @property
+    def needs_state(self) -> bool:
+        """A long run's bar reads the events, the cells that left and the time, not the plant's observation: the loop
+        need not look at the plant for it (``needs_state``); the per-cell notes' status line counts the cells in
+        the channel."""
+        return not self.bar
+
     def on_step(self, record: StepRecord):
         """The record's detections and exits, in time order (one record of an event-driven plant spans many
         periods: a cell may leave before another is detected), then the status line."""

@@ -109,7 +109,7 @@ def settings_controller(settings: StreamSettings):
 
 
 def run_stream(scenario: Scenario, settings: StreamSettings, progress=None, plant=None, sinks=(), controller=None,
-               timing: Timing = Timing(), table=None, checkpoint=None) -> dict:
+               timing: Timing = Timing(), table=None, checkpoint=None, ready=None) -> dict:
     """Run the loop until every admitted cell has left (or a cap); a JSON-ready summary (``sortreport``).
 
     ``controller``: any object implementing ``controller.protocol.Controller`` (default: ``settings``'s,
@@ -133,13 +133,17 @@ def run_stream(scenario: Scenario, settings: StreamSettings, progress=None, plan
     The sort report is built as cells leave (``sortreport.SortLedger``, memory bounded by the cells in the
     channel); ``table``: the path of the per-cell table it writes (Parquet, ``vcyto.celltable``), or None;
     ``checkpoint``: a ``vcyto.recording.checkpoint.Checkpoint`` that writes the summary and events as the run goes,
-    or None.
+    or None. ``ready``: called once the loop is set up (the plant built and reset to the sample), before its first
+    step (the executable settles its garbage collector there: ``vcyto.cli.common.settle_collector``), or None.
     """
     port = None
     if controller is None and settings.controller_wire is not None:     # opened here, closed when the run ends
         controller = port = settings.controller_wire.open(timing)
     try:
-        return _run(Loop(scenario, settings, progress, plant, sinks, controller, timing, table, checkpoint))
+        loop = Loop(scenario, settings, progress, plant, sinks, controller, timing, table, checkpoint)
+        if ready is not None:
+            ready()
+        return _run(loop)
     finally:
         if port is not None:
             port.close()
@@ -415,9 +419,14 @@ def _peak_rss_mb() -> float | None:
     return peak / 1024 if sys.platform != "darwin" else peak / 2**20
 
 
-def _sightings(observation) -> list[Sighting]:
-    """What the detector sees of an observation's cells (a plant's own views are kept: they are frozen)."""
-    return [c if type(c) is Sighting else Sighting(c.key, c.x, c.y, c.area, c.brightness) for c in observation.cells]
+def _sightings(observation):
+    """What the detector sees of an observation's cells: its own sequence when they are all the plant contract's views
+    (frozen), else each as one."""
+    cells = observation.cells
+    for c in cells:
+        if type(c) is not Sighting:
+            return [c if type(c) is Sighting else Sighting(c.key, c.x, c.y, c.area, c.brightness) for c in cells]
+    return cells
 
 
 def _field_payload(plant):

@@ -62,6 +62,48 @@ LOG_ROWS = 4096                # rows of the crossing log to start with (likewis
 WINDOW_CELLS = 1 << 15         # cells whose state the plant holds at once (a longer sample slides through them)
 _KIND = np.int8                # a cell's type index, as the arrivals are kept (the kernel's window: int64)
 FATES = {kernels.WALL: "wall", kernels.LOST: "lost", kernels.IN_CHANNEL: "in_channel"}
+_new = object.__new__
+
+
+# The plant's views and truths, built many times a stop: their instances' ``__dict__`` filled field by field in the
+# order of their fields, which makes the same objects as the frozen dataclasses' own ``__init__`` (equal, same repr,
+# pickled alike: ``tests/test_rom.py``) at a third to a half of its cost (one ``object.__setattr__`` call a field).
+def _view(key, x, y, area, brightness) -> CellView:
+    view = _new(CellView)
+    fields = view.__dict__
+    fields["key"] = key
+    fields["x"] = x
+    fields["y"] = y
+    fields["area"] = area
+    fields["brightness"] = brightness
+    return view
+
+
+def _truth(key, name, born, fate, exit_time, exit_y, x, y) -> CellTruth:
+    """A cell's truth as ``CellTruth(key, name, born, fate, exit_time, exit_y, x, y, 1.0)`` (no membrane, no
+    measures)."""
+    cell = _new(CellTruth)
+    fields = cell.__dict__
+    fields["key"] = key
+    fields["type"] = name
+    fields["born"] = born
+    fields["fate"] = fate
+    fields["exit_time"] = exit_time
+    fields["exit_y"] = exit_y
+    fields["x"] = x
+    fields["y"] = y
+    fields["area_ratio"] = 1.0
+    fields["membrane"] = None
+    fields["measures"] = None
+    return cell
+
+
+def _observation(time, cells) -> Observation:
+    observation = _new(Observation)
+    fields = observation.__dict__
+    fields["time"] = time
+    fields["cells"] = cells
+    return observation
 
 
 def default_response_time(scenario: Scenario) -> float:
@@ -248,6 +290,7 @@ class RomPlant:
         self._dividers = divider_spans(channel) if catch_on_divider else np.zeros((0, 2))
         self._outlets = np.array([outlet.span for outlet in channel.outlets])
         self._outlet_names = {kernels.OUTLET + k: outlet.name for k, outlet in enumerate(channel.outlets)}
+        self._fate_names = {**FATES, **self._outlet_names}      # a fate code's name
         types = scenario.cell_types
         self._semi_axes = np.array([c.semi_axes for c in types])
         self._start = np.array([injection_point(scenario, c) for c in types])
@@ -407,7 +450,7 @@ class RomPlant:
 
     def take_trace(self):
         """(period index, key, (x, y)) rows traced since the last call, as arrays (copies), in time order."""
-        rows = int(self._counters[kernels.TRACED])
+        rows = self._counters.item(kernels.TRACED)
         self._counters[kernels.TRACED] = 0
         return (self._trace_step[:rows].copy(), self._trace_key[:rows] + self._base,
                 self._trace_positions[:rows].copy())
@@ -426,7 +469,7 @@ class RomPlant:
 
     def _crossings(self) -> list[Observation]:
         """The partial observations of the cells whose crossings the last ``step_until`` logged."""
-        logged = int(self._counters[kernels.LOGGED])
+        logged = self._counters.item(kernels.LOGGED)
         if not logged:
             return []
         seen = []                                   # (period, key, x, y): before and after each logged crossing
@@ -439,9 +482,9 @@ class RomPlant:
         snapshots, views, area, brightness, kind, base = [], [], self._area, self._brightness, self._kind, self._base
         for n, (step, key, x, y) in enumerate(seen):
             if not views or views[-1].key != key + base:    # a cell logged twice in one period is seen once
-                views.append(CellView(key + base, x, y, area[kind[key]], brightness[kind[key]]))
+                views.append(_view(key + base, x, y, area[kind[key]], brightness[kind[key]]))
             if n + 1 == len(seen) or seen[n + 1][0] != step:
-                snapshots.append(Observation(step * self.control_period, tuple(views)))
+                snapshots.append(_observation(step * self.control_period, tuple(views)))
                 views = []
         return snapshots
 
@@ -451,23 +494,23 @@ class RomPlant:
 
     @property
     def time(self) -> float:
-        return int(self._counters[kernels.STEP]) * self.control_period
+        return self._counters.item(kernels.STEP) * self.control_period     # item: a Python int
 
     @property
     def done(self) -> bool:
-        return (self._base + int(self._counters[kernels.NEXT]) == self._count
-                and int(self._counters[kernels.ACTIVE]) == 0)
+        counters = self._counters
+        return self._base + counters.item(kernels.NEXT) == self._count and counters.item(kernels.ACTIVE) == 0
 
     def observe(self) -> Observation:
         step, _, first, *_ = counters = self._counters.tolist()
         last = counters[kernels.NEXT]
         area, brightness, base = self._area, self._brightness, self._base
-        views = tuple([CellView(key + base, x, y, area[kind], brightness[kind])
+        views = tuple([_view(key + base, x, y, area[kind], brightness[kind])
                        for key, (x, y), fate, kind in zip(range(first, last), self._position[first:last].tolist(),
                                                           self._fate[first:last].tolist(),
                                                           self._kind[first:last].tolist())
                        if fate == kernels.IN_CHANNEL])
-        return Observation(step * self.control_period, views)
+        return _observation(step * self.control_period, views)
 
     def truth(self) -> Truth:
         """Ground truth of every injected cell the window holds (all of them when the sample fits in it; its cost
@@ -479,8 +522,8 @@ class RomPlant:
         """Ground truth of the cells in the channel and of those that settled since the previous call (each
         settled cell once); its cost depends on the cells in the channel, not on how many have passed."""
         base = self._base
-        start, upto = self._unreported, base + int(self._counters[kernels.NEXT])
-        cells, reported, names, outlets = [], self._reported, self._names, self._outlet_names
+        start, upto = self._unreported, base + self._counters.item(kernels.NEXT)
+        cells, reported, names, fates = [], self._reported, self._names, self._fate_names
         window = slice(start - base, upto - base)   # read in bulk: one conversion per array, not per value
         for i, code, kind, born, exit_time, exit_y, (x, y) in zip(
                 range(start, upto), self._fate[window].tolist(), self._kind[window].tolist(),
@@ -488,10 +531,10 @@ class RomPlant:
                 self._position[window].tolist()):
             if i in reported:
                 continue
-            fate = outlets.get(code) or FATES[code]
+            fate = fates[code]
             if fate != "in_channel":
                 reported.add(i)
-            cells.append(CellTruth(i, names[kind], born, fate, exit_time, exit_y, x, y, 1.0))
+            cells.append(_truth(i, names[kind], born, fate, exit_time, exit_y, x, y))
         while self._unreported < upto and self._unreported in reported:
             reported.discard(self._unreported)
             self._unreported += 1

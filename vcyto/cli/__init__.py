@@ -51,6 +51,7 @@ from .common import (
     RunStopped,
     UsageError,
     check_switches,
+    own_process,
     signals_seen,
 )
 
@@ -136,6 +137,7 @@ def run() -> None:
     keep pyarrow from importing pandas (``vcyto.recording.viewer.spare_pandas_import``)."""
     from ..arrowshim import spare_pandas_import
     spare_pandas_import()
+    own_process()
     try:
         status = main()
     except SystemExit as stop:

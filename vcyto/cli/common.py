@@ -4,6 +4,7 @@ paths checked (and reserved) before any work, and the number lists several optio
 from __future__ import annotations
 
 import argparse
+import gc
 import math
 import os
 import shutil
@@ -17,7 +18,7 @@ from ..outputs import strict_json
 
 __all__ = ["EXIT_INPUT", "EXIT_INTERNAL", "EXIT_NUMERICAL", "EXIT_SIGINT", "EXIT_SIGTERM", "RunStopped", "UsageError",
            "emit", "non_negative_list", "output_directory", "output_options", "output_path", "plain_number",
-           "positive_list", "signals_seen", "stderr_progress", "check_switches"]
+           "positive_list", "signals_seen", "stderr_progress", "check_switches", "own_process", "settle_collector"]
 
 
 EXIT_INPUT = 2
@@ -56,6 +57,32 @@ class RunStopped(Exception):
 
 
 signals_seen: dict[str, str] = {}      # "last": the name of the last signal turned into KeyboardInterrupt
+
+# Young objects allocated between two collections during a run, in the executable's own process (Python's default:
+# 700). A recorded sort makes and keeps for a while many small objects a step (records, cells' truths, the recorders'
+# rows): at 700 the collector walked them ~1,100 times and their older generation ~100 times per 2x10^4 events.
+COLLECTOR_THRESHOLD = 7000
+_own_process = False
+
+
+def own_process() -> None:
+    """Called by the ``vcyto`` executable (``vcyto.cli.run``) for its own process: ``settle_collector`` acts only
+    there (a Python user's process keeps its collector as it is)."""
+    global _own_process
+    _own_process = True
+
+
+def settle_collector() -> None:
+    """Once a run is set up (its plant built: the flows, the compiled kernels; its recorders open), in the
+    executable's own process only: what exists then is frozen (``gc.freeze``: no later collection walks it again,
+    as the executable does after its imports, ``vcyto.__main__``) and the youngest generation is collected every
+    ``COLLECTOR_THRESHOLD`` allocations. Measured on the 40,000 cells offered of ``vcyto bench sort --no-rerun``
+    (19,929 events, the MCAP recorded; four runs on a loaded 2-core host): 0.37-0.78 s of collections in a 6 s loop,
+    0.20-0.23 s with both."""
+    if not _own_process:
+        return
+    gc.freeze()
+    gc.set_threshold(COLLECTOR_THRESHOLD, *gc.get_threshold()[1:])
 
 
 def stderr_progress(quiet: bool):

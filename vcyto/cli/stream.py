@@ -31,6 +31,7 @@ from .common import (
     emit,
     output_directory,
     output_options,
+    settle_collector,
     signals_seen,
 )
 
@@ -218,7 +219,7 @@ def _run_with_sinks(args, scenario, settings, view, files, background, interrupt
                 result = stream.run_stream(scenario, settings, progress, sinks=[background] if background else [],
                                            table=files.path("cells.parquet") if files is not None else None,
                                            checkpoint=files.checkpoint(settings, scenario) if files else None,
-                                           **loop)
+                                           ready=settle_collector, **loop)
             except stream.StreamStopped as error:
                 stopped, result = error, error.result
                 if isinstance(error.__cause__, OSError) and not isinstance(error.__cause__, ConnectionError):

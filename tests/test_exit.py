@@ -187,6 +187,30 @@ def test_a_signal_while_a_run_creates_its_files_is_deferred_not_lost():
     assert not quiet.pending
 
 
+def test_a_signal_as_the_sinks_close_waits_for_the_files_and_the_summary(tmp_path, monkeypatch):
+    """SIGTERM after the loop, while the sinks close (a stalled viewer's bounded wait): the files are finished, the
+    summary says the run was complete, one line says so, and the exit status is the signal's (143)."""
+    import vcyto.cli.stream as stream_cli
+    from guard import vcyto_inline
+
+    close = stream_cli._close_run
+
+    def signalled_close(*args, **kwargs):
+        os.kill(os.getpid(), signal.SIGTERM)
+        time.sleep(0.05)                     # the handler runs here: it must not raise
+        return close(*args, **kwargs)
+
+    monkeypatch.setattr(stream_cli, "_close_run", signalled_close)
+    status, _, stderr = vcyto_inline(["stream", "--model", "rom", "--cells", "RBC,melanoma", "--output", str(tmp_path),
+                                      "--name", "run", "--quiet", "--no-viewer"])
+    assert status == 143, stderr
+    assert "SIGTERM came as the run's files were finished; they are whole and the summary's status is 'complete'" \
+        in stderr, stderr
+    summary = json.loads((tmp_path / "run.json").read_text())
+    assert summary["status"] == "complete" and summary["statistics"]["cells"] == 2
+    assert (tmp_path / "run.mcap").stat().st_size > 0 and (tmp_path / "run.fcs").stat().st_size > 0
+
+
 def test_a_write_that_fails_half_way_keeps_the_old_contents_and_names_the_file(tmp_path):
     """``outputs.write_whole`` (summaries, FCS, Gating-ML, PNGs): a disk that fills up in the middle leaves the
     reserved placeholder as it was, no temporary file, and an error naming the file the user will look for."""

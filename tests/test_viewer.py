@@ -280,7 +280,8 @@ def test_sigterm_ends_a_run_streaming_to_a_stalled_viewer_at_once(stalled_viewer
     import time
 
     from guard import terminated_within
-    process = vcyto_on_port(stalled_viewer, "stream", "--model", "rom", "--count", "5000", "--mix",
+    # 10^5 cells offered at 500/s: a loop of tens of seconds, still running when the signal comes
+    process = vcyto_on_port(stalled_viewer, "stream", "--model", "rom", "--count", "100000", "--mix",
                             "RBC:0.9,melanoma:0.1", "--rate", "500", "--output", str(tmp_path), "--name", "run",
                             "--quiet", "--connect", f"rerun+http://127.0.0.1:{stalled_viewer}/proxy")
     try:

@@ -177,11 +177,19 @@ def _stream_with(args, scenario, settings, output, loop: dict):
             except outputs.NameTaken as error:
                 raise UsageError(str(error)) from None
         background = _open_sinks(args, scenario, settings, view, files)
-    result, stopped, unwritten = _run_with_sinks(args, scenario, settings, view, files, background,
-                                                 setting_up.pending, loop)
-    if unwritten is not None:
-        _report_write_failure(args, result, unwritten, view, files, settings, scenario)
-    _report_stream(args, result, stopped, view, files, settings, scenario)
+    # a signal after the loop (while the sinks close, a stalled viewer's bounded wait included, and the files are
+    # written) waits for them: the run's files are finished and its summary says how it ended, then it exits
+    with runfiles.interrupts_deferred(signals_seen) as finishing:
+        result, stopped, unwritten = _run_with_sinks(args, scenario, settings, view, files, background,
+                                                     setting_up.pending, loop)
+        if unwritten is not None:
+            _report_write_failure(args, result, unwritten, view, files, settings, scenario)
+        _report_stream(args, result, stopped, view, files, settings, scenario)
+    if finishing.pending:
+        name = signals_seen.get("last", "SIGINT")
+        print(f"vcyto: {name} came as the run's files were finished; they are whole and the summary's status is "
+              f"{result.get('status', 'complete')!r}", file=sys.stderr)
+        return EXIT_SIGTERM if name == "SIGTERM" else EXIT_SIGINT
     return _partial_status(args, result)
 
 

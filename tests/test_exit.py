@@ -190,8 +190,9 @@ def test_a_signal_while_a_run_creates_its_files_is_deferred_not_lost():
 def test_a_signal_as_the_sinks_close_waits_for_the_files_and_the_summary(tmp_path, monkeypatch):
     """SIGTERM after the loop, while the sinks close (a stalled viewer's bounded wait): the files are finished, the
     summary says the run was complete, one line says so, and the exit status is the signal's (143)."""
-    import vcyto.cli.stream as stream_cli
     from guard import vcyto_inline
+
+    import vcyto.cli.stream as stream_cli
 
     close = stream_cli._close_run
 

@@ -43,9 +43,12 @@ def flat(record: dict) -> dict:
     return row
 
 
+_PAIRED = frozenset(name for pair in PAIRS.values() for name in pair)
+
+
 def record_of(row: dict) -> dict:
     """A table row as a per-cell record (the inverse of ``flat``)."""
-    record = {name: value for name, value in row.items() if not any(name in pair for pair in PAIRS.values())}
+    record = {name: value for name, value in row.items() if name not in _PAIRED}
     for pair, (low, high) in PAIRS.items():
         record[pair] = [row[low], row[high]] if row.get(low) is not None else None
     return record

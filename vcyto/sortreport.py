@@ -114,13 +114,8 @@ class SortLedger:
             self.event(event)
         for decision in record.decisions:
             self.decision(decision)
-        inside = self._inside
-        for cell in record.truth.cells:          # ``cell`` of each, inline (a few cells a step, every step)
-            if cell.fate == "in_channel":
-                inside[cell.key] = cell
-            else:
-                inside.pop(cell.key, None)
-                self._record(cell.key, cell)
+        for cell in record.truth.cells:
+            self.cell(cell)
         if self.checkpoint is not None and self.checkpoint.due():
             self.checkpoint.write(self)
 

@@ -215,9 +215,10 @@ class Entities:
         self._label_template = _text(0.0, 0.0, "x")
 
     def marker(self, unix_ns: int, entity_id: str, x_um: float, y_um: float, rgb, label: str) -> bytes:
-        template = self._markers.get(rgb)           # by the colour as given (a class colour: a tuple)
+        rgb = rgb if type(rgb) is tuple else tuple(rgb)      # a class colour is a tuple already
+        template = self._markers.get(rgb)
         if template is None:
-            template = self._markers[tuple(rgb)] = marker(0, "", 0.0, 0.0, tuple(int(value) for value in rgb), "x")
+            template = self._markers[rgb] = marker(0, "", 0.0, 0.0, tuple(int(value) for value in rgb), "x")
         entity = SceneEntity()
         entity.CopyFrom(template)
         entity.timestamp.seconds, entity.timestamp.nanos = divmod(unix_ns, 1_000_000_000)
